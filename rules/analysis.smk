@@ -1,0 +1,1 @@
+# Records -> verified manifest -> summary -> tables and figures (issue: regenerate the paper's tables).

@@ -1,0 +1,1 @@
+# Record -> replay per configuration -> analysis -> replay tables (issue: same-observation replay).

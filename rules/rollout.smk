@@ -1,0 +1,1 @@
+# Checkpoint -> calibration statistics -> closed-loop rollout per cell (issue: closed-loop LIBERO rollouts).
