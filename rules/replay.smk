@@ -1,1 +1,152 @@
 # Record -> replay per configuration -> analysis -> replay tables (issue: same-observation replay).
+# With `replay_analysis_dir` set (e.g. the authors' files), the tables read its
+# `<format>/analysis.json` files; otherwise the DAG records full-precision trajectories in LIBERO,
+# replays every configuration on them (one job each; full precision twice, under `fp/`) and
+# analyses each format under results/replay/<study>/.
+from vlaquantbench.replay.study import load_study, with_formats  # noqa: E402
+
+REPLAY_STUDY = "pi05_libero_spatial"
+REPLAY_OPTIONS = config.get("replay") or {}
+REPLAY = with_formats(load_study(REPLAY_STUDY), REPLAY_OPTIONS.get("formats"))
+REPLAY_DIR = config.get("replay_analysis_dir") or f"results/replay/{REPLAY_STUDY}"
+REPLAY_ANALYSES = [f"{REPLAY_DIR}/{fmt}/analysis.json" for fmt in REPLAY["formats"]]
+# Success rates of the matching closed-loop cells (SR column): a summary with the authors' columns.
+SUCCESS_SUMMARY = config.get("success_summary") or "tables/summary.csv"
+
+
+wildcard_constraints:
+    replay_format="fp|" + "|".join(REPLAY["formats"]),
+
+
+rule replay_record:
+    output:
+        "results/replay/{study}/records/records.json",
+    params:
+        study=lambda wc: load_study(wc.study),
+        options=REPLAY_OPTIONS,
+    log:
+        "results/replay/{study}/records/record.log",
+    script:
+        "../workflow/scripts/replay_record.py"
+
+
+rule replay_configuration:
+    wildcard_constraints:
+        config="|".join([REPLAY["baseline"], REPLAY["repeat"], *REPLAY["configurations"]]),
+    input:
+        "results/replay/{study}/records/records.json",
+    output:
+        summary="results/replay/{study}/{replay_format}/{config}.json",
+        arrays="results/replay/{study}/{replay_format}/{config}.npz",
+    params:
+        study=lambda wc: load_study(wc.study),
+        preset=lambda wc: "BASELINE" if wc.replay_format == "fp" else wc.replay_format,
+        checkpoint_dir=REPLAY_OPTIONS.get("checkpoint_dir"),
+    log:
+        "results/replay/{study}/{replay_format}/{config}.log",
+    script:
+        "../workflow/scripts/replay_configuration.py"
+
+
+rule replay_analyze:
+    input:
+        lambda wc: [
+            f"results/replay/{wc.study}/fp/{REPLAY['baseline']}.json",
+            f"results/replay/{wc.study}/fp/{REPLAY['repeat']}.json",
+            *expand("results/replay/{study}/{replay_format}/{config}.json", study=wc.study,
+                    replay_format=wc.replay_format, config=REPLAY["configurations"]),
+        ],
+    output:
+        "results/replay/{study}/{replay_format}/analysis.json",
+    params:
+        study=lambda wc: load_study(wc.study),
+    script:
+        "../workflow/scripts/replay_analyze.py"
+
+
+rule replay_composition_table:
+    input:
+        REPLAY_ANALYSES,
+    output:
+        "tables/replay_composition.tex",
+    params:
+        analysis_dir=REPLAY_DIR,
+        study=REPLAY_STUDY,
+        formats=REPLAY["formats"],
+    script:
+        "../workflow/scripts/replay_composition_table.py"
+
+
+rule replay_all_formats_table:
+    input:
+        analyses=REPLAY_ANALYSES,
+        success=SUCCESS_SUMMARY,
+    output:
+        "tables/replay_all_formats.tex",
+    params:
+        analysis_dir=REPLAY_DIR,
+        study=REPLAY_STUDY,
+        formats=REPLAY["formats"],
+    script:
+        "../workflow/scripts/replay_all_formats_table.py"
+
+
+rule replay_bias_table:
+    input:
+        REPLAY_ANALYSES,
+    output:
+        "tables/replay_bias.tex",
+    params:
+        analysis_dir=REPLAY_DIR,
+        study=REPLAY_STUDY,
+        formats=REPLAY["formats"],
+    script:
+        "../workflow/scripts/replay_bias_table.py"
+
+
+rule replay_formats_figure:
+    input:
+        REPLAY_ANALYSES,
+    output:
+        "figures/replay_formats.pdf",
+    params:
+        analysis_dir=REPLAY_DIR,
+        study=REPLAY_STUDY,
+        formats=REPLAY["formats"],
+    script:
+        "../workflow/scripts/replay_formats_figure.py"
+
+
+# Layer diagnostics -> proxy audit (tab:proxy_audit). With `diagnostics_dir` set (e.g. the authors'
+# diagnostics/v2), its files are read; otherwise they are collected under results/diagnostics/ on the
+# replay study's full-precision recording (models of that recording only).
+from vlaquantbench.diagnostics.proxy_audit import load_cohort  # noqa: E402
+
+PROXY_COHORT = load_cohort("proxy_audit")
+DIAGNOSTICS_DIR = config.get("diagnostics_dir") or "results/diagnostics"
+
+
+rule diagnostics_collect:
+    input:
+        f"results/replay/{REPLAY_STUDY}/records/records.json",
+    output:
+        "results/diagnostics/{model}-{scope}-{preset}.json",
+    params:
+        checkpoint_dir=REPLAY_OPTIONS.get("checkpoint_dir"),
+    log:
+        "results/diagnostics/{model}-{scope}-{preset}.log",
+    script:
+        "../workflow/scripts/diagnostics_collect.py"
+
+
+rule proxy_audit_table:
+    input:
+        diagnostics=[f"{DIAGNOSTICS_DIR}/{m['diagnostics']}.json" for m in PROXY_COHORT["models"].values()],
+        success=SUCCESS_SUMMARY,
+    output:
+        table="tables/proxy_audit.tex",
+        scopes="tables/proxy_audit.scopes.csv",
+    params:
+        diagnostics_dir=DIAGNOSTICS_DIR,
+    script:
+        "../workflow/scripts/proxy_audit_table.py"

@@ -1,1 +1,72 @@
 # Checkpoint -> calibration statistics -> closed-loop rollout per cell (issue: closed-loop LIBERO rollouts).
+# The table definitions decide which cells are needed (WF.cell_refs); each cell's canonical config
+# (vlaquantbench.cells) names its folder results/cells/<config-hash>/, so a cell reruns exactly
+# when something that changes its episodes changes. Without `records_dir` only.
+from vlaquantbench import cells as cell_configs  # noqa: E402
+from vlaquantbench.workflow import CELLS_DIR  # noqa: E402
+
+STUDY = config.get("study") or {}
+CELLS = {} if WF.records_dir else cell_configs.study_cells(WF.cell_refs(), STUDY)
+CALIBRATIONS = {
+    cell_configs.config_hash(calib): calib
+    for calib in map(cell_configs.calibration_config, CELLS.values())
+    if calib is not None
+}
+CHECKPOINTS = {
+    cell_configs.checkpoint_key(cfg): {k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}
+    for cfg in CELLS.values()
+}
+
+
+def checkpoint_stamp(cfg):
+    return f"results/checkpoints/{cell_configs.checkpoint_key(cfg)}/checkpoint.json"
+
+
+def calibration_stats(cfg):
+    calib = cell_configs.calibration_config(cfg)
+    return [] if calib is None else [f"results/calibration/{cell_configs.config_hash(calib)}.pt"]
+
+
+rule download_checkpoint:
+    output:
+        "results/checkpoints/{checkpoint}/checkpoint.json",
+    wildcard_constraints:
+        checkpoint="|".join(CHECKPOINTS) or "^$",
+    params:
+        info=lambda wc: CHECKPOINTS[wc.checkpoint],
+    script:
+        "../workflow/scripts/download_checkpoint.py"
+
+
+rule calibrate:
+    input:
+        checkpoint=lambda wc: checkpoint_stamp(CALIBRATIONS[wc.calibration]),
+    output:
+        "results/calibration/{calibration}.pt",
+    wildcard_constraints:
+        calibration="|".join(CALIBRATIONS) or "^$",
+    params:
+        calibration=lambda wc: CALIBRATIONS[wc.calibration],
+    threads: 2
+    resources:
+        gpu=lambda wc: int(CALIBRATIONS[wc.calibration]["runner"]["device"].startswith("cuda")),
+    script:
+        "../workflow/scripts/calibrate.py"
+
+
+rule rollout:
+    input:
+        checkpoint=lambda wc: checkpoint_stamp(CELLS[wc.cell]),
+        calibration=lambda wc: calibration_stats(CELLS[wc.cell]),
+    output:
+        episodes=f"{CELLS_DIR}/{{cell}}/episodes.parquet",
+        header=f"{CELLS_DIR}/{{cell}}/header.json",
+    wildcard_constraints:
+        cell="|".join(CELLS) or "^$",
+    params:
+        cell=lambda wc: CELLS[wc.cell],
+    threads: 2
+    resources:
+        gpu=lambda wc: int(CELLS[wc.cell]["runner"]["device"].startswith("cuda")),
+    script:
+        "../workflow/scripts/rollout.py"

@@ -9,12 +9,15 @@ without it, the DAG produces the cell under `results/cells/<config-hash>/`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
-from typing import Any
-
-import yaml
+from typing import TYPE_CHECKING, Any
 
 from vlaquantbench.errors import UserError
+
+if TYPE_CHECKING:
+    from vlaquantbench.figures import ScopeRecoveryFigure
+    from vlaquantbench.tables import TableDefinition
 
 
 @dataclass(frozen=True)
@@ -36,8 +39,81 @@ class WorkflowConfig:
         value = self.raw.get("manifest")
         return Path(value) if value else None
 
-    def table_definition(self, name: str) -> dict[str, Any]:
-        path = self.basedir / "config" / "tables" / f"{name}.yaml"
-        if not path.exists():
-            raise UserError(f"unknown table {name!r}: no {path}")
-        return yaml.safe_load(path.read_text())
+    # --- records and tables (analysis rules) ---
+
+    @property
+    def records_root(self) -> Path:
+        """Where the record files the tables read live: `records_dir`, or the DAG's cell folders."""
+        return self.records_dir or Path(CELLS_DIR)
+
+    def cell_input(self, ref: str) -> str:
+        """The record file of cell `ref`: the authors' `.jsonl` or a cell folder's `episodes.parquet`."""
+        if self.records_dir is None:
+            from vlaquantbench import cells  # the DAG's cell hashing; imported only when cells are produced
+
+            config_hash = cells.config_hash(cells.cell_config(ref, self.raw.get("study") or {}))
+            return f"{CELLS_DIR}/{config_hash}/episodes.parquet"
+        found = self._recorded_cells().get(ref)
+        if found is None:
+            raise UserError(
+                f"cell {ref} is not in records_dir {self.records_dir}: "
+                f"neither {ref}.jsonl nor {ref}/episodes.parquet exists"
+            )
+        return str(found)
+
+    @property
+    def tables_dir(self) -> Path:
+        """Table definitions: `config/tables/`, or the study's own (`study.tables_dir`) when the
+        DAG runs the cells itself (the demo study renders a few rows with a demo caption)."""
+        study_dir = (self.raw.get("study") or {}).get("tables_dir")
+        if self.records_dir is None and study_dir:
+            return self.basedir / study_dir
+        return self.basedir / "config" / "tables"
+
+    def table(self, name: str) -> "TableDefinition":
+        from vlaquantbench.tables import load_table
+
+        return load_table(self.tables_dir / f"{name}.yaml")
+
+    def table_names(self) -> list[str]:
+        """Tables defined by a `<tables_dir>/<name>.yaml` (the paper tables built from records)."""
+        return sorted(path.stem for path in self.tables_dir.glob("*.yaml"))
+
+    def figure(self, name: str) -> "ScopeRecoveryFigure":
+        from vlaquantbench.figures import load_figure
+
+        return load_figure(self.basedir / "config" / "figures" / f"{name}.yaml")
+
+    def cell_refs(self) -> list[str]:
+        """Cells the summary lists and the manifest check covers: every recorded cell in
+        `records_dir`, plus every cell a table listed in `tables` reads."""
+        defined = set(self.table_names())
+        used = {ref for name in self.raw.get("tables", []) if name in defined for ref in self.table(name).refs()}
+        if self.records_dir is not None:
+            used |= set(self._recorded_cells())
+        return sorted(used)
+
+    def checked_refs(self, refs: list[str], target: str) -> list[str]:
+        """`refs` of `target`, provided the manifest check covers them all (so no table reads an unchecked record)."""
+        covered = set(self.cell_refs())
+        unchecked = [ref for ref in refs if ref not in covered]
+        if unchecked:
+            raise UserError(
+                f"{target} reads cell {unchecked[0]}, which the manifest check does not cover: "
+                "add a table that lists it to `tables` in the config"
+            )
+        return refs
+
+    def _recorded_cells(self) -> dict[str, Path]:
+        return _cells_in(self.records_dir)
+
+
+CELLS_DIR = "results/cells"
+
+
+@lru_cache(maxsize=None)
+def _cells_in(records_dir: Path) -> dict[str, Path]:
+    """The cells under `records_dir`, scanned once per workflow run (input functions ask repeatedly)."""
+    from vlaquantbench.records import find_cells
+
+    return find_cells(records_dir)

@@ -1,0 +1,103 @@
+"""Time regenerating the paper's tables from the authors' 65 reference cells on this machine's CPUs.
+
+Measures, in one run: reading + summarizing all cells (tables/summary.csv), rendering every table of
+config/tables (the 30 task-clustered bootstraps included) and the scope-recovery figure; and, side by
+side, the vectorized bootstrap against a per-draw loop of the same two-stage procedure.
+
+    .venv/bin/python benchmarks/bench_tables.py   # writes benchmarks/results/tables_cpu.json
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from vlaquantbench.figures import load_figure, plot_scope_recovery
+from vlaquantbench.records import find_cells, read_cell
+from vlaquantbench.stats import task_clustered_bootstrap
+from vlaquantbench.tables import load_table, write_summary, write_table
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORDS = ROOT.parent / "shared" / "reference" / "records"
+REPEATS = 3
+GOAL_S = 30.0
+
+
+def loop_bootstrap(a, b, draws=5000, seed=0):
+    """The two-stage bootstrap written draw by draw (the shape of a direct transcription)."""
+    rng = np.random.default_rng(seed)
+    tasks = sorted(a["task_id"].unique())
+    outcomes = [
+        {t: cell.loc[cell["task_id"] == t, "success"].to_numpy(dtype=float) for t in tasks} for cell in (a, b)
+    ]
+    differences = []
+    for _ in range(draws):
+        picked = rng.choice(tasks, size=len(tasks))
+        rates = [[rng.choice(cell[t], size=len(cell[t])).mean() for t in picked] for cell in outcomes]
+        differences.append(100.0 * np.mean(np.subtract(*rates)))
+    return np.percentile(differences, [2.5, 97.5])
+
+
+def timed(fn) -> float:
+    samples = []
+    for _ in range(REPEATS):
+        start = time.perf_counter()
+        fn()
+        samples.append(time.perf_counter() - start)
+    return statistics.median(samples)
+
+
+def main() -> dict:
+    cell_paths = find_cells(RECORDS)
+    tables = sorted((ROOT / "config" / "tables").glob("*.yaml"))
+    figure = load_figure(ROOT / "config" / "figures" / "scope_recovery.yaml")
+    with tempfile.TemporaryDirectory() as out:
+        out = Path(out)
+
+        def summarize_all():
+            write_summary(cell_paths, out / "summary.csv")
+
+        def render_all():
+            for path in tables:
+                definition = load_table(path)
+                write_table(definition, {ref: cell_paths[ref] for ref in definition.refs()}, out / f"{path.stem}.tex")
+            plot_scope_recovery(figure, {ref: cell_paths[ref] for ref in figure.refs()}, out / "scope_recovery.pdf")
+
+        summary_s, render_s = timed(summarize_all), timed(render_all)
+
+    a = read_cell(cell_paths["libero/libero_spatial/pi05/rtn-W4A4-ah"]).episodes
+    b = read_cell(cell_paths["libero/libero_spatial/pi05/ablate-W4A4-ah-down_attn_adarms"]).episodes
+    vectorized_s = timed(lambda: task_clustered_bootstrap(a, b))
+    loop_s = timed(lambda: loop_bootstrap(a, b))
+    result = {
+        "cells": len(cell_paths),
+        "tables": [path.stem for path in tables] + ["scope_recovery (figure)"],
+        "summarize_all_cells_s": round(summary_s, 3),
+        "render_every_table_s": round(render_s, 3),
+        "total_s": round(summary_s + render_s, 3),
+        "goal_s": GOAL_S,
+        "bootstrap_one_contrast_vectorized_s": round(vectorized_s, 4),
+        "bootstrap_one_contrast_loop_s": round(loop_s, 4),
+        "bootstrap_speedup": round(loop_s / vectorized_s, 1),
+        "repeats": REPEATS,
+        "statistic": "median wall time",
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "machine": platform.processor() or platform.machine(),
+    }
+    output = ROOT / "benchmarks" / "results" / "tables_cpu.json"
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result, indent=2))
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,258 @@
+"""pi0.5 per-chunk latency and throughput: eager lerobot vs the captured sampler, with and without
+W4A8 / W4A4 end-to-end fake quantization, measured side by side in one process.
+
+Model: lerobot 0.6.1 `PI05Pytorch` at full size, random weights, bf16 (lerobot keeps the SigLIP
+tower, projector and norms in float32), 3 cameras at 224 px, 200 prompt tokens, 10 flow steps.
+Quantization: `vlaquantbench.quant.quantize_` with scope e2e (all 456 selectable linears); the
+captured form swaps its hooks' transforms for the fused kernel (`accel.fused_quant`).
+Timing: CUDA-synchronized wall clock per chunk, warm-up discarded, median of the repeats.
+
+    python benchmarks/gpu_policy_inference.py --out benchmarks/results/gpu_policy_inference.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+
+import torch
+
+from vlaquantbench.accel import CapturedSampler
+from vlaquantbench.accel.fused_quant import fuse_activation_hooks
+from vlaquantbench.models import get_model_spec
+from vlaquantbench.quant import QuantConfig, quantize_, select_layers
+
+
+def chunk_inputs(batch: int, device, seed: int = 0):
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    images = [(torch.rand(batch, 3, 224, 224, generator=g) * 2 - 1).to(device) for _ in range(3)]
+    img_masks = [torch.ones(batch, dtype=torch.bool, device=device) for _ in range(3)]
+    tokens = torch.randint(0, 257152, (batch, 200), generator=g).to(device)
+    masks = torch.ones(batch, 200, dtype=torch.bool, device=device)
+    noise = torch.randn(batch, 50, 32, generator=g).to(device)
+    return images, img_masks, tokens, masks, noise
+
+
+def time_chunks(fn, warmup: int, repeats: int) -> list[float]:
+    for _ in range(warmup):
+        fn()
+    torch.cuda.synchronize()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        torch.cuda.synchronize()
+        times.append(time.perf_counter() - start)
+    return times
+
+
+def kernel_profile(fn) -> dict:
+    """GPU kernel count and summed kernel time of one chunk run without graphs (the floor a graph
+    replay approaches once launch gaps are gone), with the five costliest kernel names."""
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        fn()
+        torch.cuda.synchronize()
+    events = [e for e in prof.key_averages() if e.device_time_total > 0]
+    total_us = sum(e.self_device_time_total for e in events)
+    top = sorted(events, key=lambda e: e.self_device_time_total, reverse=True)[:5]
+    return {
+        "kernels": int(sum(e.count for e in events if e.self_device_time_total > 0)),
+        "kernel_time_ms": total_us / 1e3,
+        "top": [{"name": e.key[:80], "ms": e.self_device_time_total / 1e3, "count": e.count} for e in top],
+    }
+
+
+def fused_kernel_check(device) -> dict:
+    """Fraction of elements where the fused kernel equals the reference transform (expected: all)."""
+    from vlaquantbench.accel.fused_quant import fused_fake_quant
+    from vlaquantbench.quant.hooks import InputTransform
+
+    out = {}
+    g = torch.Generator(device="cpu").manual_seed(0)
+    for rows, cols, dtype in [(968, 2048, torch.bfloat16), (50, 16384, torch.bfloat16), (256, 1152, torch.float32)]:
+        x = (torch.randn(rows, cols, generator=g) * torch.rand(rows, 1, generator=g) * 5).to(device, dtype)
+        smooth = torch.rand(cols, generator=g).to(device) + 0.5
+        clip = torch.rand(cols, generator=g).to(device) * 3 + 0.1
+        for bits in (4, 8):
+            for sm, cl in ((None, None), (smooth, clip)):
+                ref = InputTransform(smooth=sm, clip=cl, act_bits=bits)(x)
+                got = fused_fake_quant(x, bits, sm, cl)
+                key = f"{rows}x{cols}_{str(dtype)[6:]}_a{bits}{'_smooth_clip' if sm is not None else ''}"
+                out[key] = (got == ref).float().mean().item()
+    return out
+
+
+def compile_experiment(model, spec, originals, steps, args, results, tf32, backends) -> None:
+    """Inductor-compiled static sampler inside the CUDA graph: compile (warm-up) seconds and chunk
+    time for BASELINE and W4A4 (reference hooks, which inductor fuses), batch 1. Written last, so a
+    compile that outlasts the run leaves the results above intact."""
+    b1 = chunk_inputs(1, device=next(model.parameters()).device)
+    out = {}
+    for preset in ("BASELINE", "W4A4"):
+        with torch.no_grad():
+            for name, weight in originals.items():
+                model.get_submodule(name).weight.copy_(weight)
+        report = quantize_(model, QuantConfig.from_preset(preset, scope="e2e"), components=spec.components)
+        sampler = CapturedSampler(model, num_steps=steps, tf32=tf32, attention_backends=backends, compile=True)
+        t0 = time.perf_counter()
+        sampler(*b1)
+        torch.cuda.synchronize()
+        warmup_s = time.perf_counter() - t0
+        ms = 1e3 * statistics.median(time_chunks(lambda: sampler(*b1), warmup=2, repeats=args.repeats))
+        out[preset] = {"warmup_s": warmup_s, "b1_ms": ms, "unfired": len(report.unfired())}
+        print(f"[compile] {preset} b1: {ms:.2f} ms, compile+capture {warmup_s:.1f} s", flush=True)
+        report.remove_hooks()
+        results["compile_experiment"] = out
+        with open(args.out, "w") as f:
+            json.dump(results, f, indent=1)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 8, 32])
+    parser.add_argument("--presets", nargs="+", default=["BASELINE", "W4A8", "W4A4"])
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--compile-experiment", action="store_true",
+                        help="also time torch.compile (inductor) inside the captured graph, BASELINE and W4A4, batch 1")
+    parser.add_argument("--eager-repeats-large", type=int, default=5, help="repeats for eager at batch >= 8")
+    args = parser.parse_args()
+
+    device = torch.device("cuda")
+    spec = get_model_spec("pi05")
+    t0 = time.perf_counter()
+    model = spec.build(variant="full", device=device, seed=0).eval()
+    build_s = time.perf_counter() - t0
+    steps = 10
+    inputs = {b: chunk_inputs(b, device) for b in args.batches}
+    # Each cell rounds weights in place; keep the released ones to restore before the next cell.
+    originals = {n: m.weight.detach().clone()
+                 for n, m in select_layers(model, spec.components, "e2e", None, None).flat().items()}
+    results = {"cells": [], "checks": {"fused_equal_fraction": fused_kernel_check(device)}, "profiles": {}}
+    print("fused kernel == reference:", results["checks"]["fused_equal_fraction"], flush=True)
+
+    # Kernel choices for the captured form, timed on the baseline at batch 1; the fastest is used below.
+    from torch.nn.attention import SDPBackend
+
+    backend_sets = {"default": None, "efficient": [SDPBackend.EFFICIENT_ATTENTION],
+                    "cudnn": [SDPBackend.CUDNN_ATTENTION], "math": [SDPBackend.MATH]}
+    sweep = {}
+    b1 = chunk_inputs(1, device)
+    for tf32 in (False, True):
+        for label, backends in backend_sets.items():
+            sampler = CapturedSampler(model, num_steps=steps, tf32=tf32, attention_backends=backends)
+            try:
+                ms = 1e3 * statistics.median(time_chunks(lambda: sampler(*b1), warmup=2, repeats=args.repeats))
+            except RuntimeError as err:  # a backend that rejects these shapes
+                ms = float("nan")
+                print(f"sweep {label} tf32={tf32}: {err}"[:200], flush=True)
+            sweep[f"{label}_tf32={tf32}"] = ms
+            print(f"sweep captured b1 attention={label} tf32={tf32}: {ms:.2f} ms", flush=True)
+            del sampler
+    results["kernel_choice_sweep_b1_ms"] = sweep
+    best = min((k for k in sweep if sweep[k] == sweep[k]), key=sweep.get)
+    best_backends = backend_sets[best.split("_tf32=")[0]]
+    best_tf32 = best.endswith("True")
+    results["captured_kernel_choice"] = best
+    torch.cuda.empty_cache()
+
+    for preset in args.presets:
+        with torch.no_grad():
+            for name, weight in originals.items():
+                model.get_submodule(name).weight.copy_(weight)
+        report = quantize_(model, QuantConfig.from_preset(preset, scope="e2e"), components=spec.components)
+        cell = {"preset": preset, "format": report.result.format, "hooks": len(report.result.hooks),
+                "layers": report.components, "eager": {}, "captured": {}}
+
+        for b in args.batches:
+            images, img_masks, tokens, masks, noise = inputs[b]
+            reps = args.repeats if b == 1 else args.eager_repeats_large
+            times = time_chunks(lambda: model.sample_actions(images, img_masks, tokens, masks, noise=noise.clone(),
+                                                             num_steps=steps), warmup=3, repeats=reps)
+            cell["eager"][b] = {"median_ms": 1e3 * statistics.median(times), "chunks_per_s": b / statistics.median(times)}
+            print(f"[{preset}] eager b{b}: {1e3 * statistics.median(times):.1f} ms", flush=True)
+        eager_hook_calls = sum(report.hook_calls().values())
+        images, img_masks, tokens, masks, noise = inputs[min(args.batches)]
+        results["profiles"][preset] = {"eager_lerobot": kernel_profile(lambda: model.sample_actions(
+            images, img_masks, tokens, masks, noise=noise.clone(), num_steps=steps))}
+
+        fused = fuse_activation_hooks(report)
+        sampler = CapturedSampler(model, num_steps=steps, tf32=best_tf32, attention_backends=best_backends)
+        for b in args.batches:
+            images, img_masks, tokens, masks, noise = inputs[b]
+            torch.cuda.synchronize()
+            t0 = time.perf_counter()
+            sampler(images, img_masks, tokens, masks, noise)
+            torch.cuda.synchronize()
+            capture_s = time.perf_counter() - t0
+            times = time_chunks(lambda: sampler(images, img_masks, tokens, masks, noise), warmup=3, repeats=args.repeats)
+            cell["captured"][b] = {"median_ms": 1e3 * statistics.median(times),
+                                   "chunks_per_s": b / statistics.median(times), "capture_s": capture_s}
+            print(f"[{preset}] captured b{b}: {1e3 * statistics.median(times):.2f} ms (capture {capture_s:.1f} s)",
+                  flush=True)
+        cell["fused_hooks"] = fused
+        cell["unfired_after_capture"] = report.unfired()
+        cell["hook_calls_eager_plus_capture"] = sum(report.hook_calls().values())
+        cell["hook_calls_eager"] = eager_hook_calls
+
+        if b_check := 1 if 1 in args.batches else None:
+            images, img_masks, tokens, masks, noise = inputs[b_check]
+            eager = model.sample_actions(images, img_masks, tokens, masks, noise=noise.clone(), num_steps=steps)
+            captured = sampler(images, img_masks, tokens, masks, noise)
+            rel = ((captured.float() - eager.float()).norm() / eager.float().norm()).item()
+            cell["captured_vs_eager_rel_l2_b1"] = rel
+            print(f"[{preset}] captured vs eager actions, relative L2: {rel:.2e}", flush=True)
+            from vlaquantbench.accel import pi05_static
+
+            with sampler._kernel_choices():
+                results["profiles"][preset]["captured_form_without_graph"] = kernel_profile(
+                    lambda: pi05_static.sample_actions(model, images, img_masks, tokens, masks, noise, sampler.times))
+        report.remove_hooks()
+        results["cells"].append(cell)
+        del sampler
+        torch.cuda.empty_cache()
+
+    base = {c["preset"]: c for c in results["cells"]}
+    ratios = {}
+    for preset, cell in base.items():
+        for b in args.batches:
+            ratios[f"{preset}_b{b}"] = {
+                "eager_ms": cell["eager"][b]["median_ms"],
+                "captured_ms": cell["captured"][b]["median_ms"],
+                "captured_speedup_vs_eager": cell["eager"][b]["median_ms"] / cell["captured"][b]["median_ms"],
+                "eager_overhead_vs_baseline": cell["eager"][b]["median_ms"] / base["BASELINE"]["eager"][b]["median_ms"],
+                "captured_overhead_vs_baseline": cell["captured"][b]["median_ms"] / base["BASELINE"]["captured"][b]["median_ms"],
+            }
+    results["ratios"] = ratios
+    results["machine"] = {
+        "gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda,
+        "python": platform.python_version(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    import lerobot
+    import transformers
+
+    results["machine"].update(lerobot=lerobot.__version__, transformers=transformers.__version__)
+    results["model_build_s"] = build_s
+    results["setup"] = {"model": "pi05 PI05Pytorch full, random weights, bf16 (vision fp32 as lerobot)",
+                        "cameras": 3, "image_px": 224, "prompt_tokens": 200, "flow_steps": steps,
+                        "repeats": args.repeats, "warmup": 3}
+    with open(args.out, "w") as f:
+        json.dump(results, f, indent=1)
+    if args.compile_experiment:
+        compile_experiment(model, spec, originals, steps, args, results, best_tf32, best_backends)
+    print(f"\n{'cell':<14}{'eager ms':>10}{'captured ms':>13}{'speedup':>9}{'eager/base':>11}{'capt/base':>10}{'chunks/s':>10}")
+    for key, r in ratios.items():
+        preset, b = key.rsplit("_b", 1)
+        cps = base[preset]["captured"][int(b)]["chunks_per_s"]
+        print(f"{key:<14}{r['eager_ms']:>10.1f}{r['captured_ms']:>13.2f}{r['captured_speedup_vs_eager']:>9.1f}"
+              f"{r['eager_overhead_vs_baseline']:>11.2f}{r['captured_overhead_vs_baseline']:>10.2f}{cps:>10.1f}")
+
+
+if __name__ == "__main__":
+    main()

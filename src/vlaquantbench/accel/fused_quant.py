@@ -1,0 +1,125 @@
+"""Per-token activation fake quantization fused into one GPU kernel, swapped into installed hooks.
+
+`InputTransform` (quant.hooks) is written as readable tensor code: a float32 copy, an absmax
+reduction, a division, a rounding, a clamp, a multiplication and a cast -- seven kernels and as
+many passes over the activation per linear call. Here the same arithmetic runs as one Triton
+program per token (one read, one write), bit-identical to `quant.grid.fake_quant_activation`
+(IEEE division `div_rn`, round-half-even `rint`, the same 1e-8 scale floor and dtype round trips;
+bit-identical on CUDA, where the benchmark checks it).
+
+`fuse_activation_hooks(report)` replaces the transform of every counting hook of a quantization
+report by `FusedInputTransform`, which also computes once the quantized input that several
+layers read (q/k/v projections, gate/up projections share one input). Hook call counting is
+untouched. On a device other than CUDA it falls back to the reference transform.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from vlaquantbench.quant.grid import SCALE_FLOOR
+from vlaquantbench.quant.hooks import InputTransform
+
+try:  # Triton ships with torch's CUDA wheels; without it (or a GPU) the reference code runs.
+    import triton
+    import triton.language as tl
+    from triton.language.extra import libdevice
+except ImportError:  # pragma: no cover - torch CPU wheels without Triton
+    triton = None
+
+
+if triton is not None:
+
+    @triton.jit
+    def _per_token_fake_quant(
+        x_ptr, y_ptr, smooth_ptr, clip_ptr, n_cols, q_max, inv_q_max, scale_floor,
+        HAS_SMOOTH: tl.constexpr, HAS_CLIP: tl.constexpr, BLOCK: tl.constexpr,
+    ):
+        row = tl.program_id(0).to(tl.int64)
+        cols = tl.arange(0, BLOCK)
+        inside = cols < n_cols
+        x = tl.load(x_ptr + row * n_cols + cols, mask=inside, other=0.0)
+        dtype = x.dtype
+        x = x.to(tl.float32)
+        if HAS_SMOOTH:
+            s = tl.load(smooth_ptr + cols, mask=inside, other=1.0)
+            x = tl.div_rn(x, s).to(dtype).to(tl.float32)
+        if HAS_CLIP:
+            c = tl.load(clip_ptr + cols, mask=inside, other=1.0)
+            x = tl.maximum(tl.minimum(x, c), -c).to(dtype).to(tl.float32)
+        absmax = tl.max(tl.abs(x), axis=0)
+        # torch divides a CUDA tensor by a Python scalar as a product with its float32 reciprocal.
+        scale = tl.maximum(absmax, scale_floor) * inv_q_max
+        q = libdevice.rint(tl.div_rn(x, scale))
+        q = tl.minimum(tl.maximum(q, -q_max - 1.0), q_max)
+        tl.store(y_ptr + row * n_cols + cols, (q * scale).to(dtype), mask=inside)
+
+
+def fused_fake_quant(x: torch.Tensor, bits: int, smooth: torch.Tensor | None = None,
+                     clip: torch.Tensor | None = None) -> torch.Tensor:
+    """`InputTransform(smooth, clip, bits)(x)` in one kernel (CUDA tensors only)."""
+    x = x.contiguous()
+    n_cols = x.shape[-1]
+    y = torch.empty_like(x)
+    block = triton.next_power_of_2(n_cols)
+    q_max = float(2 ** (bits - 1) - 1)
+    smooth_arg = smooth.float().contiguous() if smooth is not None else x
+    clip_arg = clip.float().contiguous() if clip is not None else x
+    _per_token_fake_quant[(x.numel() // n_cols,)](
+        x, y, smooth_arg, clip_arg, n_cols, q_max, float(np.float32(1.0) / np.float32(q_max)), SCALE_FLOOR,
+        HAS_SMOOTH=smooth is not None, HAS_CLIP=clip is not None, BLOCK=block,
+        num_warps=min(16, max(1, block // 512)),
+    )
+    return y
+
+
+class _SharedInputs:
+    """Remembers the last quantized input so that layers reading the same tensor share one kernel."""
+
+    def __init__(self):
+        self.source: torch.Tensor | None = None
+        self.version = -1
+        self.key = None
+        self.result: torch.Tensor | None = None
+
+    def lookup(self, x: torch.Tensor, key):
+        if x is self.source and x._version == self.version and key == self.key:
+            return self.result
+        return None
+
+    def store(self, x: torch.Tensor, key, result: torch.Tensor) -> None:
+        self.source, self.version, self.key, self.result = x, x._version, key, result
+
+
+class FusedInputTransform:
+    """Same contract and result as the `InputTransform` it wraps, computed by `fused_fake_quant`."""
+
+    def __init__(self, reference: InputTransform, shared: _SharedInputs):
+        self.reference = reference
+        self.shared = shared
+
+    def __getattr__(self, name):  # smooth, clip, act_bits, is_identity as the reference has them
+        return getattr(self.reference, name)
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        ref = self.reference
+        if triton is None or not x.is_cuda or ref.act_bits is None:
+            return ref(x)
+        # Smoothing vectors are per layer, so only plain quantization can be shared between layers.
+        key = ref.act_bits if ref.smooth is None and ref.clip is None else None
+        if key is not None and (hit := self.shared.lookup(x, key)) is not None:
+            return hit
+        y = fused_fake_quant(x, ref.act_bits, ref.smooth, ref.clip)
+        if key is not None:
+            self.shared.store(x, key, y)
+        return y
+
+
+def fuse_activation_hooks(report) -> int:
+    """Swap the transforms of `report`'s counting hooks for fused ones; returns how many."""
+    shared = _SharedInputs()
+    for hook in report.result.hooks.values():
+        if not isinstance(hook.transform, FusedInputTransform):
+            hook.transform = FusedInputTransform(hook.transform, shared)
+    return len(report.result.hooks)

@@ -1,0 +1,112 @@
+"""Proxy audit (paper `tab:proxy_audit`): do scope-averaged layer diagnostics rank closed-loop
+success loss? Spearman correlations with average ranks for ties, one per model and diagnostic."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pandas as pd
+import yaml
+from scipy.stats import spearmanr
+
+from vlaquantbench.diagnostics.files import DIAGNOSTICS, Diagnostics
+from vlaquantbench.errors import UserError
+from vlaquantbench.replay.study import success_rates
+
+COHORTS = Path(__file__).with_name("cohorts")
+COLUMNS = {"act_kurtosis": "Kurtosis", "out_rel_err": "Output error", "act_rel_err": "Activation error",
+           "act_dispersion": "Dispersion"}
+
+
+def load_cohort(name_or_path: str | Path = "proxy_audit") -> dict:
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = COHORTS / f"{name_or_path}.yaml"
+    if not path.exists():
+        raise UserError(f"unknown diagnostic cohort {str(name_or_path)!r}: no {path}")
+    return yaml.safe_load(path.read_text())
+
+
+def scope_table(cohort: dict, diagnostics_dir: str | Path, rates: dict[str, float]) -> pd.DataFrame:
+    """One row per (model, scope): selected layer count, scope-averaged diagnostics, success loss in pp."""
+    rows = []
+    for model, spec in cohort["models"].items():
+        diag = Diagnostics.read(Path(diagnostics_dir) / f"{spec['diagnostics']}.json")
+        prefix = f"{cohort['benchmark']}/{cohort['suite']}/{model}/"
+        baseline = _rate(rates, prefix + spec["baseline"])
+        for subset, scope in spec["scopes"].items():
+            names = diag.select(scope.get("only"), scope.get("exclude"))
+            if len(names) != scope["layers"]:
+                raise UserError(
+                    f"{diag.path}: patterns only={scope.get('only')} exclude={scope.get('exclude')} of scope "
+                    f"{model}/{subset} select {len(names)} layers, the record says {scope['layers']}"
+                )
+            cell = f"ablate-{diag.header['preset']}-{diag.header['scope']}-{subset}"
+            rows.append({"model": model, "scope": subset, "cell": cell, "layers": len(names),
+                         **diag.scope_average(names), "success_loss": baseline - _rate(rates, prefix + cell)})
+    return pd.DataFrame(rows)
+
+
+def _rate(rates: dict[str, float], ref: str) -> float:
+    if ref not in rates:
+        raise UserError(f"no success rate for cell {ref} in the success summary")
+    return rates[ref]
+
+
+def correlations(scopes: pd.DataFrame) -> pd.DataFrame:
+    """Spearman rho (average ranks) between each diagnostic and success loss, per model."""
+    out = []
+    for model, group in scopes.groupby("model", sort=False):
+        row = {"model": model, "scopes": len(group)}
+        for d in DIAGNOSTICS:
+            row[d] = float(spearmanr(group[d], group["success_loss"]).statistic)
+        out.append(row)
+    return pd.DataFrame(out)
+
+
+def _signed(x: float) -> str:
+    return "--" if math.isnan(x) else f"{x:+.2f}"
+
+
+def render_proxy_audit(rhos: pd.DataFrame, cohort: dict, sources: dict[str, dict]) -> str:
+    header = "Model & Scopes & " + " & ".join(COLUMNS.values()) + r" \\"
+    rows = [
+        f"{cohort['models'][r.model]['label']} & {r.scopes} & " + " & ".join(_signed(getattr(r, d)) for d in DIAGNOSTICS) + r" \\"
+        for r in rhos.itertuples()
+    ]
+    provenance = "; ".join(
+        f"{m}: {p.get('checkpoint')}@{str(p.get('checkpoint_revision'))[:7]}, seed {p.get('seed')}, "
+        f"init states from {p.get('episodes_from')}, MuJoCo {p.get('mujoco')}, torch {p.get('torch')}, "
+        f"code {p.get('vqb_commit') or 'not recorded'}"
+        for m, p in sources.items()
+    )
+    caption = (
+        "Exploratory Spearman correlations between saved layer-averaged diagnostics and success loss. "
+        "Average ranks handle ties; repeated seeds are excluded. Scope sets overlap and per-model samples are "
+        f"small, limiting interpretation. Diagnostics: {provenance}."
+    ).replace("_", r"\_")
+    return "\n".join([
+        r"\begin{table}[htbp]", r"\centering\small", r"\begin{tabular}{lrrrrr}", r"\toprule", header, r"\midrule",
+        *rows, r"\bottomrule", r"\end{tabular}", rf"\caption{{{caption}}}", r"\label{tab:proxy_audit}",
+        r"\end{table}", "",
+    ])
+
+
+def write_proxy_audit(
+    diagnostics_dir: str | Path, success_summary: str | Path, output: str | Path, cohort: str | Path = "proxy_audit"
+) -> pd.DataFrame:
+    """Snakemake entry: `tables/proxy_audit.tex` (+ the per-scope values beside it as CSV)."""
+    spec = load_cohort(cohort)
+    rates = success_rates(success_summary)
+    if not rates:
+        raise UserError("the proxy audit needs a success summary (config key success_summary)")
+    scopes = scope_table(spec, diagnostics_dir, rates)
+    rhos = correlations(scopes)
+    sources = {m: Diagnostics.read(Path(diagnostics_dir) / f"{s['diagnostics']}.json").header["provenance"]
+               for m, s in spec["models"].items()}
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text(render_proxy_audit(rhos, spec, sources))
+    scopes.to_csv(output.with_suffix(".scopes.csv"), index=False)
+    return rhos

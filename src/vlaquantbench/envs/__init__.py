@@ -1,0 +1,1 @@
+"""Simulation environments, one folder per benchmark."""

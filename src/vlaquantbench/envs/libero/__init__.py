@@ -1,0 +1,44 @@
+"""LIBERO on the authors' protocol, offline: suites, official init states, batched worker envs.
+
+```python
+from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv
+
+suite = LiberoSuite("libero_spatial")
+with LiberoVectorEnv(suite, num_envs=2, camera_size=256) as env:
+    obs = env.reset(suite.episodes(episodes_per_task=1, task_ids=[0, 1]))
+    obs, success = env.step(actions)  # actions: float[2, 7]
+```
+"""
+
+from vlaquantbench.envs.libero.offline import assets_dir, cache_dir, config_dir, load_libero
+from vlaquantbench.envs.libero.suite import (
+    SEED_STRIDE,
+    STEP_LIMITS,
+    SUITES,
+    EpisodeSpec,
+    LiberoSuite,
+    LiberoTask,
+    episode_seed,
+)
+from vlaquantbench.envs.libero.vector_env import CAMERA_SIZE, SETTLE_STEPS, LiberoVectorEnv, LiberoWorkerError
+from vlaquantbench.envs.libero.versions import PINNED_MUJOCO, simulator_versions
+
+__all__ = [
+    "CAMERA_SIZE",
+    "PINNED_MUJOCO",
+    "SEED_STRIDE",
+    "SETTLE_STEPS",
+    "STEP_LIMITS",
+    "SUITES",
+    "EpisodeSpec",
+    "LiberoSuite",
+    "LiberoTask",
+    "LiberoVectorEnv",
+    "LiberoWorkerError",
+    "assets_dir",
+    "cache_dir",
+    "config_dir",
+    "episode_seed",
+    "load_libero",
+    "simulator_versions",
+]

@@ -1,0 +1,124 @@
+"""A LIBERO suite as the authors evaluated it: tasks, official init states, seeds, step limits."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vlaquantbench.envs.libero.offline import load_libero
+from vlaquantbench.errors import UserError
+
+SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10")
+
+# Policy steps before an unfinished episode counts as a failure (settle steps not counted). The pi
+# models use lerobot's limits, OpenVLA-OFT its own client's; both are visible in the authors' records.
+STEP_LIMITS = {
+    "pi": {"libero_spatial": 280, "libero_object": 280, "libero_goal": 300, "libero_10": 520},
+    "openvla_oft": {"libero_spatial": 220, "libero_object": 280, "libero_goal": 300, "libero_10": 520},
+}
+MODEL_FAMILY = {"pi05": "pi", "pi0": "pi", "openvla_oft": "openvla_oft"}
+
+# Per-episode seed = SEED_STRIDE * task_id + episode + run seed (the authors' records).
+SEED_STRIDE = 1009
+
+
+@dataclass(frozen=True)
+class EpisodeSpec:
+    """One episode to run in a slot of a LiberoVectorEnv."""
+
+    task_id: int
+    episode: int
+    init_state_id: int
+    seed: int
+
+
+@dataclass(frozen=True)
+class LiberoTask:
+    task_id: int
+    name: str
+    instruction: str
+    bddl_file: Path
+    init_states_file: Path
+
+
+def episode_seed(task_id: int, episode: int, run_seed: int = 0) -> int:
+    return SEED_STRIDE * task_id + episode + run_seed
+
+
+class LiberoSuite:
+    """The tasks of one LIBERO suite, in LIBERO's default task order."""
+
+    def __init__(self, name: str):
+        if name not in SUITES:
+            raise UserError(f"unknown LIBERO suite {name!r}; expected one of {', '.join(SUITES)}")
+        libero = load_libero()
+        from libero.libero import benchmark
+
+        bddl_root = Path(libero.get_libero_path("bddl_files"))
+        init_root = Path(libero.get_libero_path("init_states"))
+        tasks = benchmark.get_benchmark(name)().tasks
+        self.name = name
+        self.tasks = tuple(
+            LiberoTask(
+                task_id=i,
+                name=task.name,
+                instruction=task.language,
+                bddl_file=bddl_root / task.problem_folder / task.bddl_file,
+                init_states_file=init_root / task.problem_folder / task.init_states_file,
+            )
+            for i, task in enumerate(tasks)
+        )
+        self._init_states: dict[int, np.ndarray] = {}
+
+    def __repr__(self) -> str:
+        return f"LiberoSuite({self.name!r})"
+
+    @property
+    def n_tasks(self) -> int:
+        return len(self.tasks)
+
+    def task(self, task_id: int) -> LiberoTask:
+        if not 0 <= task_id < self.n_tasks:
+            raise UserError(f"task_id {task_id} is out of range for {self.name} (0..{self.n_tasks - 1})")
+        return self.tasks[task_id]
+
+    def init_states(self, task_id: int) -> np.ndarray:
+        """The official initial states of a task: one flattened MuJoCo state per row."""
+        if task_id not in self._init_states:
+            import torch
+
+            # The files are pickled numpy arrays; torch >= 2.6 refuses them unless weights_only=False.
+            states = torch.load(self.task(task_id).init_states_file, weights_only=False)
+            self._init_states[task_id] = np.asarray(states)
+        return self._init_states[task_id]
+
+    def init_state(self, task_id: int, init_state_id: int) -> np.ndarray:
+        states = self.init_states(task_id)
+        if not 0 <= init_state_id < len(states):
+            raise UserError(
+                f"init_state_id {init_state_id} is out of range for {self.name} task {task_id} "
+                f"({len(states)} official init states: 0..{len(states) - 1})"
+            )
+        return states[init_state_id]
+
+    def max_steps(self, model: str) -> int:
+        """Step limit for a model (pi05, pi0, openvla_oft) or model family (pi, openvla_oft)."""
+        family = MODEL_FAMILY.get(model, model)
+        if family not in STEP_LIMITS:
+            known = sorted({*MODEL_FAMILY, *STEP_LIMITS})
+            raise UserError(f"no LIBERO step limit for model {model!r}; known: {', '.join(known)}")
+        return STEP_LIMITS[family][self.name]
+
+    def episode_spec(self, task_id: int, episode: int, run_seed: int = 0) -> EpisodeSpec:
+        """Episode i of a task starts from official init state i."""
+        self.init_state(task_id, episode)
+        return EpisodeSpec(task_id, episode, init_state_id=episode, seed=episode_seed(task_id, episode, run_seed))
+
+    def episodes(
+        self, episodes_per_task: int, task_ids: list[int] | None = None, run_seed: int = 0
+    ) -> list[EpisodeSpec]:
+        """All episodes of a study on this suite, task by task."""
+        ids = range(self.n_tasks) if task_ids is None else task_ids
+        return [self.episode_spec(t, e, run_seed) for t in ids for e in range(episodes_per_task)]

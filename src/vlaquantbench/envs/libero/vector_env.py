@@ -1,0 +1,249 @@
+"""N LIBERO environments stepped in parallel, one worker interpreter per slot.
+
+Each slot runs its episodes independently: the runner resets a finished slot with the next episode
+while the others continue. An episode's observations depend only on its EpisodeSpec and its actions,
+never on the slot or the batch it ran in.
+
+Workers are fresh interpreters (`python -c ...worker.main(...)`) rather than
+multiprocessing children: a spawned child re-executes the parent's `__main__` file, and a Snakemake
+`script:` is exactly such a file. Each worker owns its own EGL context.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import weakref
+from collections.abc import Sequence
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from vlaquantbench.envs.libero.offline import config_dir
+from vlaquantbench.envs.libero.suite import EpisodeSpec, LiberoSuite
+from vlaquantbench.envs.libero.versions import simulator_versions
+from vlaquantbench.envs.libero.worker import EpisodeStart
+from vlaquantbench.errors import UserError
+
+ACTION_DIM = 7
+# No-op steps after loading an init state, as in lerobot's LiberoEnv and openpi's LIBERO client.
+SETTLE_STEPS = 10
+CAMERA_SIZE = 256  # the render size of lerobot's and openpi's LIBERO evaluation
+_SHUTDOWN_TIMEOUT_S = 10
+_WORKER_MAIN = "import sys; from vlaquantbench.envs.libero.worker import main; main(sys.argv[1:])"
+
+
+class LiberoWorkerError(RuntimeError):
+    """A worker failed or died; the message names the slot, task and episode and carries its traceback."""
+
+
+@dataclass
+class _Slot:
+    process: subprocess.Popen
+    conn: Connection
+    episode: EpisodeSpec | None = None
+    live: bool = False
+    steps: int = 0
+
+
+def _close_slots(slots: list[_Slot]) -> None:
+    for slot in slots:
+        try:
+            slot.conn.send(("close", None))
+        except OSError:
+            pass
+        # A worker still busy with a request sees a closed socket when it replies, and exits.
+        slot.conn.close()
+    for slot in slots:
+        try:
+            slot.process.wait(timeout=_SHUTDOWN_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            slot.process.kill()
+            slot.process.wait()
+    slots.clear()
+
+
+class LiberoVectorEnv:
+    """`reset(specs)` starts episodes in the slots given; `step(actions)` advances every live slot.
+
+    A slot is live from its reset until its episode succeeds or the runner calls `release(slot)`
+    (e.g. at the step limit). Use as a context manager, or call `close()`.
+    """
+
+    def __init__(
+        self,
+        suite: str | LiberoSuite,
+        num_envs: int,
+        *,
+        camera_size: int = CAMERA_SIZE,
+        settle_steps: int = SETTLE_STEPS,
+        allow_mujoco_mismatch: bool = False,
+    ):
+        if num_envs < 1:
+            raise UserError(f"num_envs must be at least 1, got {num_envs}")
+        if camera_size < 1:
+            raise UserError(f"camera_size must be a positive number of pixels, got {camera_size}")
+        if settle_steps < 0:
+            raise UserError(f"settle_steps must not be negative, got {settle_steps}")
+        self.suite = suite if isinstance(suite, LiberoSuite) else LiberoSuite(suite)
+        self.versions = simulator_versions(allow_mujoco_mismatch)
+        self.camera_size = camera_size
+        self.settle_steps = settle_steps
+        config_dir()  # the workers inherit LIBERO_CONFIG_PATH and MUJOCO_GL
+        self._slots: list[_Slot] = []
+        self._finalizer = weakref.finalize(self, _close_slots, self._slots)
+        try:
+            self._slots.extend(self._launch() for _ in range(num_envs))
+            self._exchange({i: ("ready", None) for i in range(num_envs)})
+        except BaseException:
+            self.close()
+            raise
+
+    # -- public API -----------------------------------------------------------------------------
+
+    @property
+    def num_envs(self) -> int:
+        return len(self._slots)
+
+    @property
+    def live(self) -> list[bool]:
+        return [slot.live for slot in self._slots]
+
+    @property
+    def episodes(self) -> list[EpisodeSpec | None]:
+        """The episode each slot runs or last ran."""
+        return [slot.episode for slot in self._slots]
+
+    @property
+    def steps(self) -> list[int]:
+        """Policy steps taken in each slot's episode (settle steps not counted)."""
+        return [slot.steps for slot in self._slots]
+
+    @property
+    def worker_pids(self) -> list[int]:
+        return [slot.process.pid for slot in self._slots]
+
+    def reset(self, slots: Sequence[EpisodeSpec | None]) -> list[dict | None]:
+        """Start an episode in every slot whose entry is an EpisodeSpec; None leaves a slot as it is.
+
+        The worker seeds the simulator, loads the init state, settles with `settle_steps` no-op
+        actions and returns the observation; slots left alone get None.
+        """
+        if len(slots) != self.num_envs:
+            raise ValueError(f"reset() takes one entry per slot ({self.num_envs}), got {len(slots)}")
+        starts = {i: self._episode_start(spec) for i, spec in enumerate(slots) if spec is not None}
+        for i in starts:
+            if self._slots[i].process.poll() is not None:  # died earlier: give the slot a new worker
+                self._replace_worker(i)
+            self._slots[i].episode, self._slots[i].live, self._slots[i].steps = starts[i].spec, False, 0
+        observations = self._exchange({i: ("reset", start) for i, start in starts.items()})
+        for i in observations:
+            self._slots[i].live = True
+        return [observations.get(i) for i in range(self.num_envs)]
+
+    def step(self, actions: np.ndarray) -> tuple[list[dict | None], list[bool]]:
+        """Apply `actions[i]` in every live slot i; rows of other slots are ignored.
+
+        Returns per slot the new observation (None for slots not stepped) and success (LIBERO's done
+        flag). A slot whose episode succeeds stops being live.
+        """
+        actions = np.asarray(actions, dtype=np.float64)
+        if actions.shape != (self.num_envs, ACTION_DIM):
+            raise ValueError(f"actions must have shape ({self.num_envs}, {ACTION_DIM}), got {actions.shape}")
+        live = [i for i, slot in enumerate(self._slots) if slot.live]
+        results = self._exchange({i: ("step", actions[i]) for i in live})
+        observations: list[dict | None] = [None] * self.num_envs
+        successes = [False] * self.num_envs
+        for i, (observation, success) in results.items():
+            observations[i], successes[i] = observation, success
+            self._slots[i].steps += 1
+            self._slots[i].live = not success
+        return observations, successes
+
+    def release(self, slot: int) -> None:
+        """End a slot's episode without success (e.g. the step limit): it is no longer stepped."""
+        self._slots[slot].live = False
+
+    def close(self) -> None:
+        self._finalizer()
+
+    def __enter__(self) -> LiberoVectorEnv:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    # -- workers --------------------------------------------------------------------------------
+
+    def _launch(self) -> _Slot:
+        ours, theirs = socket.socketpair()
+        with theirs:
+            args = [str(theirs.fileno()), str(self.camera_size), str(self.settle_steps)]
+            command = [sys.executable, "-c", _WORKER_MAIN, *args]
+            process = subprocess.Popen(command, pass_fds=(theirs.fileno(),))
+        return _Slot(process, Connection(ours.detach()))
+
+    def _replace_worker(self, i: int) -> None:
+        self._slots[i].conn.close()
+        self._slots[i] = self._launch()
+        self._exchange({i: ("ready", None)})
+
+    def _episode_start(self, spec: EpisodeSpec) -> EpisodeStart:
+        task = self.suite.task(spec.task_id)
+        init_state = self.suite.init_state(spec.task_id, spec.init_state_id)
+        return EpisodeStart(spec, str(task.bddl_file), task.instruction, init_state)
+
+    def _exchange(self, requests: dict[int, tuple[str, Any]]) -> dict[int, Any]:
+        """Send every request first so the workers run in parallel, then collect every reply.
+
+        "ready" sends nothing and only collects the worker's start-up reply.
+        """
+        failures: dict[int, str] = {}
+        for i, (command, payload) in requests.items():
+            if command == "ready":
+                continue
+            try:
+                self._slots[i].conn.send((command, payload))
+            except OSError as error:
+                failures[i] = f"could not reach the worker ({error}); {self._exit_status(i)}"
+        results = {}
+        for i in requests:
+            if i in failures:
+                continue
+            try:
+                status, value = self._slots[i].conn.recv()
+            except (EOFError, OSError):
+                failures[i] = f"the worker died; {self._exit_status(i)}"
+                continue
+            if status == "ok":
+                results[i] = value
+            else:
+                failures[i] = value
+        if failures:
+            for i in failures:
+                self._slots[i].live = False
+            raise LiberoWorkerError(
+                "\n\n".join(self._describe(i, requests[i][0], detail) for i, detail in failures.items())
+            )
+        return results
+
+    def _exit_status(self, i: int) -> str:
+        try:
+            code = self._slots[i].process.wait(timeout=_SHUTDOWN_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            return "it is still running"
+        return f"exit code {code}"
+
+    def _describe(self, i: int, command: str, detail: str) -> str:
+        where = f"LIBERO worker of slot {i} failed to {command}"
+        spec = self._slots[i].episode
+        if command != "ready" and spec is not None:
+            task = self.suite.tasks[spec.task_id]
+            where += (
+                f" {self.suite.name} task {spec.task_id} ({task.name}) episode {spec.episode}"
+                f" (init state {spec.init_state_id}, seed {spec.seed})"
+            )
+        return f"{where}:\n{detail}"

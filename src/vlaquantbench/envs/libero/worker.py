@@ -1,0 +1,130 @@
+"""One LIBERO environment in its own interpreter, driven by LiberoVectorEnv over a socket.
+
+LiberoVectorEnv starts it as `main([FD, CAMERA_SIZE, SETTLE_STEPS])` in a fresh interpreter. Requests are
+`(command, payload)` pairs; every request gets one reply, `("ok", result)` or `("error", traceback)`.
+"""
+
+from __future__ import annotations
+
+import signal
+import traceback
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+
+import numpy as np
+
+from vlaquantbench.envs.libero.offline import load_libero
+from vlaquantbench.envs.libero.suite import EpisodeSpec
+
+# LIBERO's no-op: arm still (zero delta pose), gripper open (-1). Used to let objects settle after an
+# init state is loaded, as lerobot's LiberoEnv (num_steps_wait=10) and openpi's LIBERO client do.
+DUMMY_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class EpisodeStart:
+    """What a worker needs to start an episode; the parent resolves task files and the init state."""
+
+    spec: EpisodeSpec
+    bddl_file: str
+    instruction: str
+    init_state: np.ndarray
+
+
+def rotate_180(image: np.ndarray) -> np.ndarray:
+    # LIBERO's cameras render upside down relative to the training data the policies saw.
+    return np.ascontiguousarray(image[::-1, ::-1])
+
+
+def format_observation(raw: dict, instruction: str) -> dict:
+    """Contract 6: both views rotated 180 degrees, state = eef pos + axis-angle + gripper qpos."""
+    from robosuite.utils.transform_utils import quat2axisangle
+
+    state = np.concatenate(
+        [raw["robot0_eef_pos"], quat2axisangle(raw["robot0_eef_quat"].copy()), raw["robot0_gripper_qpos"]]
+    )
+    return {
+        "agentview": rotate_180(raw["agentview_image"]),
+        "wrist": rotate_180(raw["robot0_eye_in_hand_image"]),
+        "state": state.astype(np.float32),
+        "instruction": instruction,
+    }
+
+
+class SlotSimulator:
+    """The env of one slot; rebuilt only when the next episode belongs to another task."""
+
+    def __init__(self, camera_size: int, settle_steps: int):
+        self.camera_size = camera_size
+        self.settle_steps = settle_steps
+        self._env = None
+        self._bddl_file: str | None = None
+        self._instruction = ""
+
+    def start(self, start: EpisodeStart) -> dict:
+        if start.bddl_file != self._bddl_file:
+            self.close()
+            from libero.libero.envs import OffScreenRenderEnv
+
+            self._env = OffScreenRenderEnv(
+                bddl_file_name=start.bddl_file,
+                camera_heights=self.camera_size,
+                camera_widths=self.camera_size,
+            )
+            self._bddl_file = start.bddl_file
+        self._instruction = start.instruction
+        # Seed first, then load the indexed init state: the seed never picks a different init state.
+        self._env.seed(start.spec.seed)
+        self._env.reset()
+        raw = self._env.set_init_state(start.init_state)
+        for _ in range(self.settle_steps):
+            raw, _, _, _ = self._env.step(DUMMY_ACTION)
+        return format_observation(raw, self._instruction)
+
+    def step(self, action: np.ndarray) -> tuple[dict, bool]:
+        raw, _, done, _ = self._env.step(action)
+        # LIBERO's done flag is its task-success predicate.
+        return format_observation(raw, self._instruction), bool(done)
+
+    def close(self) -> None:
+        if self._env is not None:
+            self._env.close()
+        self._env = None
+        self._bddl_file = None
+
+
+def serve(conn: Connection, camera_size: int, settle_steps: int) -> None:
+    try:
+        load_libero()
+        import libero.libero.envs  # noqa: F401  (robosuite, MuJoCo and EGL load before "ready")
+    except Exception:
+        conn.send(("error", traceback.format_exc()))
+        return
+    simulator = SlotSimulator(camera_size, settle_steps)
+    handlers = {"reset": simulator.start, "step": simulator.step}
+    conn.send(("ok", None))
+    try:
+        while True:
+            try:
+                command, payload = conn.recv()
+            except EOFError:  # the parent is gone
+                return
+            if command == "close":
+                return
+            try:
+                reply = ("ok", handlers[command](payload))
+            except Exception:
+                reply = ("error", traceback.format_exc())
+            try:
+                conn.send(reply)
+            except OSError:  # the parent closed its end while we were working
+                return
+    finally:
+        simulator.close()
+
+
+def main(argv: list[str]) -> None:
+    # Ctrl-C reaches the whole process group; the parent decides and closes its workers.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    fd, camera_size, settle_steps = (int(arg) for arg in argv)
+    serve(Connection(fd), camera_size, settle_steps)

@@ -1,0 +1,88 @@
+"""fig:scope_recovery: (a) isolated action-head groups vs their union, (b) success along nested scopes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import yaml  # noqa: E402
+
+from vlaquantbench.errors import UserError  # noqa: E402
+from vlaquantbench.records import Cell, read_cell  # noqa: E402
+from vlaquantbench.stats import wilson_interval  # noqa: E402
+
+
+@dataclass(frozen=True)
+class ScopeRecoveryFigure:
+    baseline: str
+    isolated: list[dict[str, Any]]  # {label, cell}
+    nested: list[dict[str, Any]]  # {label, cell, repeats?: [refs]}
+
+    @classmethod
+    def from_dict(cls, name: str, raw: dict[str, Any]) -> "ScopeRecoveryFigure":
+        for field in ("baseline", "isolated", "nested"):
+            if not raw.get(field):
+                raise UserError(f"figure {name!r}: missing field {field!r}")
+        for field in ("isolated", "nested"):
+            for index, entry in enumerate(raw[field]):
+                if "label" not in entry or "cell" not in entry:
+                    raise UserError(f"figure {name!r}: {field}[{index}] needs label and cell")
+        return cls(raw["baseline"], raw["isolated"], raw["nested"])
+
+    def refs(self) -> list[str]:
+        entries = self.isolated + self.nested
+        repeats = [ref for entry in self.nested for ref in entry.get("repeats", [])]
+        return sorted({self.baseline, *(entry["cell"] for entry in entries), *repeats})
+
+
+def load_figure(path: str | Path) -> ScopeRecoveryFigure:
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"unknown figure {path.stem!r}: no {path}")
+    return ScopeRecoveryFigure.from_dict(path.stem, yaml.safe_load(path.read_text()) or {})
+
+
+def _rate(cell: Cell) -> float:
+    return 100.0 * cell.n_successes / cell.n_episodes
+
+
+def plot_scope_recovery(figure: ScopeRecoveryFigure, cell_paths: Mapping[str, str | Path], output: str | Path) -> Path:
+    cells = {ref: read_cell(path) for ref, path in cell_paths.items()}
+    baseline = _rate(cells[figure.baseline])
+    fig, (left, right) = plt.subplots(1, 2, figsize=(7.5, 2.8), constrained_layout=True)
+
+    isolated = [cells[entry["cell"]] for entry in figure.isolated]
+    rates = [_rate(cell) for cell in isolated]
+    low, high = wilson_interval([c.n_successes for c in isolated], [c.n_episodes for c in isolated])
+    positions = range(len(isolated))
+    left.errorbar(positions, rates, yerr=[rates - low, high - rates], fmt="o", capsize=3, color="C0")
+    left.set_xticks(list(positions), [entry["label"] for entry in figure.isolated])
+    left.set_title("(a) isolated groups vs. union", fontsize=9)
+
+    nested = [cells[entry["cell"]] for entry in figure.nested]
+    layers = [cell.quantized_layers for cell in nested]
+    right.plot(layers, [_rate(cell) for cell in nested], "o-", color="C1")
+    for entry, count in zip(figure.nested, layers):
+        repeats = [_rate(cells[ref]) for ref in entry.get("repeats", [])]
+        right.plot([count] * len(repeats), repeats, "o", mfc="none", color="C1")
+        right.annotate(entry["label"], (count, _rate(cells[entry["cell"]])), fontsize=7, xytext=(3, 3),
+                       textcoords="offset points")  # fmt: skip
+    right.set_xlabel("quantized action-head layers")
+    right.set_title("(b) nested scopes", fontsize=9)
+
+    if any(cell.header.get("variant") == "demo" for cell in cells.values()):
+        fig.suptitle("Demo policy with random weights: says nothing about the released checkpoint", fontsize=8)
+    for axis in (left, right):
+        axis.axhline(baseline, ls="--", color="gray", lw=1)
+        axis.set_ylim(-5, 105)
+        axis.set_ylabel("success rate (%)")
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(output, metadata={"CreationDate": None})
+    plt.close(fig)
+    return output

@@ -1,0 +1,122 @@
+"""Manifests: a TSV of record files with episodes, successes and SHA-256, frozen next to a study.
+
+Paths are relative to the records folder, so a manifest stays valid wherever the records are copied.
+Verification stops on the first record that is unlisted, missing, or whose contents changed.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable
+
+from vlaquantbench.errors import UserError
+from vlaquantbench.records import find_cells, read_cell, record_files
+
+COLUMNS = ("path", "episodes", "successes", "sha256")
+
+
+@dataclass(frozen=True)
+class ManifestRow:
+    path: str
+    episodes: int | None  # None for a cell folder's header.json
+    successes: int | None
+    sha256: str
+
+
+def sha256_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def manifest_rows(records_dir: str | Path, cells: Iterable[str | Path] | None = None) -> list[ManifestRow]:
+    """One row per record file of `cells` (paths under `records_dir`; default: every cell found there)."""
+    root = Path(records_dir)
+    cell_paths = [Path(p) for p in cells] if cells is not None else list(find_cells(root).values())
+    rows = []
+    for cell_path in cell_paths:
+        cell = read_cell(cell_path)
+        for file in record_files(cell_path):
+            counted = file.suffix != ".json"
+            rows.append(
+                ManifestRow(
+                    path=file.relative_to(root).as_posix(),
+                    episodes=cell.n_episodes if counted else None,
+                    successes=cell.n_successes if counted else None,
+                    sha256=sha256_file(file),
+                )
+            )
+    return sorted(rows, key=lambda row: row.path)
+
+
+def write_manifest(records_dir: str | Path, output: str | Path, cells: Iterable[str | Path] | None = None) -> Path:
+    return _write_rows(manifest_rows(records_dir, cells), output)
+
+
+def _write_rows(rows: list[ManifestRow], output: str | Path) -> Path:
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    with open(output, "w", newline="") as handle:
+        writer = csv.writer(handle, delimiter="\t", lineterminator="\n")
+        writer.writerow(COLUMNS)
+        for row in rows:
+            writer.writerow(["" if value is None else value for value in (row.path, row.episodes, row.successes, row.sha256)])
+    return output
+
+
+def read_manifest(path: str | Path) -> dict[str, ManifestRow]:
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"manifest {path} not found")
+    with open(path, newline="") as handle:
+        reader = csv.DictReader(handle, delimiter="\t")
+        if tuple(reader.fieldnames or ()) != COLUMNS:
+            raise UserError(f"manifest {path}: expected columns {', '.join(COLUMNS)}, got {reader.fieldnames}")
+        return {
+            row["path"]: ManifestRow(
+                path=row["path"],
+                episodes=int(row["episodes"]) if row["episodes"] else None,
+                successes=int(row["successes"]) if row["successes"] else None,
+                sha256=row["sha256"],
+            )
+            for row in reader
+        }
+
+
+def verify_manifest(
+    manifest: str | Path, records_dir: str | Path, cells: Iterable[str | Path] | None = None
+) -> list[ManifestRow]:
+    """Check every record file of `cells` (default: all cells in `records_dir`) against `manifest`.
+
+    Raises UserError naming the first record file that is listed but missing, unlisted, or changed;
+    returns the verified rows.
+    """
+    root = Path(records_dir)
+    listed = read_manifest(manifest)
+    cell_paths = [Path(p) for p in cells] if cells is not None else list(find_cells(root).values())
+    for row in listed.values():
+        if not (root / row.path).is_file():
+            raise UserError(f"record {root / row.path} listed in manifest {manifest} is missing")
+    verified = []
+    for file in sorted(f for cell_path in cell_paths for f in record_files(cell_path)):
+        relative = file.relative_to(root).as_posix()
+        if not file.is_file():
+            raise UserError(f"record {file} is missing")
+        if relative not in listed:
+            raise UserError(f"record {file} is not listed in manifest {manifest}")
+        if sha256_file(file) != listed[relative].sha256:
+            raise UserError(f"record {file} does not match manifest {manifest} (SHA-256 differs)")
+        verified.append(listed[relative])
+    return verified
+
+
+def write_verified(
+    manifest: str | Path, records_dir: str | Path, cells: Iterable[str | Path] | None, output: str | Path
+) -> Path:
+    """Verify, then write the verified rows as a manifest: the workflow's proof that records match."""
+    return _write_rows(verify_manifest(manifest, records_dir, cells), output)

@@ -1,0 +1,118 @@
+"""The adapter protocol: how the runner drives a policy, whatever its library.
+
+An adapter loads a policy (`load`), names its component scopes (`components`, from the model
+spec), starts an episode (`reset(seed)` returns the episode's own random stream) and predicts
+action chunks for a batch of observations (`act`). The runner executes `executed_chunk` of the
+`predicted_chunk` actions before observing again; both are recorded in every cell header, and a
+cell fails if the adapter's executed length differs from the cell config (paper Sec. 5).
+
+`model` is the module quantization walks; qualified layer names are relative to it.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+import torch
+from torch import nn
+
+from vlaquantbench.errors import UserError
+
+
+@dataclass(frozen=True)
+class AdapterConfig:
+    """What an adapter needs to build its policy; filled from a canonical cell config."""
+
+    model: str
+    variant: str  # "full": released checkpoint; "demo": reduced-width random weights
+    checkpoint: str | None = None
+    checkpoint_dir: str | None = None  # local snapshot of `checkpoint` (full variant)
+    device: str = "cpu"
+    dtype: str = "float32"
+    executed_chunk: int = 10
+    flow_steps: int = 10
+    seed: int = 0  # demo weights
+
+    @classmethod
+    def from_cell(cls, cfg: dict[str, Any], checkpoint_dir: str | None) -> "AdapterConfig":
+        runner = cfg["runner"]
+        return cls(
+            model=cfg["model"],
+            variant=cfg["variant"],
+            checkpoint=cfg["checkpoint"],
+            checkpoint_dir=checkpoint_dir,
+            device=runner["device"],
+            dtype=runner["dtype"],
+            executed_chunk=runner["executed_chunk"],
+            flow_steps=runner["flow_steps"],
+        )
+
+
+@runtime_checkable
+class PolicyAdapter(Protocol):
+    config: AdapterConfig
+    predicted_chunk: int
+    executed_chunk: int
+    model: nn.Module
+
+    @property
+    def components(self) -> dict: ...
+
+    def load(self) -> None: ...
+
+    def reset(self, seed: int) -> torch.Generator: ...
+
+    def act(self, observations: Sequence[dict], generators: Sequence[torch.Generator]) -> np.ndarray:
+        """Action chunks `[n, predicted_chunk, 7]` in environment units for n observations."""
+        ...
+
+
+_ADAPTERS = {
+    "pi05": "vlaquantbench.models.pi05.adapter",
+    "pi0": "vlaquantbench.models.pi0.adapter",
+}
+
+
+def make_adapter(config: AdapterConfig) -> PolicyAdapter:
+    """The adapter for `config.model` (each model's `adapter.py` defines `ADAPTER`)."""
+    if config.model not in _ADAPTERS:
+        raise UserError(f"no rollout adapter for model {config.model!r}; adapters exist for {', '.join(_ADAPTERS)}")
+    return importlib.import_module(_ADAPTERS[config.model]).ADAPTER(config)
+
+
+def episode_generator(seed: int, device: str | torch.device = "cpu") -> torch.Generator:
+    """An episode's random stream: every draw of the episode (flow noise) comes from it, so its
+    actions do not depend on which other episodes share its batch."""
+    return torch.Generator(device=device).manual_seed(int(seed))
+
+
+class BatchInvariantLinears:
+    """Computes every linear layer of a model one batch element at a time.
+
+    CPU GEMM kernels pick their blocking from the row count, so a row's result can differ in the
+    last bits between batch sizes (e.g. the `(batch, width)` time-MLP and adaRMS inputs). Running
+    each element's rows separately gives every episode the same kernel shapes at any batch size, so
+    its actions are bit-identical whether it ran alone or beside others. Inputs are split along the
+    first dimension into `batch_size` equal parts (which also covers inputs flattened to
+    `(batch * tokens, width)`). Registered hooks (quantization, calibration) still run: only
+    `forward` itself is replaced.
+    """
+
+    def __init__(self, model: nn.Module):
+        self.batch_size = 1
+        self.layers = 0
+        for module in model.modules():
+            if isinstance(module, nn.Linear):
+                module.forward = functools.partial(self._linear, module)
+                self.layers += 1
+
+    def _linear(self, layer: nn.Linear, x: torch.Tensor) -> torch.Tensor:
+        n = self.batch_size
+        if n == 1 or x.dim() < 2 or x.shape[0] % n:
+            return torch.nn.functional.linear(x, layer.weight, layer.bias)
+        return torch.cat([torch.nn.functional.linear(part, layer.weight, layer.bias) for part in x.chunk(n)])

@@ -1,0 +1,1 @@
+"""OpenVLA-OFT: architecture assembled from its published configuration, and component scopes."""

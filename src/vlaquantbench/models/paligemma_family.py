@@ -1,0 +1,95 @@
+"""What pi0 and pi0.5 share: a PaliGemma VLM (SigLIP vision tower, projector, Gemma-2B LLM) plus a
+Gemma-300M action expert, built by lerobot 0.6.1 as `PaliGemmaWithExpertModel`.
+
+Both policies name their modules identically below `paligemma_with_expert`; they differ only in
+the top-level action projections, which each model's `components.py` lists.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import types
+from collections.abc import Callable, Sequence
+from unittest import mock
+
+import torch
+from torch import nn
+
+from vlaquantbench.models.registry import Component, seeded_build
+
+_VLM = "paligemma_with_expert.paligemma.model"
+_EXPERT = "paligemma_with_expert.gemma_expert"
+
+# Demo sizes keep every depth, head count and the grouped-query layout (8 query heads, 1 KV head,
+# shared between VLM and expert) so layer names and subset counts equal the full model's; only
+# widths shrink. Vision keeps 224 px / patch 14, so the image token count is the released one.
+_DEMO_VLM_TEXT = dict(width=64, depth=18, mlp_dim=256, num_heads=8, num_kv_heads=1, head_dim=16)
+_DEMO_EXPERT = dict(width=32, depth=18, mlp_dim=128, num_heads=8, num_kv_heads=1, head_dim=16)
+_DEMO_VISION = dict(hidden_size=64, intermediate_size=128, num_attention_heads=4, num_hidden_layers=27)
+
+
+def pi_components(action_projections: Sequence[str]) -> dict[str, Component]:
+    """Component scopes of a pi-family policy whose expert-side projections are `action_projections`."""
+    return {
+        "ve": Component(roots=(f"{_VLM}.vision_tower",)),
+        "mp": Component(roots=(f"{_VLM}.multi_modal_projector",)),
+        "llm": Component(roots=(f"{_VLM}.language_model",)),
+        # The expert's lm_head is a vocabulary head that inference never calls: never quantized.
+        "ah": Component(roots=(_EXPERT, *action_projections), never=("*lm_head",)),
+    }
+
+
+def pi_builders(modeling: types.ModuleType, model_cls: type, config_cls: type) -> dict[str, Callable]:
+    """`full` and `demo` builders for a lerobot pi-family core model (`PI05Pytorch`/`PI0Pytorch`)."""
+
+    def full(device: torch.device, seed: int) -> nn.Module:
+        config = config_cls(dtype="bfloat16", device="cpu")
+        return seeded_build(lambda: model_cls(config), device, seed)
+
+    def demo(device: torch.device, seed: int) -> nn.Module:
+        config = config_cls(dtype="float32", device="cpu")
+        with _reduced_widths(modeling):
+            model = seeded_build(lambda: model_cls(config), device, seed)
+        _randomize_linears(model, seed)
+        return model.eval()
+
+    return {"full": full, "demo": demo}
+
+
+@contextlib.contextmanager
+def _reduced_widths(modeling: types.ModuleType):
+    """Patch the two size sources lerobot hard-codes while the demo model is constructed.
+
+    lerobot accepts only the released Gemma variants (`get_gemma_config`) and sets the SigLIP MLP
+    width and projector output inside `PaliGemmaWithExpertModel`, so the demo resizes the finished
+    PaliGemma config just before the VLM is instantiated from it.
+    """
+    real_vlm_cls = modeling.PaliGemmaForConditionalGenerationWithPiGemma
+
+    def demo_vlm(config):
+        for key, value in _DEMO_VISION.items():
+            setattr(config.vision_config, key, value)
+        config.vision_config.projection_dim = config.text_config.hidden_size
+        return real_vlm_cls(config=config)
+
+    def demo_gemma_config(variant: str):
+        return modeling.GemmaConfig(**(_DEMO_VLM_TEXT if variant == "gemma_2b" else _DEMO_EXPERT))
+
+    with (
+        mock.patch.object(modeling, "PaliGemmaForConditionalGenerationWithPiGemma", demo_vlm),
+        mock.patch.object(modeling, "get_gemma_config", demo_gemma_config),
+    ):
+        yield
+
+
+def _randomize_linears(model: nn.Module, seed: int) -> None:
+    """Give every linear layer seeded random weights, including those lerobot zero-initialises
+    (the adaRMS `dense` modulations), so every selectable layer affects the demo's output."""
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for module in model.modules():
+            if isinstance(module, nn.Linear):
+                std = module.in_features**-0.5
+                module.weight.copy_(torch.randn(module.weight.shape, generator=generator) * std)
+                if module.bias is not None:
+                    module.bias.copy_(torch.randn(module.bias.shape, generator=generator) * 0.02)

@@ -1,0 +1,197 @@
+"""What the pi0 and pi0.5 adapters share: lerobot 0.6.1 policies driven like lerobot's LIBERO
+evaluation (two cameras, 8-D state, instruction), with the flow noise drawn per episode.
+
+Observation -> lerobot batch (`observation.images.image` = agentview, `.image2` = wrist, both
+already rotated 180 degrees by the environment; `observation.state`; `task`) -> the policy's
+preprocessor pipeline (normalization, tokenization) -> images resized with padding to the model's
+resolution and mapped to [-1, 1] -> `sample_actions` with noise from each episode's generator ->
+the first 7 action dimensions -> the postprocessor (unnormalization).
+
+Full variant: `PI0xPolicy.from_pretrained` and the checkpoint's own processor files (the real
+PaliGemma tokenizer). Demo variant: the reduced-width random-weight model of the model spec, and
+lerobot's processor steps with LIBERO-like normalization ranges and an offline byte-level
+tokenizer (the PaliGemma tokenizer cannot be fetched offline; a random-weight policy has no
+vocabulary to match, so this changes nothing it could have learned).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from vlaquantbench.errors import UserError
+from vlaquantbench.models.adapter import AdapterConfig, BatchInvariantLinears, episode_generator
+from vlaquantbench.models.registry import get_model_spec
+
+CAMERA_KEYS = {"agentview": "observation.images.image", "wrist": "observation.images.image2"}
+STATE_KEY = "observation.state"
+ACTION_DIM = 7
+STATE_DIM = 8
+
+# Demo normalization ranges (not dataset statistics): LIBERO end-effector position (m), axis-angle
+# (rad), gripper finger positions (m); actions are already in [-1, 1].
+_STATE_LOW = [-0.4, -0.4, 0.8, -3.2, -3.2, -3.2, -0.05, -0.05]
+_STATE_HIGH = [0.4, 0.4, 1.4, 3.2, 3.2, 3.2, 0.05, 0.05]
+
+
+def _range_stats(low: list[float], high: list[float]) -> dict[str, torch.Tensor]:
+    lo, hi = torch.tensor(low), torch.tensor(high)
+    return {"min": lo, "max": hi, "q01": lo, "q99": hi, "mean": (lo + hi) / 2, "std": (hi - lo) / 4}
+
+
+DEMO_STATS = {
+    STATE_KEY: _range_stats(_STATE_LOW, _STATE_HIGH),
+    "action": _range_stats([-1.0] * ACTION_DIM, [1.0] * ACTION_DIM),
+}
+
+
+def offline_byte_tokenizer():
+    """A deterministic byte-level tokenizer built in code (no download): one token per UTF-8 byte."""
+    from tokenizers import Tokenizer, decoders, models, pre_tokenizers
+    from transformers import PreTrainedTokenizerFast
+
+    alphabet = pre_tokenizers.ByteLevel.alphabet()
+    vocab = {"<pad>": 0, "<unk>": 1, **{ch: i + 2 for i, ch in enumerate(sorted(alphabet))}}
+    tokenizer = Tokenizer(models.BPE(vocab=vocab, merges=[], unk_token="<unk>"))
+    tokenizer.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False, use_regex=False)
+    tokenizer.decoder = decoders.ByteLevel()
+    return PreTrainedTokenizerFast(tokenizer_object=tokenizer, pad_token="<pad>", unk_token="<unk>")
+
+
+class PiFamilyAdapter:
+    """Base of the pi0/pi0.5 adapters; subclasses name the lerobot classes and the model call."""
+
+    name: str
+    policy_module: str  # e.g. "lerobot.policies.pi05"
+
+    def __init__(self, config: AdapterConfig):
+        self.config = config
+        self.model: nn.Module | None = None
+        self.predicted_chunk = 0
+        self.executed_chunk = config.executed_chunk
+        self._device = torch.device(config.device)
+
+    @property
+    def components(self) -> dict:
+        return get_model_spec(self.name).components
+
+    # -- loading ---------------------------------------------------------------------------
+    def load(self) -> None:
+        if self.config.variant == "demo":
+            self.model = get_model_spec(self.name).build(variant="demo", device=self._device, seed=self.config.seed)
+            self.policy_config = self._demo_policy_config()
+            self.preprocessor, self.postprocessor = self._demo_processors(self.policy_config)
+        else:
+            self._load_checkpoint()
+        self.model.eval()
+        # CPU float32 runs promise bit-identical actions at any batch size (see BatchInvariantLinears).
+        self._invariance = BatchInvariantLinears(self.model) if self._device.type == "cpu" else None
+        self.predicted_chunk = int(self.policy_config.chunk_size)
+        self.image_keys = list(self.policy_config.image_features)
+        if not 0 < self.executed_chunk <= self.predicted_chunk:
+            raise UserError(
+                f"{self.name}: executed chunk {self.executed_chunk} must lie in 1..{self.predicted_chunk} (predicted)"
+            )
+
+    def _load_checkpoint(self) -> None:
+        import importlib
+
+        from lerobot.processor import PolicyProcessorPipeline
+
+        if not self.config.checkpoint_dir:
+            raise UserError(f"{self.name}: checkpoint {self.config.checkpoint} has no local snapshot; run its download rule")
+        lib = importlib.import_module(self.policy_module)
+        policy_cls = getattr(lib, self.policy_class)
+        policy = policy_cls.from_pretrained(self.config.checkpoint_dir, local_files_only=True)
+        policy.config.device = self.config.device
+        self.policy_config = policy.config
+        self.model = policy.model.to(self._device)
+        if self.config.dtype == "float32":
+            self.model = self.model.float()
+        overrides = {"device_processor": {"device": self.config.device}}
+        self.preprocessor = PolicyProcessorPipeline.from_pretrained(
+            self.config.checkpoint_dir, "policy_preprocessor.json", local_files_only=True, overrides=overrides
+        )
+        self.postprocessor = PolicyProcessorPipeline.from_pretrained(
+            self.config.checkpoint_dir, "policy_postprocessor.json", local_files_only=True
+        )
+
+    def _demo_policy_config(self):
+        import importlib
+
+        from lerobot.configs import FeatureType, PolicyFeature
+
+        lib = importlib.import_module(self.policy_module)
+        config_cls = getattr(lib, self.config_class)
+        image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 224, 224))
+        return config_cls(
+            device=self.config.device,
+            dtype="float32",
+            input_features={
+                CAMERA_KEYS["agentview"]: image,
+                CAMERA_KEYS["wrist"]: image,
+                STATE_KEY: PolicyFeature(type=FeatureType.STATE, shape=(STATE_DIM,)),
+            },
+            output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,))},
+        )
+
+    def _demo_processors(self, policy_config):
+        raise NotImplementedError
+
+    # -- episodes --------------------------------------------------------------------------
+    def reset(self, seed: int) -> torch.Generator:
+        return episode_generator(seed)
+
+    @torch.no_grad()
+    def act(self, observations: Sequence[dict[str, Any]], generators: Sequence[torch.Generator]) -> np.ndarray:
+        if len(observations) != len(generators):
+            raise ValueError(f"{len(observations)} observations but {len(generators)} generators")
+        if self._invariance is not None:
+            self._invariance.batch_size = len(observations)
+        batch = self.preprocessor(self._lerobot_batch(observations))
+        images, image_masks = self._images(batch)
+        shape = (self.predicted_chunk, int(self.policy_config.max_action_dim))
+        # Drawn on the CPU from each episode's own stream, then moved: identical on every device.
+        noise = torch.stack([torch.randn(shape, generator=g) for g in generators]).to(self._device)
+        actions = self._sample(batch, images, image_masks, noise)[:, :, :ACTION_DIM]
+        actions = self.postprocessor(actions.float())
+        return actions.float().cpu().numpy()
+
+    def _lerobot_batch(self, observations: Sequence[dict[str, Any]]) -> dict[str, Any]:
+        batch: dict[str, Any] = {}
+        for view, key in CAMERA_KEYS.items():
+            pixels = np.stack([obs[view] for obs in observations])  # n x H x W x 3, uint8
+            batch[key] = torch.from_numpy(pixels).permute(0, 3, 1, 2).float().div(255.0)
+        batch[STATE_KEY] = torch.from_numpy(np.stack([obs["state"] for obs in observations]).astype(np.float32))
+        batch["task"] = [obs["instruction"] for obs in observations]
+        return batch
+
+    def _images(self, batch: dict[str, Any]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """Like lerobot's `_preprocess_images`: resize with padding, [0, 1] -> [-1, 1]; cameras the
+        checkpoint expects but LIBERO lacks become masked constant images."""
+        from lerobot.policies.common.vla_utils import resize_with_pad_torch
+
+        height, width = self.policy_config.image_resolution
+        images, masks = [], []
+        present = [k for k in self.image_keys if k in batch]
+        if not present:
+            raise UserError(f"{self.name}: none of the checkpoint's cameras {self.image_keys} is delivered by LIBERO")
+        n = batch[present[0]].shape[0]
+        for key in self.image_keys:
+            if key in batch:
+                img = batch[key].to(self._device, torch.float32).permute(0, 2, 3, 1)
+                if tuple(img.shape[1:3]) != (height, width):
+                    img = resize_with_pad_torch(img, height, width)
+                images.append((img * 2.0 - 1.0).permute(0, 3, 1, 2))
+                masks.append(torch.ones(n, dtype=torch.bool, device=self._device))
+            else:
+                images.append(torch.full((n, 3, height, width), -1.0, device=self._device))
+                masks.append(torch.zeros(n, dtype=torch.bool, device=self._device))
+        return images, masks
+
+    def _sample(self, batch, images, image_masks, noise) -> torch.Tensor:
+        raise NotImplementedError

@@ -1,0 +1,1 @@
+"""X-VLA (lerobot 0.6.1 `XVLAModel`, configured like `2toINF/X-VLA-Libero`): component scopes."""

@@ -1,0 +1,195 @@
+"""`quantize_(model, config, components)`: apply one quantization to a policy, torchao style.
+
+    cfg = QuantConfig.from_preset("W4A4", scope="ah", only=["*self_attn*"])
+    report = quantize_(model, cfg, components=get_model_spec("pi05").components)
+    ...  # run episodes
+    report.check_hooks_fired()          # raises HooksNotFired naming layers whose hooks never ran
+    header.update(report.to_header())
+
+Layer selection (`quant.scope`) happens, and fails on bad scopes or patterns, before any weight
+changes. The quantization itself is a *method* looked up in a dispatch table: `rtn` (this module)
+fake-quantizes weights in place and installs counting activation hooks; real-kernel methods
+register through `register_method(name, fn)`. Weight changes are in place and not undone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from vlaquantbench.errors import UserError
+from vlaquantbench.models.registry import Component
+from vlaquantbench.quant.calibration import FLOOR, CalibrationSettings, CalibrationStats, smoothing_factors
+from vlaquantbench.quant.grid import fake_quant_weight
+from vlaquantbench.quant.hooks import CountingHook, InputTransform
+from vlaquantbench.quant.presets import Preset, parse_preset
+from vlaquantbench.quant.scope import Selection, select_layers
+
+
+@dataclass(frozen=True)
+class QuantConfig:
+    preset: Preset
+    scope: str = "e2e"
+    only: tuple[str, ...] | None = None
+    exclude: tuple[str, ...] | None = None
+    method: str = "rtn"
+    calibration: CalibrationSettings | None = None
+    stats: CalibrationStats | None = None
+
+    @classmethod
+    def from_preset(
+        cls,
+        preset: str,
+        scope: str = "e2e",
+        only: Sequence[str] | None = None,
+        exclude: Sequence[str] | None = None,
+        method: str = "rtn",
+        calibration: CalibrationSettings | None = None,
+        stats: CalibrationStats | None = None,
+    ) -> QuantConfig:
+        if calibration is not None and stats is None:
+            raise UserError("calibration settings given without calibration statistics (stats=...)")
+        return cls(
+            preset=parse_preset(preset),
+            scope=scope,
+            only=tuple(only) if only else None,
+            exclude=tuple(exclude) if exclude else None,
+            method=method,
+            calibration=calibration,
+            stats=stats,
+        )
+
+
+@dataclass
+class MethodResult:
+    """What a quantization method did: a format description, its counting hooks by layer name,
+    and the names of layers it calibrated."""
+
+    format: str
+    hooks: dict[str, CountingHook] = field(default_factory=dict)
+    calibrated: set[str] = field(default_factory=set)
+
+
+MethodFn = Callable[[nn.Module, Selection, QuantConfig], MethodResult]
+_METHODS: dict[str, MethodFn] = {}
+
+
+def register_method(name: str, fn: MethodFn) -> None:
+    """Make `QuantConfig(method=name)` dispatch to `fn(model, selection, config) -> MethodResult`."""
+    _METHODS[name] = fn
+
+
+def registered_methods() -> list[str]:
+    return sorted(_METHODS)
+
+
+class HooksNotFired(RuntimeError):
+    """Selected layers whose activation hooks never ran: the run was weight-only for them."""
+
+
+@dataclass
+class QuantReport:
+    config: QuantConfig
+    selection: Selection
+    result: MethodResult
+
+    @property
+    def components(self) -> dict[str, dict[str, int]]:
+        return self.selection.counts()
+
+    @property
+    def selected(self) -> list[str]:
+        return list(self.selection.flat())
+
+    def hook_calls(self) -> dict[str, int]:
+        return {name: hook.calls for name, hook in self.result.hooks.items()}
+
+    def unfired(self) -> list[str]:
+        return [name for name, calls in self.hook_calls().items() if calls == 0]
+
+    def check_hooks_fired(self) -> None:
+        missing = self.unfired()
+        if missing:
+            raise HooksNotFired(
+                f"{len(missing)} of {len(self.result.hooks)} activation hooks never fired: {', '.join(missing)}"
+            )
+
+    def reset_hook_calls(self) -> None:
+        for hook in self.result.hooks.values():
+            hook.calls = 0
+
+    def remove_hooks(self) -> None:
+        for hook in self.result.hooks.values():
+            hook.remove()
+
+    def to_header(self) -> dict:
+        quant_report: dict = {}
+        for comp, counts in self.components.items():
+            quant_report[comp] = dict(counts)
+            if self.config.calibration is not None:
+                names = self.selection.layers[comp]
+                quant_report[comp]["calibrated_layers"] = sum(n in self.result.calibrated for n in names)
+        if self.config.calibration is not None:
+            quant_report["act_calib"] = self.config.stats.provenance(self.config.calibration)
+        return {
+            "quant_report": quant_report,
+            "quant_format": self.result.format,
+            "hooks": {"selected": len(self.result.hooks), "fired": len(self.result.hooks) - len(self.unfired()),
+                      "unfired": self.unfired()},
+            "selected_layers": self.selected,
+        }
+
+
+def quantize_(model: nn.Module, config: QuantConfig, components: Mapping[str, Component]) -> QuantReport:
+    """Quantize the layers of `model` that `config` selects and return the report."""
+    if config.method not in _METHODS:
+        raise UserError(f"unknown quantization method {config.method!r}; registered: {', '.join(registered_methods())}")
+    selection = select_layers(model, components, config.scope, config.only, config.exclude)
+    if config.preset.is_baseline and config.calibration is None:
+        empty = Selection({comp: {} for comp in selection.layers})
+        return QuantReport(config, empty, MethodResult(format="released precision"))
+    return QuantReport(config, selection, _METHODS[config.method](model, selection, config))
+
+
+def rtn(model: nn.Module, selection: Selection, config: QuantConfig) -> MethodResult:
+    """Round-to-nearest fake quantization (paper `app:quant-prelim`), with optional rollout
+    smoothing and clipping (`app:calib`) on the layers of the calibrated components."""
+    preset = config.preset
+    result = MethodResult(format=_rtn_format(preset, config.calibration))
+    for name, layer in selection.flat().items():
+        transform = InputTransform(act_bits=preset.act_bits)
+        layer_stats = _stats_for(name, selection, config)
+        with torch.no_grad():
+            if layer_stats is not None:
+                smooth = smoothing_factors(layer_stats.absmax, layer.weight, config.calibration.alpha)
+                clip = None
+                if config.calibration.quantile is not None:
+                    clip = (layer_stats.quantile.float().to(smooth.device) / smooth).clamp_min(FLOOR)
+                layer.weight.copy_((layer.weight.float() * smooth).to(layer.weight.dtype))
+                transform = InputTransform(smooth=smooth, clip=clip, act_bits=preset.act_bits)
+                result.calibrated.add(name)
+            if preset.weight is not None:
+                grid = preset.weight
+                layer.weight.copy_(fake_quant_weight(layer.weight, grid.bits, grid.group_size, grid.symmetric))
+        if not transform.is_identity:
+            result.hooks[name] = CountingHook(layer, transform)
+    return result
+
+
+def _stats_for(name: str, selection: Selection, config: QuantConfig):
+    if config.calibration is None or selection.component_of(name) not in config.calibration.components:
+        return None
+    return config.stats.layers.get(name)  # layers never observed during calibration stay uncalibrated
+
+
+def _rtn_format(preset: Preset, calibration: CalibrationSettings | None) -> str:
+    weights = f"weights {preset.weight.describe()}" if preset.weight else "weights released precision"
+    acts = f"activations {preset.act_bits}-bit symmetric per token" if preset.act_bits else "activations released precision"
+    calib = f"; rollout smoothing alpha={calibration.alpha}, clip q={calibration.quantile}" if calibration else ""
+    return f"RTN {weights}; {acts}{calib}"
+
+
+register_method("rtn", rtn)

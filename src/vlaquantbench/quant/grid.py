@@ -1,0 +1,61 @@
+"""Round-to-nearest fake quantization grids (paper appendix `app:quant-prelim`), as pure functions.
+
+Every function quantizes and immediately dequantizes: the result has the input's shape and dtype,
+with values on the b-bit grid. Arithmetic runs in float32; rounding is `torch.round` (ties to even).
+
+    x_hat = s * (clip(round(x / s) + z, q_min, q_max) - z)
+
+symmetric:  q in [-2^(b-1), 2^(b-1) - 1], z = 0, s = max(max|x|, 1e-8) / (2^(b-1) - 1)
+asymmetric: m = min(min x, 0), M = max(max x, 0), L = 2^b - 1, q in [0, L],
+            s = max((M - m) / L, 1e-8), z = clip(round(-m / s), 0, L)
+
+A "group" is a run of consecutive values along the last dimension that shares one scale.
+"""
+
+from __future__ import annotations
+
+import torch
+
+SCALE_FLOOR = 1e-8
+
+
+def fake_quant_sym(x: torch.Tensor, bits: int) -> torch.Tensor:
+    """Symmetric b-bit RTN with one scale per row of the last dimension."""
+    xf = x.float()
+    q_max = 2 ** (bits - 1) - 1
+    scale = xf.abs().amax(dim=-1, keepdim=True).clamp_min(SCALE_FLOOR) / q_max
+    q = torch.clamp(torch.round(xf / scale), -(q_max + 1), q_max)
+    return (q * scale).to(x.dtype)
+
+
+def fake_quant_asym(x: torch.Tensor, bits: int) -> torch.Tensor:
+    """Asymmetric b-bit RTN with one scale and zero point per row of the last dimension."""
+    xf = x.float()
+    levels = 2**bits - 1
+    low = xf.amin(dim=-1, keepdim=True).clamp_max(0.0)
+    high = xf.amax(dim=-1, keepdim=True).clamp_min(0.0)
+    scale = ((high - low) / levels).clamp_min(SCALE_FLOOR)
+    zero = torch.clamp(torch.round(-low / scale), 0, levels)
+    q = torch.clamp(torch.round(xf / scale) + zero, 0, levels)
+    return ((q - zero) * scale).to(x.dtype)
+
+
+def fake_quant_weight(weight: torch.Tensor, bits: int, group_size: int | None, symmetric: bool) -> torch.Tensor:
+    """Quantize a C_out x C_in weight per output channel (`group_size` None) or per group of
+    `group_size` consecutive input columns; a shorter final group gets its own scale, unpadded."""
+    quant = fake_quant_sym if symmetric else fake_quant_asym
+    in_features = weight.shape[-1]
+    if group_size is None or group_size >= in_features:
+        return quant(weight, bits)
+    full = in_features - in_features % group_size
+    head = weight[..., :full].reshape(*weight.shape[:-1], full // group_size, group_size)
+    pieces = [quant(head, bits).reshape(*weight.shape[:-1], full)]
+    if full < in_features:
+        pieces.append(quant(weight[..., full:], bits))
+    return torch.cat(pieces, dim=-1)
+
+
+def fake_quant_activation(x: torch.Tensor, bits: int) -> torch.Tensor:
+    """Dynamic symmetric per-token quantization: one absmax scale per vector along the last
+    dimension, all leading dimensions treated as tokens."""
+    return fake_quant_sym(x, bits)

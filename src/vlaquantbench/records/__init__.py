@@ -1,0 +1,26 @@
+"""Per-episode records of a cell: this project's folder format and the authors' `.jsonl` layout.
+
+A cell of this project is a folder `<dir>/header.json` + `<dir>/episodes.parquet`; the authors
+published `<benchmark>/<suite>/<model>/<cell>.jsonl` (a header line, then one line per episode).
+`read_cell` accepts either and returns the same `Cell`.
+"""
+
+from vlaquantbench.records.cell import (
+    EPISODE_COLUMNS,
+    OPTIONAL_COLUMNS,
+    Cell,
+    find_cells,
+    read_cell,
+    record_files,
+    write_cell,
+)
+
+__all__ = [
+    "EPISODE_COLUMNS",
+    "OPTIONAL_COLUMNS",
+    "Cell",
+    "find_cells",
+    "read_cell",
+    "record_files",
+    "write_cell",
+]

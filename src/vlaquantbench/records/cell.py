@@ -1,0 +1,149 @@
+"""The `Cell` record: a provenance header plus one row per episode."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from vlaquantbench.errors import UserError
+
+HEADER_FILE = "header.json"
+EPISODES_FILE = "episodes.parquet"
+AUTHORS_SUFFIX = ".jsonl"
+
+EPISODE_KEY = ("task_id", "episode", "seed")
+EPISODE_COLUMNS = ("suite", "task_id", "episode", "seed", "success", "steps", "init_state_id")
+OPTIONAL_COLUMNS = (
+    "task_name",
+    "wall_time_s",
+    "policy_latency_mean_s",
+    "inference_latency_mean_s",
+    "peak_vram_gb",
+    "subtasks_completed",
+    "progress_score",
+)
+# Nullable dtypes: benchmarks without LIBERO init states (CALVIN, SIMPLER) leave init_state_id empty.
+_DTYPES = {
+    "suite": "string",
+    "task_id": "int64",
+    "episode": "int64",
+    "seed": "int64",
+    "success": "bool",
+    "steps": "int64",
+    "init_state_id": "Int64",
+    "task_name": "string",
+    "wall_time_s": "float64",
+    "policy_latency_mean_s": "float64",
+    "inference_latency_mean_s": "float64",
+    "peak_vram_gb": "float64",
+    "subtasks_completed": "float64",
+    "progress_score": "float64",
+}
+
+
+@dataclass(frozen=True)
+class Cell:
+    header: dict[str, Any]
+    episodes: pd.DataFrame
+    path: Path
+
+    @property
+    def n_episodes(self) -> int:
+        return len(self.episodes)
+
+    @property
+    def n_successes(self) -> int:
+        return int(self.episodes["success"].sum())
+
+    @property
+    def quantized_layers(self) -> int:
+        """Layers quantized over all components, from the header's `quant_report` (#L in the paper)."""
+        report = self.header.get("quant_report") or {}
+        return sum(int(entry["layers"]) for entry in report.values() if isinstance(entry, dict) and "layers" in entry)
+
+
+def normalize_episodes(rows: pd.DataFrame | list[dict[str, Any]], source: Path) -> pd.DataFrame:
+    """Episode table with the required columns, known dtypes and unique (task_id, episode, seed)."""
+    frame = rows if isinstance(rows, pd.DataFrame) else pd.DataFrame(rows)
+    if frame.empty:
+        raise UserError(f"{source}: the cell has no episodes")
+    if "init_state_id" not in frame.columns:
+        frame = frame.assign(init_state_id=pd.NA)
+    missing = [column for column in EPISODE_COLUMNS if column not in frame.columns]
+    if missing:
+        raise UserError(f"{source}: episodes lack required column(s) {', '.join(missing)}")
+    columns = list(EPISODE_COLUMNS) + [c for c in OPTIONAL_COLUMNS if c in frame.columns]
+    try:
+        frame = frame[columns].astype({c: _DTYPES[c] for c in columns}).reset_index(drop=True)
+    except (TypeError, ValueError) as err:
+        raise UserError(f"{source}: an episode column has values of the wrong type ({err})") from err
+    duplicated = frame.duplicated(list(EPISODE_KEY), keep=False)
+    if duplicated.any():
+        first = frame.loc[duplicated, list(EPISODE_KEY)].iloc[0].to_dict()
+        raise UserError(f"{source}: duplicate episode key (task_id, episode, seed) = {tuple(first.values())}")
+    return frame
+
+
+def read_cell(path: str | Path) -> Cell:
+    """Read a cell from the authors' `.jsonl`, a cell folder, or the `episodes.parquet` inside one."""
+    path = Path(path)
+    if path.suffix == AUTHORS_SUFFIX:
+        from vlaquantbench.records.authors import read_authors_jsonl
+
+        return read_authors_jsonl(path)
+    folder = path.parent if path.name == EPISODES_FILE else path
+    header_path, episodes_path = folder / HEADER_FILE, folder / EPISODES_FILE
+    for required in (header_path, episodes_path):
+        if not required.is_file():
+            raise UserError(f"{path}: not a cell record: {required} is missing")
+    try:
+        header = json.loads(header_path.read_text())
+    except json.JSONDecodeError as err:
+        raise UserError(f"{header_path}: not valid JSON ({err})") from err
+    return Cell(header=header, episodes=normalize_episodes(pd.read_parquet(episodes_path), episodes_path), path=folder)
+
+
+def write_cell(folder: str | Path, header: dict[str, Any], episodes: pd.DataFrame | list[dict[str, Any]]) -> Cell:
+    """Write a cell folder atomically: each file goes to a temporary name first, then is renamed.
+
+    The episodes file is renamed last, so its presence (the file the workflow waits for) implies a
+    complete header next to it.
+    """
+    folder = Path(folder)
+    frame = normalize_episodes(episodes, folder / EPISODES_FILE)
+    folder.mkdir(parents=True, exist_ok=True)
+    header_tmp = folder / f".{HEADER_FILE}.tmp"
+    episodes_tmp = folder / f".{EPISODES_FILE}.tmp"
+    header_tmp.write_text(json.dumps(header, indent=2, sort_keys=True) + "\n")
+    frame.to_parquet(episodes_tmp, index=False)
+    os.replace(header_tmp, folder / HEADER_FILE)
+    os.replace(episodes_tmp, folder / EPISODES_FILE)
+    return Cell(header=header, episodes=frame, path=folder)
+
+
+def record_files(path: str | Path) -> list[Path]:
+    """The files that make up one cell's record (what a manifest lists for it)."""
+    path = Path(path)
+    if path.suffix == AUTHORS_SUFFIX:
+        return [path]
+    folder = path.parent if path.name == EPISODES_FILE else path
+    return [folder / HEADER_FILE, folder / EPISODES_FILE]
+
+
+def find_cells(records_dir: str | Path) -> dict[str, Path]:
+    """Every cell under `records_dir`, keyed by reference (`<benchmark>/<suite>/<model>/<cell>`)."""
+    root = Path(records_dir)
+    if not root.is_dir():
+        raise UserError(f"records_dir {root} is not a folder")
+    cells = {p.relative_to(root).with_suffix("").as_posix(): p for p in root.rglob(f"*{AUTHORS_SUFFIX}")}
+    for episodes in root.rglob(EPISODES_FILE):
+        ref = episodes.parent.relative_to(root).as_posix()
+        if ref in cells:
+            raise UserError(f"{root}: cell {ref} is recorded twice ({cells[ref]} and {episodes})")
+        cells[ref] = episodes
+    return dict(sorted(cells.items()))

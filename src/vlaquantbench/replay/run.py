@@ -1,0 +1,76 @@
+"""One configuration's replay output on disk: `<config>.json` (summary in the authors' layout)
+beside `<config>.npz` (per-trajectory arrays keyed `<record>/<array>`).
+
+Arrays per trajectory (record):
+  chunks       [calls, horizon, action_dims]  predicted normalized chunks
+  actions      [steps, action_dims]           executed environment actions, cached ones included
+  flow_states  [calls, flow_steps, horizon, state_dims]  state entering each denoising step
+  downproj     [calls, layers, len(DOWNPROJ_COLUMNS)]      down_proj input statistics per call
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from vlaquantbench.errors import UserError
+
+ARRAYS = ("chunks", "actions", "flow_states", "downproj")
+
+
+@dataclass
+class ReplayRun:
+    summary: dict
+    arrays: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # record -> name -> array
+
+    @property
+    def name(self) -> str:
+        return self.summary["config"]
+
+    def record_names(self) -> list[str]:
+        return [r["record"] for r in self.summary["records"]]
+
+    def stacked(self, array: str) -> np.ndarray:
+        """One array concatenated over trajectories in record order (chunks nest in trajectories)."""
+        return np.concatenate([self.arrays[r][array] for r in self.record_names()])
+
+    def save(self, directory: str | Path) -> Path:
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        flat = {f"{rec}/{k}": v for rec, arrays in self.arrays.items() for k, v in arrays.items()}
+        _atomic(directory / f"{self.name}.npz", lambda f: np.savez_compressed(f, **flat))
+        _atomic(directory / f"{self.name}.json", lambda f: f.write(json.dumps(self.summary, indent=1).encode()))
+        return directory / f"{self.name}.json"
+
+    @classmethod
+    def load(cls, summary_path: str | Path) -> "ReplayRun":
+        summary_path = Path(summary_path)
+        summary = json.loads(summary_path.read_text())
+        npz = summary_path.with_suffix(".npz")
+        if not npz.exists():
+            raise UserError(f"replay {summary_path} has no arrays file {npz}")
+        arrays: dict[str, dict[str, np.ndarray]] = {}
+        with np.load(npz) as data:
+            for key in data.files:
+                record, name = key.rsplit("/", 1)
+                arrays.setdefault(record, {})[name] = data[key]
+        missing = [r for r in (x["record"] for x in summary["records"]) if r not in arrays]
+        if missing:
+            raise UserError(f"{npz} lacks arrays for records {missing}")
+        return cls(summary, arrays)
+
+
+def _atomic(path: Path, write) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

@@ -1,0 +1,64 @@
+"""Rollout calibration (paper `app:calib`): unquantized closed-loop episodes with activation
+observers on the calibrated components' linear layers; statistics saved under a cache key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from vlaquantbench.envs.libero import EpisodeSpec, LiberoSuite, LiberoVectorEnv, episode_seed
+from vlaquantbench.runner.cell import load_policy
+from vlaquantbench.runner.loop import run_episodes
+from vlaquantbench.runner.provenance import code_revision
+
+
+def calibrate(
+    calib: dict[str, Any],
+    output: str | Path,
+    checkpoint_stamp: str | Path | None = None,
+    *,
+    num_envs: int = 2,
+    torch_threads: int | None = 1,
+) -> Path:
+    """Collect statistics for `calib` (a `cells.calibration_config`) and save them to `output`."""
+    from vlaquantbench.quant import CalibrationSettings, select_layers
+    from vlaquantbench.quant.calibration import calibration_key, keyed_fields, observe, save_stats
+
+    if torch_threads:
+        torch.set_num_threads(torch_threads)
+    settings_cfg, runner = calib["calibration"], calib["runner"]
+    settings = CalibrationSettings(
+        alpha=settings_cfg["alpha"], quantile=settings_cfg["quantile"], components=tuple(settings_cfg["components"])
+    )
+    suite = LiberoSuite(calib["suite"])
+    specs = [
+        EpisodeSpec(task, state, init_state_id=state, seed=episode_seed(task, state, settings_cfg["seed"]))
+        for task in settings_cfg["tasks"]
+        for state in settings_cfg["init_states"]
+    ]
+    for spec in specs:  # out-of-range init states fail here, before the policy loads
+        suite.init_state(spec.task_id, spec.init_state_id)
+    adapter = load_policy(calib, checkpoint_stamp)
+    layers = {}
+    for component in settings.components:
+        layers.update(select_layers(adapter.model, adapter.components, component).flat())
+    fields = dict(
+        model=calib["model"],
+        checkpoint=calib["checkpoint"],
+        revision=calib["revision"],
+        init_states=settings_cfg["init_states"],
+        tasks=len(settings_cfg["tasks"]),
+        seed=settings_cfg["seed"],
+        settings=settings,
+        code_revision=code_revision(),
+    )
+    max_steps = runner["max_steps"] or suite.max_steps(calib["model"])
+    with observe(layers, quantile=settings.quantile) as observer:
+        with LiberoVectorEnv(
+            suite, min(num_envs, len(specs)), camera_size=runner["camera_size"], settle_steps=runner["settle_steps"]
+        ) as env:
+            run_episodes(adapter, env, specs, max_steps, on_finished=lambda records: None)
+    stats = observer.stats(calibration_key(**fields), keyed_fields(*fields.values()))
+    return save_stats(stats, output)

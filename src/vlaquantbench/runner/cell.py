@@ -1,0 +1,196 @@
+"""Run one cell: load the policy, quantize it, run the missing episodes, check, write the records.
+
+    run = CellRun(cfg, out_dir, checkpoint_stamp, calibration_stats)
+    run.prepare()   # load + quantize; the header is known from here on
+    run.run()       # journal-backed episodes; header.json + episodes.parquet when all exist
+
+The protocol checks of the paper (Sec. 5) are enforced here: the adapter must execute the cell's
+chunk length, every selected activation hook must have fired, and the MuJoCo pin is checked when
+the simulator versions are read. Records are only written when every configured episode exists;
+until then they live in the journal, which survives any kill.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm import tqdm
+
+from vlaquantbench.cells import config_hash
+from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv, simulator_versions
+from vlaquantbench.errors import UserError
+from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+from vlaquantbench.records import write_cell
+from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal
+from vlaquantbench.runner.loop import run_episodes
+from vlaquantbench.runner.provenance import code_revision, versions
+
+JOURNAL = "journal.jsonl"
+# Cell-name methods that are RTN grids in the quantizer (ablate = RTN on a named subset;
+# calib* = RTN after rollout smoothing/clipping); the others name registered methods.
+_RTN_METHODS = ("rtn", "ablate")
+
+
+class CellFailed(UserError):
+    """A protocol check failed; the cell's records are not written (its journal is kept)."""
+
+
+def quant_method(cell_method: str) -> str:
+    return "rtn" if cell_method in _RTN_METHODS or cell_method.startswith("calib") else cell_method
+
+
+def checkpoint_dir(stamp: str | Path | None) -> str | None:
+    if stamp is None:
+        return None
+    return json.loads(Path(stamp).read_text()).get("path")
+
+
+def load_policy(cfg: dict[str, Any], stamp: str | Path | None):
+    """The cell's adapter with its policy loaded, after checking its executed chunk length."""
+    adapter = make_adapter(AdapterConfig.from_cell(cfg, checkpoint_dir(stamp)))
+    adapter.load()
+    expected = cfg["runner"]["executed_chunk"]
+    if adapter.executed_chunk != expected:
+        raise CellFailed(
+            f"{cfg.get('ref', cfg['model'])}: adapter executes {adapter.executed_chunk} actions per chunk but the cell config "
+            f"says {expected} (predicted {adapter.predicted_chunk})"
+        )
+    return adapter
+
+
+class CellRun:
+    def __init__(
+        self,
+        cfg: dict[str, Any],
+        out_dir: str | Path,
+        checkpoint_stamp: str | Path | None = None,
+        calibration_stats: str | Path | None = None,
+        *,
+        num_envs: int = 2,
+        torch_threads: int | None = 1,
+        progress: bool = True,
+    ):
+        self.cfg = cfg
+        self.out_dir = Path(out_dir)
+        self.checkpoint_stamp = checkpoint_stamp
+        self.calibration_stats = calibration_stats
+        self.num_envs = num_envs
+        self.progress = progress
+        if torch_threads:
+            torch.set_num_threads(torch_threads)
+        if cfg["benchmark"] != "libero":
+            raise UserError(f"cell {cfg['ref']}: the rollout runner supports benchmark 'libero', not {cfg['benchmark']!r}")
+        self.suite = LiberoSuite(cfg["suite"])
+        self.specs = [
+            self.suite.episode_spec(t, e, cfg["seed"]) for t in cfg["tasks"] for e in range(cfg["episodes_per_task"])
+        ]
+        self.max_steps = cfg["runner"]["max_steps"] or self.suite.max_steps(cfg["model"])
+
+    def prepare(self) -> None:
+        from vlaquantbench.quant import QuantConfig, quantize_
+
+        cfg = self.cfg
+        self.simulator = simulator_versions()
+        self.adapter = load_policy(cfg, self.checkpoint_stamp)
+        calibration, stats = self._calibration()
+        quant = QuantConfig.from_preset(
+            cfg["preset"],
+            scope=cfg["scope"],
+            only=cfg["only"],
+            exclude=cfg["exclude"],
+            method=quant_method(cfg["method"]),
+            calibration=calibration,
+            stats=stats,
+        )
+        self.report = quantize_(self.adapter.model, quant, components=self.adapter.components)
+        quantized = self.report.to_header()
+        self.header = {
+            "config_hash": config_hash(cfg),
+            "ref": cfg["ref"],
+            "cell": cfg["cell"],
+            **{k: cfg[k] for k in ("model", "checkpoint", "revision", "benchmark", "suite", "preset", "scope")},
+            **{k: cfg[k] for k in ("only", "exclude", "method", "seed", "episodes_per_task", "calibration")},
+            "variant": cfg["variant"],
+            "config": cfg,
+            "quant_report": quantized["quant_report"],
+            "quant_format": quantized["quant_format"],
+            "selected_layers": quantized["selected_layers"],
+            "hooks": {"selected": len(self.report.result.hooks)},
+            "chunk": {"predicted": self.adapter.predicted_chunk, "executed": self.adapter.executed_chunk},
+            "max_steps": self.max_steps,
+            "versions": {**versions(), **{k: v for k, v in self.simulator.items() if k != "mujoco"}},
+            "code_revision": code_revision(),
+        }
+
+    def _calibration(self):
+        settings = self.cfg["calibration"]
+        if settings is None:
+            return None, None
+        from vlaquantbench.quant import CalibrationSettings
+        from vlaquantbench.quant.calibration import load_stats
+
+        if self.calibration_stats is None:
+            raise UserError(f"cell {self.cfg['ref']} is calibrated but no calibration statistics were given")
+        calibration = CalibrationSettings(
+            alpha=settings["alpha"], quantile=settings["quantile"], components=tuple(settings["components"])
+        )
+        return calibration, load_stats(self.calibration_stats)
+
+    def missing(self, journal: CellJournal) -> list:
+        done = journal.done_keys()
+        return [s for s in self.specs if tuple(getattr(s, k) for k in EPISODE_KEY) not in done]
+
+    def run(self) -> Path:
+        """Run the missing episodes, check hook coverage, write the records; returns the episodes file."""
+        journal = CellJournal(self.out_dir / JOURNAL, self.header)
+        missing = self.missing(journal)
+        bar = tqdm(
+            total=len(self.specs),
+            initial=len(self.specs) - len(missing),
+            desc=self.cfg["ref"],
+            unit="ep",
+            disable=not self.progress,
+        )
+        bar.set_postfix(successes=sum(e["success"] for e in journal.episodes))
+
+        def finished(records: list[dict]) -> None:
+            fired = {name for name, calls in self.report.hook_calls().items() if calls > 0}
+            journal.record(records, fired)
+            bar.update(len(records))
+            bar.set_postfix(successes=sum(e["success"] for e in journal.episodes))
+
+        if missing:
+            num_envs = max(1, min(self.num_envs, len(missing)))
+            runner = self.cfg["runner"]
+            env = LiberoVectorEnv(
+                self.suite, num_envs, camera_size=runner["camera_size"], settle_steps=runner["settle_steps"]
+            )
+            with env:
+                run_episodes(self.adapter, env, missing, self.max_steps, finished)
+        bar.close()
+        return self._finish(journal)
+
+    def _finish(self, journal: CellJournal) -> Path:
+        selected = set(self.report.result.hooks)
+        unfired = sorted(selected - journal.fired)
+        if unfired:
+            raise CellFailed(
+                f"cell {self.cfg['ref']}: {len(unfired)} of {len(selected)} selected layers' activation hooks never "
+                f"fired, so they ran unquantized: {', '.join(unfired)}"
+            )
+        header = {**self.header, "hooks": {"selected": len(selected), "fired": len(selected & journal.fired)}}
+        order = {tuple(getattr(s, k) for k in EPISODE_KEY): n for n, s in enumerate(self.specs)}
+        episodes = sorted(journal.episodes, key=lambda e: order[tuple(e[k] for k in EPISODE_KEY)])
+        if len(episodes) != len(self.specs):
+            raise CellFailed(f"cell {self.cfg['ref']}: {len(episodes)} episodes recorded, {len(self.specs)} configured")
+        write_cell(self.out_dir, header, episodes)
+        return self.out_dir / "episodes.parquet"
+
+
+def run_cell(cfg: dict[str, Any], out_dir: str | Path, checkpoint_stamp=None, calibration_stats=None, **options) -> Path:
+    run = CellRun(cfg, out_dir, checkpoint_stamp, calibration_stats, **options)
+    run.prepare()
+    return run.run()

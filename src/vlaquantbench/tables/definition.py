@@ -1,0 +1,101 @@
+"""Table definitions (`config/tables/<name>.yaml`): rows by cell reference, columns by statistic.
+
+```yaml
+caption: Action-head subsets under W4A4 ...   # \\label{tab:<name>} is added
+align: lrrr                       # LaTeX column alignment
+header: [[Quantized subset, "\\#L", "SR \\% [CI]", "$\\Delta$"]]   # one list per header line
+cells: {baseline: libero/libero_spatial/pi05/rtn-BASELINE-e2e}    # names shared by every row
+values:                           # the columns after the row label
+  - {stat: layers, cell: cell}
+  - {stat: rate_ci, cell: cell}
+  - {stat: delta, cell: cell, minus: baseline}
+rows:
+  - {label: attention, cell: libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn}
+```
+A row names its cells under its own keys (they override `cells`); a null cell prints `--`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from vlaquantbench.errors import UserError
+
+STATS = {
+    "rate": ("cell",),  # success rate, one decimal
+    "rate_ci": ("cell",),  # success rate with integer Wilson bounds
+    "layers": ("cell",),  # quantized layers from the header's quant_report
+    "delta": ("cell", "minus"),  # A - B in pp
+    "bootstrap": ("cell", "minus"),  # task-clustered bootstrap interval of A - B
+}
+ENVIRONMENTS = ("tabular", "longtable")
+
+
+@dataclass(frozen=True)
+class ColumnSpec:
+    stat: str
+    cell: str
+    minus: str | None = None
+
+
+@dataclass(frozen=True)
+class TableDefinition:
+    name: str
+    align: str
+    header: list[list[str]]
+    values: list[ColumnSpec]
+    rows: list[dict[str, Any]]
+    caption: str
+    environment: str = "tabular"
+
+    @classmethod
+    def from_dict(cls, name: str, raw: dict[str, Any]) -> "TableDefinition":
+        where = f"table {name!r}"
+        for field in ("caption", "align", "header", "values", "rows"):
+            if field not in raw:
+                raise UserError(f"{where}: missing field {field!r}")
+        environment = raw.get("environment", "tabular")
+        if environment not in ENVIRONMENTS:
+            raise UserError(f"{where}: environment must be one of {ENVIRONMENTS}, got {environment!r}")
+        values = []
+        for index, spec in enumerate(raw["values"]):
+            stat = spec.get("stat")
+            if stat not in STATS:
+                raise UserError(f"{where}: values[{index}].stat must be one of {sorted(STATS)}, got {stat!r}")
+            missing = [key for key in STATS[stat] if not spec.get(key)]
+            if missing:
+                raise UserError(f"{where}: values[{index}] ({stat}) needs {', '.join(missing)}")
+            values.append(ColumnSpec(stat=stat, cell=spec["cell"], minus=spec.get("minus")))
+        shared = raw.get("cells") or {}
+        rows = []
+        for index, row in enumerate(raw["rows"]):
+            if "label" not in row:
+                raise UserError(f"{where}: rows[{index}] has no label")
+            merged = {**shared, **row}
+            for spec in values:
+                for key in filter(None, (spec.cell, spec.minus)):
+                    if key not in merged:
+                        raise UserError(f"{where}: rows[{index}] ({row['label']}) names no cell {key!r}")
+            rows.append(merged)
+        return cls(name, raw["align"], raw["header"], values, rows, raw["caption"], environment)
+
+    def refs(self) -> list[str]:
+        """Every cell reference the table reads, sorted: the workflow's inputs for this table."""
+        keys = {key for spec in self.values for key in (spec.cell, spec.minus) if key}
+        return sorted({row[key] for row in self.rows for key in keys if row[key]})
+
+
+def load_table(path: str | Path) -> TableDefinition:
+    """Read `config/tables/<name>.yaml`; the table's name is the file's stem."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"unknown table {path.stem!r}: no {path}")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise UserError(f"{path}: not valid YAML ({err})") from err
+    return TableDefinition.from_dict(path.stem, raw or {})

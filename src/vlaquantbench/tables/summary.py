@@ -1,0 +1,56 @@
+"""`summary.csv`: one row per cell with the authors' summary columns and number formatting."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping
+
+import pandas as pd
+
+from vlaquantbench.records import Cell, read_cell
+from vlaquantbench.stats import wilson_interval
+
+# The authors' results/summary.csv columns, in order.
+SUMMARY_COLUMNS = (
+    "benchmark", "suite", "model", "cell", "method", "preset", "scope", "seed", "checkpoint",
+    "episodes", "successes", "success_rate", "ci_low", "ci_high", "mean_subtasks", "mean_progress",
+)  # fmt: skip
+_MEANS = {"mean_subtasks": "subtasks_completed", "mean_progress": "progress_score"}
+
+
+def summary_row(ref: str, cell: Cell) -> dict[str, object]:
+    benchmark, suite, model, name = ref.split("/")
+    n, k = cell.n_episodes, cell.n_successes
+    low, high = wilson_interval(k, n)
+    row: dict[str, object] = {
+        "benchmark": benchmark,
+        "suite": suite,
+        "model": model,
+        "cell": name,
+        **{field: cell.header.get(field) for field in ("method", "preset", "scope", "seed", "checkpoint")},
+        "episodes": n,
+        "successes": k,
+        "success_rate": round(100.0 * k / n, 2),
+        "ci_low": round(float(low), 2),
+        "ci_high": round(float(high), 2),
+    }
+    for column, field in _MEANS.items():
+        values = cell.episodes[field].dropna() if field in cell.episodes else ()
+        row[column] = round(float(values.mean()), 3) if len(values) else None
+    return row
+
+
+def summarize(cells: Mapping[str, Cell]) -> pd.DataFrame:
+    # The authors list cells in the order of their record file paths (`<ref>.jsonl`), where
+    # `rtn-W4A4-ah-x.jsonl` sorts before `rtn-W4A4-ah.jsonl`; keeping it makes rows comparable line by line.
+    ordered = sorted(cells.items(), key=lambda item: f"{item[0]}.jsonl")
+    return pd.DataFrame([summary_row(ref, cell) for ref, cell in ordered], columns=list(SUMMARY_COLUMNS))
+
+
+def write_summary(cell_paths: Mapping[str, str | Path], output: str | Path) -> Path:
+    """Read every cell (reference -> record path) and write the summary CSV with CRLF line ends, as the authors do."""
+    frame = summarize({ref: read_cell(path) for ref, path in cell_paths.items()})
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(output, index=False, lineterminator="\r\n")
+    return output

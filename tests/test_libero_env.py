@@ -1,0 +1,131 @@
+"""The real LIBERO simulator in worker processes: observations, batching determinism, failures."""
+
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from vlaquantbench.envs.libero import EpisodeSpec, LiberoSuite, LiberoVectorEnv, LiberoWorkerError
+from vlaquantbench.errors import UserError
+
+pytestmark = pytest.mark.slow
+
+CAMERA = 64
+STEPS = 6
+
+
+@pytest.fixture(scope="module")
+def suite():
+    return LiberoSuite("libero_spatial")
+
+
+@pytest.fixture(scope="module")
+def episodes(suite):
+    return [suite.episode_spec(task_id=0, episode=0), suite.episode_spec(task_id=0, episode=1)]
+
+
+def fixed_actions(episode: EpisodeSpec) -> np.ndarray:
+    """A fixed, episode-specific action sequence that moves the arm and closes the gripper."""
+    rng = np.random.default_rng(episode.seed)
+    actions = rng.uniform(-0.5, 0.5, size=(STEPS, 7))
+    actions[:, 6] = np.where(np.arange(STEPS) < STEPS // 2, -1.0, 1.0)
+    return actions
+
+
+@pytest.fixture(scope="module")
+def batch2(suite, episodes):
+    """Both episodes in one env of two slots, the second started two steps after the first.
+
+    Returns per episode the observations (after reset and after each step) and the successes.
+    """
+    first, second = episodes
+    traces = {first: [], second: []}
+    successes = {first: [], second: []}
+    with LiberoVectorEnv(suite, num_envs=2, camera_size=CAMERA) as env:
+        traces[first].append(env.reset([first, None])[0])
+        actions = np.zeros((2, 7))
+        for t in range(STEPS + 2):
+            if t == 2:
+                traces[second].append(env.reset([None, second])[1])
+                assert env.live == [True, True]
+            for slot, episode in enumerate(env.episodes):
+                if env.live[slot]:
+                    actions[slot] = fixed_actions(episode)[env.steps[slot]]
+                else:
+                    actions[slot] = np.nan  # ignored: the slot is not stepped
+            observations, success = env.step(actions)
+            for slot, episode in enumerate((first, second)):
+                if observations[slot] is not None:
+                    traces[episode].append(observations[slot])
+                    successes[episode].append(success[slot])
+            for slot in range(2):
+                if env.live[slot] and env.steps[slot] == STEPS:
+                    env.release(slot)
+        assert env.steps == [STEPS, STEPS]
+        assert env.live == [False, False]
+        versions = env.versions
+    return traces, successes, versions
+
+
+def test_observations_follow_contract_6(suite, episodes, batch2):
+    traces, successes, versions = batch2
+    for episode in episodes:
+        assert len(traces[episode]) == STEPS + 1
+        assert len(successes[episode]) == STEPS
+        for obs in traces[episode]:
+            assert set(obs) == {"agentview", "wrist", "state", "instruction"}
+            for view in ("agentview", "wrist"):
+                assert obs[view].shape == (CAMERA, CAMERA, 3)
+                assert obs[view].dtype == np.uint8
+                assert obs[view].flags.c_contiguous
+                assert obs[view].std() > 1.0  # a rendered scene, not a blank buffer
+            assert obs["state"].shape == (8,)
+            assert obs["state"].dtype == np.float32
+            assert obs["instruction"] == suite.tasks[episode.task_id].instruction
+        settled = traces[episode][0]["state"]
+        assert settled[2] > 0.5  # the end effector is above the table
+        assert settled[6] > 0.03 and settled[7] < -0.03  # after settling with the gripper held open
+        moved = traces[episode][-1]["state"]
+        assert np.abs(moved[:3] - settled[:3]).max() > 1e-3  # the actions reached the arm
+    # The two init states differ, so do the first observations.
+    assert not np.array_equal(traces[episodes[0]][0]["agentview"], traces[episodes[1]][0]["agentview"])
+    assert versions["mujoco"] == "3.3.2" and versions["mujoco_pin_overridden"] is False
+
+
+def test_batch_of_one_reproduces_batch_of_two(suite, episodes, batch2):
+    traces, successes, _ = batch2
+    with LiberoVectorEnv(suite, num_envs=1, camera_size=CAMERA) as env:
+        for episode in episodes:  # one after the other in the same slot and worker
+            trace = [env.reset([episode])[0]]
+            for action in fixed_actions(episode):
+                observations, success = env.step(action[None])
+                trace.append(observations[0])
+                assert success[0] == successes[episode][len(trace) - 2]
+            for single, batched in zip(trace, traces[episode], strict=True):
+                np.testing.assert_array_equal(single["state"], batched["state"])
+                np.testing.assert_array_equal(single["agentview"], batched["agentview"])
+                np.testing.assert_array_equal(single["wrist"], batched["wrist"])
+
+        # A worker that dies is reported with its slot, task and episode, and the slot recovers.
+        os.kill(env.worker_pids[0], signal.SIGKILL)
+        with pytest.raises(LiberoWorkerError, match=r"slot 0 failed to step libero_spatial task 0 .* episode 1"):
+            env.step(np.zeros((1, 7)))
+        assert env.live == [False]
+        again = env.reset([episodes[0]])[0]
+        np.testing.assert_array_equal(again["agentview"], traces[episodes[0]][0]["agentview"])
+
+
+def test_bad_requests_fail_before_any_work(suite):
+    with LiberoVectorEnv(suite, num_envs=1, camera_size=CAMERA, settle_steps=0) as env:
+        with pytest.raises(UserError, match="init_state_id 50 is out of range for libero_spatial task 3"):
+            env.reset([EpisodeSpec(task_id=3, episode=50, init_state_id=50, seed=3077)])
+        with pytest.raises(UserError, match="task_id 10 is out of range"):
+            env.reset([EpisodeSpec(task_id=10, episode=0, init_state_id=0, seed=0)])
+        with pytest.raises(ValueError, match="one entry per slot"):
+            env.reset([None, None])
+        with pytest.raises(ValueError, match=r"shape \(1, 7\)"):
+            env.step(np.zeros(7))
+        assert env.live == [False]
+        observations, success = env.step(np.zeros((1, 7)))  # nothing live: nothing stepped
+        assert observations == [None] and success == [False]

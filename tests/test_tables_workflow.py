@@ -1,0 +1,93 @@
+"""Real Snakemake runs: tables follow the records, and a frozen manifest stops the DAG first."""
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from test_tables_paper import latex_rows, paper_rows
+
+from vlaquantbench.records import find_cells, read_cell
+from vlaquantbench.tables import load_table, render_latex, summarize
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORDS = ROOT.parent / "shared" / "reference" / "records"
+TABLES = ("lattice", "oft_protect_fc2", "clustered", "calibrated_subsets")
+FLIPPED = "libero/libero_spatial/pi05/ablate-W4A4-ah-onlyadarms"  # 187/200 successes; flipping one failure gives 188
+
+pytestmark = pytest.mark.slow
+
+
+def layout(tmp_path: Path, records: Path) -> Path:
+    """A workdir whose `../shared/reference/records` is `records`, as config/reference.yaml expects."""
+    workdir = tmp_path / "checkout"
+    workdir.mkdir()
+    (workdir / "manifests").symlink_to(ROOT / "manifests")
+    (tmp_path / "shared" / "reference").mkdir(parents=True)
+    (tmp_path / "shared" / "reference" / "records").symlink_to(records)
+    return workdir
+
+
+def snakemake(workdir: Path, *args: str) -> subprocess.CompletedProcess:
+    command = [sys.executable, "-m", "snakemake", *args, "--cores", "2", "--snakefile", str(ROOT / "Snakefile"),
+               "--directory", str(workdir), "--configfile", str(ROOT / "config" / "reference.yaml")]  # fmt: skip
+    return subprocess.run(command, capture_output=True, text=True, timeout=600)
+
+
+def flipped_copy(tmp_path: Path) -> Path:
+    copy = tmp_path / "records-copy"
+    shutil.copytree(RECORDS, copy)
+    for path in copy.rglob("*"):
+        path.chmod(0o755 if path.is_dir() else 0o644)
+    record = copy / f"{FLIPPED}.jsonl"
+    record.write_text(record.read_text().replace('"success": false', '"success": true', 1))
+    return copy
+
+
+def test_reference_config_builds_the_paper_tables(tmp_path):
+    workdir = layout(tmp_path, RECORDS)
+    run = snakemake(workdir, "tables/lattice.tex", "tables/summary.csv", "figures/scope_recovery.pdf")
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert latex_rows((workdir / "tables" / "lattice.tex").read_text()) == paper_rows("tab:lattice")
+    assert (workdir / "figures" / "scope_recovery.pdf").read_bytes().startswith(b"%PDF")
+    summary = (workdir / "tables" / "summary.csv").read_bytes().split(b"\r\n")
+    assert len(summary) == 65 + 2  # header, 65 cells, trailing newline
+
+
+def test_flipped_episode_changes_exactly_the_affected_numbers(tmp_path):
+    records = flipped_copy(tmp_path)
+    workdir = layout(tmp_path, records)
+    targets = [f"tables/{name}.tex" for name in TABLES] + ["tables/summary.csv"]
+    run = snakemake(workdir, *targets, "--config", f"records_dir={records}", "manifest=")
+    assert run.returncode == 0, run.stderr[-3000:]
+
+    original = {ref: read_cell(path) for ref, path in find_cells(RECORDS).items()}
+    for name in TABLES:
+        definition = load_table(ROOT / "config" / "tables" / f"{name}.yaml")
+        before = latex_rows(render_latex(definition, original))
+        after = latex_rows((workdir / "tables" / f"{name}.tex").read_text())
+        changed = {b[0] for b, a in zip(before, after) if a != b}
+        affected = {row["label"] for row in definition.rows if FLIPPED in row.values()}
+        assert len(after) == len(before) and changed == affected, name
+    lattice = dict((row[0], row) for row in latex_rows((workdir / "tables" / "lattice.tex").read_text()))
+    assert lattice["adaRMS"][2:] == ["94.0 [90,97]", "-5.0"]
+
+    before_summary = summarize(original).astype(str)
+    after_summary = (workdir / "tables" / "summary.csv").read_text().splitlines()[1:]
+    changed = [row.split(",")[3] for row, (_, old) in zip(after_summary, before_summary.iterrows())
+               if row.split(",")[:12] != old.tolist()[:12]]  # fmt: skip
+    assert changed == [FLIPPED.rsplit("/", 1)[1]]
+    built = (workdir / "results" / "records" / "manifest.tsv").read_text().splitlines()
+    frozen = (ROOT / "manifests" / "reference.tsv").read_text().splitlines()
+    assert [line.split("\t")[:3] for line in built if line not in frozen] == [[f"{FLIPPED}.jsonl", "200", "188"]]
+
+
+def test_frozen_manifest_stops_the_dag_before_any_table(tmp_path):
+    records = flipped_copy(tmp_path)
+    workdir = layout(tmp_path, records)
+    targets = [f"tables/{name}.tex" for name in TABLES] + ["tables/summary.csv", "figures/scope_recovery.pdf"]
+    run = snakemake(workdir, *targets)
+    assert run.returncode != 0
+    assert f"records/{FLIPPED}.jsonl does not match manifest" in run.stderr
+    assert not (workdir / "tables").exists() and not (workdir / "figures").exists()
