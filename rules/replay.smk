@@ -139,9 +139,20 @@ rule diagnostics_collect:
         "../workflow/scripts/diagnostics_collect.py"
 
 
+def proxy_audit_diagnostics(wildcards):
+    """The cohort's diagnostics files; without diagnostics_dir only the recorded model's can be collected."""
+    from vlaquantbench.errors import UserError
+
+    uncollectable = [m for m in PROXY_COHORT["models"] if m != REPLAY["model"]]
+    if not config.get("diagnostics_dir") and uncollectable:
+        raise UserError(f"tables/proxy_audit.tex needs diagnostics of {', '.join(uncollectable)}, which this DAG "
+                        f"cannot collect (it records {REPLAY['model']}); set diagnostics_dir to a folder holding them")
+    return [f"{DIAGNOSTICS_DIR}/{m['diagnostics']}.json" for m in PROXY_COHORT["models"].values()]
+
+
 rule proxy_audit_table:
     input:
-        diagnostics=[f"{DIAGNOSTICS_DIR}/{m['diagnostics']}.json" for m in PROXY_COHORT["models"].values()],
+        diagnostics=proxy_audit_diagnostics,
         success=SUCCESS_SUMMARY,
     output:
         table="tables/proxy_audit.tex",

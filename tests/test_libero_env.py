@@ -1,5 +1,7 @@
 """The real LIBERO simulator in worker processes: observations, batching determinism, failures."""
 
+import copy
+import dataclasses
 import os
 import signal
 
@@ -116,8 +118,15 @@ def test_batch_of_one_reproduces_batch_of_two(suite, episodes, batch2):
         np.testing.assert_array_equal(again["agentview"], traces[episodes[0]][0]["agentview"])
 
 
-def test_bad_requests_fail_before_any_work(suite):
-    with LiberoVectorEnv(suite, num_envs=1, camera_size=CAMERA, settle_steps=0) as env:
+def test_bad_requests_fail_before_any_work_and_worker_errors_name_the_episode(suite, tmp_path):
+    # A suite whose task 0 lost its BDDL file, as a broken install would.
+    broken = copy.copy(suite)
+    broken.tasks = (dataclasses.replace(suite.tasks[0], bddl_file=tmp_path / "missing.bddl"), *suite.tasks[1:])
+    with LiberoVectorEnv(broken, num_envs=1, camera_size=CAMERA, settle_steps=0) as env:
+        pattern = r"slot 0 failed to reset libero_spatial task 0 \(.*\) episode 2 \(init state 2, seed 2\)"
+        with pytest.raises(LiberoWorkerError, match=pattern) as failure:
+            env.reset([suite.episode_spec(task_id=0, episode=2)])
+        assert "missing.bddl does not exist" in str(failure.value)  # the worker's traceback
         with pytest.raises(UserError, match="init_state_id 50 is out of range for libero_spatial task 3"):
             env.reset([EpisodeSpec(task_id=3, episode=50, init_state_id=50, seed=3077)])
         with pytest.raises(UserError, match="task_id 10 is out of range"):
@@ -129,3 +138,5 @@ def test_bad_requests_fail_before_any_work(suite):
         assert env.live == [False]
         observations, success = env.step(np.zeros((1, 7)))  # nothing live: nothing stepped
         assert observations == [None] and success == [False]
+    with pytest.raises(RuntimeError, match="closed"):
+        env.step(np.zeros((1, 7)))

@@ -14,7 +14,8 @@ from vlaquantbench.replay.tables import write_replay_table
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = "results/replay/pi05_libero_spatial"
-TARGETS = ["tables/replay_composition.tex", "tables/replay_bias.tex", "figures/replay_formats.pdf"]
+TARGETS = ["tables/replay_composition.tex", "tables/replay_bias.tex", "figures/replay_formats.pdf",
+           "results/diagnostics/pi05-ah-W4A4.json"]
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +25,7 @@ def demo_dag(tmp_path_factory):
         if (ROOT / item).exists():
             (work / item).symlink_to(ROOT / item)
     (work / "demo.yaml").write_text(
-        "replay: {variant: demo, tasks: [0], init_states: [20, 21], max_steps: 12, formats: [W4A4]}\n"
+        "replay: {variant: demo, tasks: [0], init_states: [20, 21], max_steps: 10, formats: [W4A4]}\n"
     )
     cmd = [sys.executable, "-m", "snakemake", *TARGETS, "--cores", "2", "--configfile", "demo.yaml"]
     proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True, timeout=1800)
@@ -40,11 +41,11 @@ def test_recording_stores_what_the_policy_saw_and_did(demo_dag):
     assert meta["versions"]["mujoco"] == "3.3.2" and meta["code_revision"]
     with np.load(demo_dag / STUDY / "records/t0_e20.npz") as rec:
         calls = len(rec["chunk"])
-        assert calls == 2 and rec["executed"].tolist() == [10, 2]  # 12 steps at 10 executed per call
+        assert calls == 1 and rec["executed"].tolist() == [10]  # 10 steps at 10 executed per call
         assert rec["agentview"].shape[0] == rec["wrist"].shape[0] == rec["state"].shape[0] == calls
         assert rec["agentview"].dtype == np.uint8 and rec["state"].shape[1] == 8
         assert rec["chunk"].shape == (calls, 50, 7) and rec["flow_states"].shape[:2] == (calls, 10)
-        assert rec["actions"].shape == (12, 7) and int(rec["seed"]) == 20
+        assert rec["actions"].shape == (10, 7) and int(rec["seed"]) == 20
         assert str(rec["instruction"])
         assert rec["rng_state"].shape[0] == calls
 
@@ -71,7 +72,7 @@ def test_quantized_replays_use_checked_layer_counts_and_fired_hooks(demo_dag):
         assert len(run.summary["downproj_layers"]) == 18
         assert all(r["dev_from_recorded_actions"] > 0 for r in run.summary["records"])
     analysis = json.loads((demo_dag / STUDY / "W4A4/analysis.json").read_text())
-    assert analysis["additivity"]["n_chunks"] == 4
+    assert analysis["additivity"]["n_chunks"] == 2
     assert analysis["configs"]["s167"]["chunk_mae_mean"] > 0
     assert len(analysis["configs"]["union"]["flow_step_divergence"]) == 10
     assert analysis["configs"]["union"]["flow_step_divergence"][0] == 0.0  # shared initial noise
@@ -87,3 +88,20 @@ def test_tables_render_from_the_demo_analysis(demo_dag):
     assert (demo_dag / "figures/replay_formats.pdf").read_bytes().startswith(b"%PDF")
     all_formats = write_replay_table("all_formats", demo_dag / STUDY, demo_dag / "all.tex", formats=["W4A4"])
     assert r"W4A4 & Attention & 72 & -- & " in all_formats
+
+
+@pytest.mark.slow
+def test_diagnostics_collected_on_the_recording_with_provenance(demo_dag):
+    from vlaquantbench.diagnostics.files import Diagnostics
+    from vlaquantbench.quant import get_subset
+
+    diag = Diagnostics.read(demo_dag / "results/diagnostics/pi05-ah-W4A4.json")
+    assert len(diag.layers) == 167 and diag.header["preset"] == "W4A4"
+    prov = diag.header["provenance"]
+    assert prov["init_states"] == [20, 21] and prov["tasks"] == [0] and prov["seed"] == 0
+    assert prov["mujoco"] == "3.3.2" and prov["torch"] and prov["vqb_commit"]
+    assert all(layer["calls"] == 2 * 10 for layer in diag.layers.values())  # 2 calls x 10 flow steps
+    # The closed-loop subsets select the same layers from the collected names.
+    for subset in ("onlyself_attn", "attn_adarms", "down_attn_adarms"):
+        s = get_subset("pi05", subset)
+        assert len(diag.select(s.only, s.exclude)) == s.layers

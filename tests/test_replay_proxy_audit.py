@@ -104,8 +104,9 @@ def test_count_mismatch_and_missing_inputs_are_user_errors(tmp_path):
 
 
 def test_snakemake_renders_proxy_audit_from_authors_files(tmp_path):
-    for item in ("Snakefile", "rules", "workflow", "config", "src"):
-        (tmp_path / item).symlink_to(ROOT / item)
+    for item in ("Snakefile", "rules", "workflow", "config", "src", "manifests"):
+        if (ROOT / item).exists():
+            (tmp_path / item).symlink_to(ROOT / item)
     cmd = [sys.executable, "-m", "snakemake", "tables/proxy_audit.tex", "--cores", "1",
            "--configfile", "config/reference.yaml", "--config", f"diagnostics_dir={DIAG}", f"success_summary={SUMMARY}"]
     proc = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)

@@ -73,7 +73,8 @@ def collect(records_dir: str | Path, model: str, scope: str, preset: str, output
     if meta["model"] != model:
         raise UserError(f"diagnostics for {model!r} asked of a recording of {meta['model']!r} ({records_dir})")
     adapter = make_adapter(AdapterConfig(model=meta["model"], variant=meta["variant"], checkpoint=meta["checkpoint"],
-                                         checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"]))
+                                         checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"],
+                                         device=meta["device"], flow_steps=meta["flow_steps"]))
     adapter.load()
     layers = select_layers(adapter.model, adapter.components, scope).flat()
     torch.set_num_threads(meta["torch_threads"])

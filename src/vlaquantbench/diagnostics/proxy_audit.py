@@ -7,12 +7,11 @@ import math
 from pathlib import Path
 
 import pandas as pd
-import yaml
 from scipy.stats import spearmanr
 
 from vlaquantbench.diagnostics.files import DIAGNOSTICS, Diagnostics
 from vlaquantbench.errors import UserError
-from vlaquantbench.replay.study import success_rates
+from vlaquantbench.replay.study import load_definition, success_rates
 
 COHORTS = Path(__file__).with_name("cohorts")
 COLUMNS = {"act_kurtosis": "Kurtosis", "out_rel_err": "Output error", "act_rel_err": "Activation error",
@@ -20,12 +19,7 @@ COLUMNS = {"act_kurtosis": "Kurtosis", "out_rel_err": "Output error", "act_rel_e
 
 
 def load_cohort(name_or_path: str | Path = "proxy_audit") -> dict:
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = COHORTS / f"{name_or_path}.yaml"
-    if not path.exists():
-        raise UserError(f"unknown diagnostic cohort {str(name_or_path)!r}: no {path}")
-    return yaml.safe_load(path.read_text())
+    return load_definition(name_or_path, COHORTS, "diagnostic cohort")
 
 
 def scope_table(cohort: dict, diagnostics_dir: str | Path, rates: dict[str, float]) -> pd.DataFrame:

@@ -46,7 +46,8 @@ def replay_configuration(records_dir, study: dict, name: str, preset: str, outpu
     meta, trajectories = load_records(records_dir)
     cfg, expected_layers = quant_config(study, name, preset)
     adapter = make_adapter(AdapterConfig(model=meta["model"], variant=meta["variant"], checkpoint=meta["checkpoint"],
-                                         checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"]))
+                                         checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"],
+                                         device=meta["device"], flow_steps=meta["flow_steps"]))
     adapter.load()
     report = quantize_(adapter.model, cfg, components=adapter.components)
     layers = sum(c["layers"] for c in report.components.values()) if expected_layers else 0

@@ -55,6 +55,8 @@ class RecordSettings:
         if unknown:
             raise UserError(f"replay: unknown options {unknown}; known: {', '.join(sorted(known))}")
         base = {"variant": "full", "tasks": study["tasks"], "init_states": study["init_states"]}
+        if options.get("variant", "full") == "full":  # a demo policy has random weights, no checkpoint
+            base.update(checkpoint=study["checkpoint"], revision=study["revision"])
         return cls(model=study["model"], suite=study["suite"], observe=study["observe"], **{**base, **options})
 
     def adapter_config(self) -> AdapterConfig:
@@ -133,6 +135,7 @@ def record(settings: RecordSettings, out_dir: str | Path) -> dict:
         "weights_seed": adapter.config.seed,
         "chunk": {"predicted": adapter.predicted_chunk, "executed": adapter.executed_chunk},
         "observe": settings.observe, "versions": {**versions(), **simulator_versions()},
+        "device": settings.device, "flow_steps": settings.flow_steps,
         "torch_threads": torch.get_num_threads(), "code_revision": code_revision(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "records": records,
     }

@@ -15,13 +15,18 @@ from vlaquantbench.errors import UserError
 STUDIES = Path(__file__).with_name("studies")
 
 
-def load_study(name_or_path: str | Path = "pi05_libero_spatial") -> dict:
+def load_definition(name_or_path: str | Path, folder: Path, kind: str) -> dict:
+    """A YAML definition by name (`<folder>/<name>.yaml`) or by path."""
     path = Path(name_or_path)
     if not path.suffix:
-        path = STUDIES / f"{name_or_path}.yaml"
+        path = folder / f"{name_or_path}.yaml"
     if not path.exists():
-        raise UserError(f"unknown replay study {str(name_or_path)!r}: no {path}")
+        raise UserError(f"unknown {kind} {str(name_or_path)!r}: no {path}")
     return yaml.safe_load(path.read_text())
+
+
+def load_study(name_or_path: str | Path = "pi05_libero_spatial") -> dict:
+    return load_definition(name_or_path, STUDIES, "replay study")
 
 
 def with_formats(study: dict, formats: list[str] | None) -> dict:

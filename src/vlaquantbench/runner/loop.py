@@ -8,10 +8,12 @@ policy steps; its slot then starts the next pending episode while the others con
 
 from __future__ import annotations
 
+import hashlib
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -28,6 +30,8 @@ class _Episode:
     started: float
     actions: deque = field(default_factory=deque)
     latencies: list[float] = field(default_factory=list)
+    # Digest of every executed action: reruns and batch sizes can be compared episode by episode.
+    digest: Any = field(default_factory=hashlib.sha256)
 
 
 def episode_record(suite: str, spec: EpisodeSpec, success: bool, steps: int, **extra) -> dict:
@@ -83,6 +87,7 @@ def run_episodes(
         for i, slot in enumerate(slots):
             if slot is not None:
                 actions[i] = slot.actions.popleft()
+                slot.digest.update(actions[i].tobytes())
         new_observations, successes = env.step(actions)
         finished, free = [], []
         for i, slot in enumerate(slots):
@@ -102,6 +107,7 @@ def run_episodes(
                         task_name=task_names[slot.spec.task_id],
                         wall_time_s=time.perf_counter() - slot.started,
                         policy_latency_mean_s=float(np.mean(slot.latencies)),
+                        actions_sha256=slot.digest.hexdigest(),
                     )
                 )
                 free.append(i)

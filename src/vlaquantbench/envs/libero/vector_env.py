@@ -11,6 +11,7 @@ multiprocessing children: a spawned child re-executes the parent's `__main__` fi
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
@@ -18,10 +19,12 @@ import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+import vlaquantbench
 from vlaquantbench.envs.libero.offline import config_dir
 from vlaquantbench.envs.libero.suite import EpisodeSpec, LiberoSuite
 from vlaquantbench.envs.libero.versions import simulator_versions
@@ -47,6 +50,13 @@ class _Slot:
     episode: EpisodeSpec | None = None
     live: bool = False
     steps: int = 0
+
+
+def _worker_environment() -> dict[str, str]:
+    """The parent's environment, with this package importable even when it is not installed."""
+    package_root = str(Path(vlaquantbench.__file__).resolve().parents[1])
+    paths = [package_root, *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(dict.fromkeys(paths))}
 
 
 def _close_slots(slots: list[_Slot]) -> None:
@@ -97,7 +107,7 @@ class LiberoVectorEnv:
         self._finalizer = weakref.finalize(self, _close_slots, self._slots)
         try:
             self._slots.extend(self._launch() for _ in range(num_envs))
-            self._exchange({i: ("ready", None) for i in range(num_envs)})
+            self._exchange({i: ("start", None) for i in range(num_envs)})
         except BaseException:
             self.close()
             raise
@@ -132,6 +142,7 @@ class LiberoVectorEnv:
         The worker seeds the simulator, loads the init state, settles with `settle_steps` no-op
         actions and returns the observation; slots left alone get None.
         """
+        self._check_open()
         if len(slots) != self.num_envs:
             raise ValueError(f"reset() takes one entry per slot ({self.num_envs}), got {len(slots)}")
         starts = {i: self._episode_start(spec) for i, spec in enumerate(slots) if spec is not None}
@@ -150,6 +161,7 @@ class LiberoVectorEnv:
         Returns per slot the new observation (None for slots not stepped) and success (LIBERO's done
         flag). A slot whose episode succeeds stops being live.
         """
+        self._check_open()
         actions = np.asarray(actions, dtype=np.float64)
         if actions.shape != (self.num_envs, ACTION_DIM):
             raise ValueError(f"actions must have shape ({self.num_envs}, {ACTION_DIM}), got {actions.shape}")
@@ -178,18 +190,22 @@ class LiberoVectorEnv:
 
     # -- workers --------------------------------------------------------------------------------
 
+    def _check_open(self) -> None:
+        if not self._finalizer.alive:
+            raise RuntimeError("this LiberoVectorEnv is closed")
+
     def _launch(self) -> _Slot:
         ours, theirs = socket.socketpair()
         with theirs:
             args = [str(theirs.fileno()), str(self.camera_size), str(self.settle_steps)]
             command = [sys.executable, "-c", _WORKER_MAIN, *args]
-            process = subprocess.Popen(command, pass_fds=(theirs.fileno(),))
+            process = subprocess.Popen(command, pass_fds=(theirs.fileno(),), env=_worker_environment())
         return _Slot(process, Connection(ours.detach()))
 
     def _replace_worker(self, i: int) -> None:
         self._slots[i].conn.close()
         self._slots[i] = self._launch()
-        self._exchange({i: ("ready", None)})
+        self._exchange({i: ("start", None)})
 
     def _episode_start(self, spec: EpisodeSpec) -> EpisodeStart:
         task = self.suite.task(spec.task_id)
@@ -199,11 +215,11 @@ class LiberoVectorEnv:
     def _exchange(self, requests: dict[int, tuple[str, Any]]) -> dict[int, Any]:
         """Send every request first so the workers run in parallel, then collect every reply.
 
-        "ready" sends nothing and only collects the worker's start-up reply.
+        "start" sends nothing and only collects the worker's start-up reply.
         """
         failures: dict[int, str] = {}
         for i, (command, payload) in requests.items():
-            if command == "ready":
+            if command == "start":
                 continue
             try:
                 self._slots[i].conn.send((command, payload))
@@ -240,7 +256,7 @@ class LiberoVectorEnv:
     def _describe(self, i: int, command: str, detail: str) -> str:
         where = f"LIBERO worker of slot {i} failed to {command}"
         spec = self._slots[i].episode
-        if command != "ready" and spec is not None:
+        if command != "start" and spec is not None:
             task = self.suite.tasks[spec.task_id]
             where += (
                 f" {self.suite.name} task {spec.task_id} ({task.name}) episode {spec.episode}"

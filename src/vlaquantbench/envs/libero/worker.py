@@ -96,7 +96,7 @@ class SlotSimulator:
 def serve(conn: Connection, camera_size: int, settle_steps: int) -> None:
     try:
         load_libero()
-        import libero.libero.envs  # noqa: F401  (robosuite, MuJoCo and EGL load before "ready")
+        import libero.libero.envs  # noqa: F401  (robosuite and MuJoCo load before the start-up reply)
     except Exception:
         conn.send(("error", traceback.format_exc()))
         return

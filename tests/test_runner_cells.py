@@ -1,0 +1,118 @@
+"""Cell names in the authors' grammar -> canonical cell configs and their hashes."""
+
+import csv
+from pathlib import Path
+
+import pytest
+
+from vlaquantbench.cells import calibration_config, cell_config, config_hash, parse_cell_name, study_cells
+from vlaquantbench.errors import UserError
+
+REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "reference"
+STUDY = {
+    "models": {
+        "pi05": {
+            "variant": "demo",
+            "checkpoint": "lerobot/pi05_libero_finetuned_v044",
+            "revision": "8e174154ef5f6c60a8da12ae99c303d8963138c1",
+        }
+    },
+    "tasks": 2,
+    "episodes_per_task": 2,
+    "runner": {"max_steps": 30, "camera_size": 128},
+    "execution": {"num_envs": 4},
+}
+
+
+def ref(cell: str) -> str:
+    return f"libero/libero_spatial/pi05/{cell}"
+
+
+def test_every_cell_name_of_the_authors_parses():
+    with open(REFERENCE / "authors-summary.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == 417
+    for row in rows:
+        fields = parse_cell_name(row["cell"])
+        assert fields["preset"] == row["preset"], row["cell"]
+        assert fields["scope"] == row["scope"].replace("+", "_"), row["cell"]  # summary spells ve+mp+llm
+        assert fields["seed_offset"] == int(row["seed"]), row["cell"]
+
+
+def test_subset_patterns_come_from_scopes_yaml():
+    cfg = cell_config(ref("ablate-W4A4-ah-onlyself_attn"), STUDY)
+    assert (cfg["method"], cfg["preset"], cfg["scope"], cfg["subset"]) == ("ablate", "W4A4", "ah", "onlyself_attn")
+    assert cfg["only"] == ["*self_attn*"] and cfg["exclude"] is None
+    assert cfg["tasks"] == [0, 1] and cfg["episodes_per_task"] == 2
+    assert cfg["runner"]["max_steps"] == 30 and cfg["runner"]["camera_size"] == 128
+    assert cfg["revision"] == STUDY["models"]["pi05"]["revision"]
+
+
+def test_seed_steps_and_calibration_fields():
+    cfg = cell_config(ref("seed2-steps1-calib_set1_all_a75-W4A4-e2e"), STUDY)
+    assert cfg["seed"] == 2
+    assert cfg["runner"]["flow_steps"] == 1
+    assert cfg["calibration"] == {
+        "components": ["ve", "mp", "llm", "ah"],
+        "alpha": 0.75,
+        "quantile": 0.999,
+        "tasks": [0],
+        "init_states": [22, 23],
+        "seed": 2,
+    }
+    plain = cell_config(ref("calib_ah-W4A4-ah"), STUDY)["calibration"]
+    assert plain["components"] == ["ah"] and plain["alpha"] == 0.5 and plain["init_states"] == [20, 21]
+
+
+def test_hash_is_stable_and_covers_what_changes_episodes():
+    base = cell_config(ref("ablate-W4A4-ah-onlyself_attn"), STUDY)
+    assert config_hash(base) == config_hash(cell_config(ref("ablate-W4A4-ah-onlyself_attn"), dict(STUDY)))
+    assert len(config_hash(base)) == 12 and int(config_hash(base), 16) >= 0
+    variants = [
+        ref("ablate-W4A8-ah-onlyself_attn"),
+        ref("ablate-W4A4-ah-onlyadarms"),
+        ref("seed1-ablate-W4A4-ah-onlyself_attn"),
+        "libero/libero_object/pi05/ablate-W4A4-ah-onlyself_attn",
+    ]
+    hashes = {config_hash(cell_config(r, STUDY)) for r in variants}
+    assert len(hashes) == len(variants) and config_hash(base) not in hashes
+    for change in ({"episodes_per_task": 3}, {"tasks": [0]}, {"runner": {"max_steps": 31}}, {"seed": 5}):
+        assert config_hash(cell_config(ref("ablate-W4A4-ah-onlyself_attn"), {**STUDY, **change})) != config_hash(base)
+
+
+def test_execution_options_do_not_change_the_hash():
+    base = cell_config(ref("rtn-W4A4-ah"), STUDY)
+    other = cell_config(ref("rtn-W4A4-ah"), {**STUDY, "execution": {"num_envs": 1, "torch_threads": 2}})
+    assert config_hash(base) == config_hash(other)
+
+
+def test_calibrated_cells_share_statistics_across_presets():
+    a = calibration_config(cell_config(ref("calib_ah-W4A4-ah"), STUDY))
+    b = calibration_config(cell_config(ref("calib_ah-W4A8-ah"), STUDY))
+    assert a == b and config_hash(a) == config_hash(b)
+    assert calibration_config(cell_config(ref("rtn-W4A4-ah"), STUDY)) is None
+    assert len(study_cells([ref("calib_ah-W4A4-ah"), ref("calib_ah-W4A8-ah")], STUDY)) == 2
+
+
+@pytest.mark.parametrize(
+    "cell, message",
+    [
+        ("W4A4-ah", "does not follow"),
+        ("rtn-W4A4-head", "does not follow"),
+        ("quip-W4A4-ah", "unknown method 'quip'"),
+        ("calib_mp-W4A4-ah", "calib[_set<k>]"),
+        ("calib_llm-W4A4-ah", "outside scope 'ah'"),
+        ("ablate-W4A4-ah-nosuchsubset", "unknown subset 'nosuchsubset'"),
+    ],
+)
+def test_bad_cell_names_are_user_errors_naming_the_cell(cell, message):
+    with pytest.raises(UserError, match=message) as err:
+        cell_config(ref(cell), STUDY)
+    assert cell in str(err.value)
+
+
+def test_unknown_model_and_bad_reference():
+    with pytest.raises(UserError, match="model 'pi0' is not in study.models"):
+        cell_config("libero/libero_spatial/pi0/rtn-W4-e2e", STUDY)
+    with pytest.raises(UserError, match="<benchmark>/<suite>/<model>/<cell>"):
+        cell_config("libero_spatial/pi05/rtn-W4-e2e", STUDY)
