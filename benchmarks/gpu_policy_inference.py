@@ -88,39 +88,12 @@ def fused_kernel_check(device) -> dict:
     return out
 
 
-def compile_experiment(model, spec, originals, steps, args, results, tf32, backends) -> None:
-    """Inductor-compiled static sampler inside the CUDA graph: compile (warm-up) seconds and chunk
-    time for BASELINE and W4A4 (reference hooks, which inductor fuses), batch 1. Written last, so a
-    compile that outlasts the run leaves the results above intact."""
-    b1 = chunk_inputs(1, device=next(model.parameters()).device)
-    out = {}
-    for preset in ("BASELINE", "W4A4"):
-        with torch.no_grad():
-            for name, weight in originals.items():
-                model.get_submodule(name).weight.copy_(weight)
-        report = quantize_(model, QuantConfig.from_preset(preset, scope="e2e"), components=spec.components)
-        sampler = CapturedSampler(model, num_steps=steps, tf32=tf32, attention_backends=backends, compile=True)
-        t0 = time.perf_counter()
-        sampler(*b1)
-        torch.cuda.synchronize()
-        warmup_s = time.perf_counter() - t0
-        ms = 1e3 * statistics.median(time_chunks(lambda: sampler(*b1), warmup=2, repeats=args.repeats))
-        out[preset] = {"warmup_s": warmup_s, "b1_ms": ms, "unfired": len(report.unfired())}
-        print(f"[compile] {preset} b1: {ms:.2f} ms, compile+capture {warmup_s:.1f} s", flush=True)
-        report.remove_hooks()
-        results["compile_experiment"] = out
-        with open(args.out, "w") as f:
-            json.dump(results, f, indent=1)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", required=True)
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 8, 32])
     parser.add_argument("--presets", nargs="+", default=["BASELINE", "W4A8", "W4A4"])
     parser.add_argument("--repeats", type=int, default=10)
-    parser.add_argument("--compile-experiment", action="store_true",
-                        help="also time torch.compile (inductor) inside the captured graph, BASELINE and W4A4, batch 1")
     parser.add_argument("--eager-repeats-large", type=int, default=5, help="repeats for eager at batch >= 8")
     args = parser.parse_args()
 
@@ -140,25 +113,28 @@ def main() -> None:
     # Kernel choices for the captured form, timed on the baseline at batch 1; the fastest is used below.
     from torch.nn.attention import SDPBackend
 
-    backend_sets = {"default": None, "efficient": [SDPBackend.EFFICIENT_ATTENTION],
-                    "cudnn": [SDPBackend.CUDNN_ATTENTION], "math": [SDPBackend.MATH]}
+    backend_sets = {"default": None, "efficient": [SDPBackend.EFFICIENT_ATTENTION]}
     sweep = {}
     b1 = chunk_inputs(1, device)
-    for tf32 in (False, True):
+    for tf32, fuse in ((False, False), (True, False), (True, True)):
         for label, backends in backend_sets.items():
-            sampler = CapturedSampler(model, num_steps=steps, tf32=tf32, attention_backends=backends)
+            t0 = time.perf_counter()
+            sampler = CapturedSampler(model, num_steps=steps, tf32=tf32, attention_backends=backends,
+                                      fuse_elementwise=fuse)
             try:
                 ms = 1e3 * statistics.median(time_chunks(lambda: sampler(*b1), warmup=2, repeats=args.repeats))
             except RuntimeError as err:  # a backend that rejects these shapes
                 ms = float("nan")
                 print(f"sweep {label} tf32={tf32}: {err}"[:200], flush=True)
-            sweep[f"{label}_tf32={tf32}"] = ms
-            print(f"sweep captured b1 attention={label} tf32={tf32}: {ms:.2f} ms", flush=True)
+            sweep[f"{label}_tf32={tf32}_fuse={fuse}"] = ms
+            print(f"sweep captured b1 attention={label} tf32={tf32} fused elementwise={fuse}: {ms:.2f} ms "
+                  f"(first call incl. compile {time.perf_counter() - t0:.1f} s)", flush=True)
             del sampler
     results["kernel_choice_sweep_b1_ms"] = sweep
     best = min((k for k in sweep if sweep[k] == sweep[k]), key=sweep.get)
     best_backends = backend_sets[best.split("_tf32=")[0]]
-    best_tf32 = best.endswith("True")
+    best_tf32 = "tf32=True" in best
+    best_fuse = best.endswith("fuse=True")
     results["captured_kernel_choice"] = best
     torch.cuda.empty_cache()
 
@@ -183,7 +159,8 @@ def main() -> None:
             images, img_masks, tokens, masks, noise=noise.clone(), num_steps=steps))}
 
         fused = fuse_activation_hooks(report)
-        sampler = CapturedSampler(model, num_steps=steps, tf32=best_tf32, attention_backends=best_backends)
+        sampler = CapturedSampler(model, num_steps=steps, tf32=best_tf32, attention_backends=best_backends,
+                                  fuse_elementwise=best_fuse)
         for b in args.batches:
             images, img_masks, tokens, masks, noise = inputs[b]
             torch.cuda.synchronize()
@@ -212,7 +189,8 @@ def main() -> None:
 
             with sampler._kernel_choices():
                 results["profiles"][preset]["captured_form_without_graph"] = kernel_profile(
-                    lambda: pi05_static.sample_actions(model, images, img_masks, tokens, masks, noise, sampler.times))
+                    lambda: pi05_static.sample_actions(model, images, img_masks, tokens, masks, noise, sampler.times,
+                                                       sampler.ops))
         report.remove_hooks()
         results["cells"].append(cell)
         del sampler
@@ -244,8 +222,6 @@ def main() -> None:
                         "repeats": args.repeats, "warmup": 3}
     with open(args.out, "w") as f:
         json.dump(results, f, indent=1)
-    if args.compile_experiment:
-        compile_experiment(model, spec, originals, steps, args, results, best_tf32, best_backends)
     print(f"\n{'cell':<14}{'eager ms':>10}{'captured ms':>13}{'speedup':>9}{'eager/base':>11}{'capt/base':>10}{'chunks/s':>10}")
     for key, r in ratios.items():
         preset, b = key.rsplit("_b", 1)

@@ -24,10 +24,7 @@ def demo_dag(tmp_path_factory):
     for item in ("Snakefile", "rules", "workflow", "config", "src", "manifests"):
         if (ROOT / item).exists():
             (work / item).symlink_to(ROOT / item)
-    (work / "demo.yaml").write_text(
-        "replay: {variant: demo, tasks: [0], init_states: [20, 21], max_steps: 10, formats: [W4A4]}\n"
-    )
-    cmd = [sys.executable, "-m", "snakemake", *TARGETS, "--cores", "2", "--configfile", "demo.yaml"]
+    cmd = [sys.executable, "-m", "snakemake", *TARGETS, "--cores", "2", "--configfile", "config/replay_demo.yaml"]
     proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True, timeout=1800)
     assert proc.returncode == 0, proc.stderr[-4000:]
     return work

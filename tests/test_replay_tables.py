@@ -94,3 +94,19 @@ def test_snakemake_renders_replay_targets_from_reference_config(tmp_path):
     for target, label in zip(targets, ("tab:replay_composition", "tab:replay_allformats", "tab:replay_bias")):
         assert table_rows((tmp_path / target).read_text(), label) == table_rows(paper, label)
     assert (tmp_path / targets[3]).read_bytes().startswith(b"%PDF")
+
+
+def test_success_column_from_the_records_in_reference_mode(tmp_path):
+    """Without success_summary, SR comes from this project's tables/summary.csv, built from the
+    authors' records: the five W4A4 cells have records, the W4/W4A8 cells do not."""
+    for item in ("Snakefile", "rules", "workflow", "config", "src", "manifests"):
+        if (ROOT / item).exists():
+            (tmp_path / item).symlink_to(ROOT / item)
+    cmd = [sys.executable, "-m", "snakemake", "tables/replay_all_formats.tex", "--cores", "2",
+           "--configfile", "config/reference.yaml", "--config", f"replay_analysis_dir={AUTHORS_REPLAY}",
+           f"records_dir={REFERENCE / 'records'}"]
+    proc = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = table_rows((tmp_path / "tables/replay_all_formats.tex").read_text(), "tab:replay_allformats")
+    assert rows[:5] == table_rows(PAPER.read_text(), "tab:replay_allformats")[:5]
+    assert rows[6] == r"W4 & Attention & 72 & -- & 0.0018 & 0.012 & 0.004 \\"

@@ -11,6 +11,9 @@ sampler must be (re)captured after hooks are installed or removed -- call `reset
 warm-up chunk plus one recorded chunk, seconds at full size. Hook call counters advance only during
 the warm-up and recorded chunks, which is enough to prove that every hook fired.
 
+`attention_backends` (a list of `torch.nn.attention.SDPBackend`) orders the SDPA kernels tried
+for the prefix; the benchmark found the memory-efficient kernel fastest on an H100.
+
 `tf32=True` lets float32 matrix products (lerobot keeps the SigLIP tower and projector in float32)
 use TF32 tensor cores, as lerobot's own `compile_model` path does (`set_float32_matmul_precision
 ("high")`); the setting is scoped to capture and leaves the process default alone.
@@ -39,7 +42,7 @@ class CapturedSampler:
     """Drop-in for `model.sample_actions(images, img_masks, tokens, masks, noise=..., num_steps=...)`."""
 
     def __init__(self, model: nn.Module, num_steps: int, *, use_graphs: bool | None = None, tf32: bool = True,
-                 attention_backends: Sequence | None = None, compile: bool = False):
+                 attention_backends: Sequence | None = None, fuse_elementwise: bool | None = None):
         self.model = model
         self.num_steps = num_steps
         device = next(model.parameters()).device
@@ -47,9 +50,11 @@ class CapturedSampler:
         self.tf32 = tf32
         self.attention_backends = list(attention_backends) if attention_backends else None
         self.times = pi05_static.flow_times(num_steps, device)
-        # Inductor fuses the elementwise work between the matrix products; the graph is then
-        # captured around the compiled kernels as around eager ones.
-        self._sample = torch.compile(pi05_static.sample_actions, dynamic=False) if compile else pi05_static.sample_actions
+        # Inductor fuses the elementwise work between the matrix products, op by op (compiling the
+        # whole loop took over three minutes on an H100); the graph is then captured around the
+        # compiled kernels as around eager ones.
+        fuse = self.use_graphs if fuse_elementwise is None else fuse_elementwise
+        self.ops = pi05_static.compiled_ops() if fuse else pi05_static.EAGER_OPS
         self._graphs: dict[tuple, _Graph] = {}
 
     def reset(self) -> None:
@@ -58,7 +63,7 @@ class CapturedSampler:
 
     def __call__(self, images: Sequence[torch.Tensor], img_masks: Sequence[torch.Tensor], tokens, masks, noise):
         if not self.use_graphs:
-            return self._sample(self.model, images, img_masks, tokens, masks, noise, self.times)
+            return pi05_static.sample_actions(self.model, images, img_masks, tokens, masks, noise, self.times, self.ops)
         key = tuple(tuple(t.shape) for t in (*images, tokens, noise))
         entry = self._graphs.get(key)
         if entry is None:
@@ -93,7 +98,7 @@ class CapturedSampler:
         )
 
         def run():
-            return self._sample(self.model, *inputs, self.times)
+            return pi05_static.sample_actions(self.model, *inputs, self.times, self.ops)
 
         with self._kernel_choices():
             # Warm up on a side stream (cuBLAS/cuDNN handles, Triton compilation), as CUDA graph

@@ -24,6 +24,9 @@ lerobot's own `sample_actions` on the demo model.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+
 import torch
 import torch.nn.functional as F  # noqa: N812
 from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding
@@ -50,49 +53,110 @@ def _rms(x: torch.Tensor, eps: float) -> torch.Tensor:
     return x * torch.rsqrt(torch.mean(torch.square(x.float()), dim=-1, keepdim=True) + eps)
 
 
-def rms_norm(norm: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, None]:
+def rms_norm(x: torch.Tensor, weight: torch.Tensor, eps: float) -> torch.Tensor:
     """`PiGemmaRMSNorm(x)` without a condition."""
-    return (_rms(x, norm.eps) * (1.0 + norm.weight.float())).type_as(x), None
+    return (_rms(x, eps) * (1.0 + weight.float())).type_as(x)
 
 
-def ada_rms_norm(norm: nn.Module, x: torch.Tensor, modulation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def add_rms_norm(hidden, update, weight, eps: float):
+    """Residual add, then the next RMSNorm: returns (new hidden, its normalized copy)."""
+    hidden = hidden + update
+    return hidden, rms_norm(hidden, weight, eps)
+
+
+def ada_rms_norm(x: torch.Tensor, modulation: torch.Tensor, eps: float) -> tuple[torch.Tensor, torch.Tensor]:
     """`PiGemmaRMSNorm(x, cond)` given `modulation = norm.dense(cond)` (B x 3D), computed ahead."""
     scale, shift, gate = modulation.unsqueeze(1).chunk(3, dim=-1)
-    normed = _rms(x, norm.eps) * (1 + scale.float()) + shift.float()
+    normed = _rms(x, eps) * (1 + scale.float()) + shift.float()
     return normed.to(x.dtype), gate.to(x.dtype)
 
 
-def _gated_residual(x: torch.Tensor, y: torch.Tensor, gate: torch.Tensor | None) -> torch.Tensor:
-    return x + y if gate is None else x + y * gate
+def gated_add_ada_rms_norm(hidden, update, gate, modulation, eps: float):
+    """Gated residual `hidden + update * gate`, then the next AdaRMSNorm: (new hidden, normed, gate)."""
+    hidden = hidden + update * gate
+    return (hidden, *ada_rms_norm(hidden, modulation, eps))
 
 
-def _attention(attn: nn.Module, hidden, cos, sin, bias, kv: tuple[torch.Tensor, torch.Tensor], start: int):
-    """GemmaAttention: projections, rotary, write this call's keys/values into `kv` at `start`,
-    attend over kv[:, :, :start + length] with SDPA, o_proj."""
+def gelu_tanh_mul(gate: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+    """GemmaMLP's `act_fn(gate_proj(x)) * up_proj(x)` with Gemma's `gelu_pytorch_tanh`."""
+    return F.gelu(gate, approximate="tanh") * up
+
+
+@dataclass(frozen=True)
+class ElementwiseOps:
+    """The arithmetic between matrix products, swappable for compiled (fused) versions."""
+
+    rms_norm: Callable = rms_norm
+    add_rms_norm: Callable = add_rms_norm
+    ada_rms_norm: Callable = ada_rms_norm
+    gated_add_ada_rms_norm: Callable = gated_add_ada_rms_norm
+    rotary: Callable = apply_rotary_pos_emb
+    gelu_tanh_mul: Callable = gelu_tanh_mul
+
+
+EAGER_OPS = ElementwiseOps()
+
+
+def compiled_ops() -> ElementwiseOps:
+    """Each elementwise op compiled on its own by inductor (seconds per op and shape, not minutes
+    like the whole loop), so a norm, residual or rotary becomes one or two kernels."""
+    return ElementwiseOps(**{f.name: torch.compile(getattr(EAGER_OPS, f.name), dynamic=False)
+                             for f in fields(ElementwiseOps)})
+
+
+def _project_qkv(attn: nn.Module, hidden, cos, sin, kv, start: int, ops: ElementwiseOps):
+    """q/k/v projections and rotary; this call's keys/values go into the `kv` buffers at `start`."""
     batch, length, _ = hidden.shape
     shape = (batch, length, -1, attn.head_dim)
     query = attn.q_proj(hidden).view(shape).transpose(1, 2)
     key = attn.k_proj(hidden).view(shape).transpose(1, 2)
     value = attn.v_proj(hidden).view(shape).transpose(1, 2)
-    query, key = apply_rotary_pos_emb(query, key, cos, sin)
-    end = start + length
-    kv[0][:, :, start:end].copy_(key)
-    kv[1][:, :, start:end].copy_(value)
+    query, key = ops.rotary(query, key, cos, sin)
+    kv[0][:, :, start : start + length].copy_(key)
+    kv[1][:, :, start : start + length].copy_(value)
+    return query
+
+
+def _prefix_attention(attn: nn.Module, hidden, cos, sin, bias, kv, ops: ElementwiseOps):
+    """Prefix self-attention through SDPA (memory-efficient kernel; 8 query heads share 1 KV head)."""
+    batch, length, _ = hidden.shape
+    query = _project_qkv(attn, hidden, cos, sin, kv, 0, ops)
     heads = query.shape[1]
-    # Grouped-query attention (8 query heads, 1 KV head): broadcast views, no copy.
-    keys = kv[0][:, :, :end].expand(batch, heads, end, attn.head_dim)
-    values = kv[1][:, :, :end].expand(batch, heads, end, attn.head_dim)
+    keys = kv[0][:, :, :length].expand(batch, heads, length, attn.head_dim)
+    values = kv[1][:, :, :length].expand(batch, heads, length, attn.head_dim)
     out = F.scaled_dot_product_attention(query, keys, values, attn_mask=bias, scale=attn.scaling)
     return attn.o_proj(out.transpose(1, 2).reshape(batch, length, -1))
 
 
-def _mlp(mlp: nn.Module, x: torch.Tensor) -> torch.Tensor:
+def _action_attention(attn: nn.Module, hidden, cos, sin, bias, kv, start: int, ops: ElementwiseOps):
+    """Action tokens attending to prefix + action keys. With one KV head, all 8 heads' queries fold
+    into one batched matrix product (8 x 50 rows against ~1000 keys): fused attention kernels
+    parallelize over query blocks and leave the GPU mostly idle on 50 queries. Same arithmetic as
+    Gemma's eager attention: scores * scaling + bias, float32 softmax, product with values."""
+    batch, length, _ = hidden.shape
+    query = _project_qkv(attn, hidden, cos, sin, kv, start, ops)
+    heads, end = query.shape[1], start + length
+    keys, values = kv[0][:, 0, :end], kv[1][:, 0, :end]  # B x end x head_dim
+    scores = torch.bmm(query.reshape(batch, heads * length, -1), keys.transpose(1, 2))
+    scores = scores.view(batch, heads, length, end) * attn.scaling + bias
+    probs = torch.softmax(scores, dim=-1, dtype=torch.float32).to(values.dtype)
+    out = torch.bmm(probs.view(batch, heads * length, end), values).view(batch, heads, length, -1)
+    return attn.o_proj(out.transpose(1, 2).reshape(batch, length, -1))
+
+
+def _mlp(mlp: nn.Module, x: torch.Tensor, ops: ElementwiseOps) -> torch.Tensor:
     """GemmaMLP, its three projections called as modules."""
-    return mlp.down_proj(mlp.act_fn(mlp.gate_proj(x)) * mlp.up_proj(x))
+    return mlp.down_proj(ops.gelu_tanh_mul(mlp.gate_proj(x), mlp.up_proj(x)))
 
 
 def _layers_dtype(gemma_model: nn.Module) -> torch.dtype:
-    return gemma_model.layers[0].self_attn.q_proj.weight.dtype
+    """The activation dtype of a Gemma stack (lerobot casts hidden states to its q_proj dtype); for
+    packed real-kernel layers (`quant.kernels`), their floating output/compute dtype."""
+    q_proj = gemma_model.layers[0].self_attn.q_proj
+    weight = getattr(q_proj, "weight", None)
+    if isinstance(weight, torch.Tensor) and weight.is_floating_point() and weight.element_size() > 1:
+        return weight.dtype
+    return getattr(q_proj, "out_dtype", None) or getattr(q_proj, "compute_dtype", None) or torch.bfloat16
 
 
 def _new_cache(gemma_model: nn.Module, batch: int, length: int, device, dtype) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -104,7 +168,7 @@ def _new_cache(gemma_model: nn.Module, batch: int, length: int, device, dtype) -
 
 
 @torch.no_grad()
-def prefix_cache(model: nn.Module, images, img_masks, tokens, masks, suffix_len: int):
+def prefix_cache(model: nn.Module, images, img_masks, tokens, masks, suffix_len: int, ops: ElementwiseOps = EAGER_OPS):
     """Run the VLM over images and prompt; return per-layer KV buffers (prefix filled, `suffix_len`
     free slots after it) and the prefix pad mask."""
     pwe = model.paligemma_with_expert
@@ -124,22 +188,27 @@ def prefix_cache(model: nn.Module, images, img_masks, tokens, masks, suffix_len:
     bias = _attention_bias(pad[:, None, :] & pad[:, :, None], dtype)
     cos, sin = lm.rotary_emb(hidden, torch.cumsum(pad, dim=1) - 1)
     cache = _new_cache(lm, batch, length + suffix_len, hidden.device, dtype)
-    for layer, kv in zip(lm.layers, cache, strict=True):
-        normed, _ = rms_norm(layer.input_layernorm, hidden)
-        hidden = hidden + _attention(layer.self_attn, normed, cos, sin, bias, kv, 0)
-        normed, _ = rms_norm(layer.post_attention_layernorm, hidden)
-        hidden = hidden + _mlp(layer.mlp, normed)
+    layers = lm.layers
+    normed = ops.rms_norm(hidden, layers[0].input_layernorm.weight, layers[0].input_layernorm.eps)
+    for index, (layer, kv) in enumerate(zip(layers, cache, strict=True)):
+        attn_out = _prefix_attention(layer.self_attn, normed, cos, sin, bias, kv, ops)
+        post = layer.post_attention_layernorm
+        hidden, normed = ops.add_rms_norm(hidden, attn_out, post.weight, post.eps)
+        mlp_out = _mlp(layer.mlp, normed, ops)
+        if index + 1 < len(layers):
+            nxt = layers[index + 1].input_layernorm
+            hidden, normed = ops.add_rms_norm(hidden, mlp_out, nxt.weight, nxt.eps)
     return cache, pad
 
 
 @torch.no_grad()
-def sample_actions(model: nn.Module, images, img_masks, tokens, masks, noise, times):
+def sample_actions(model: nn.Module, images, img_masks, tokens, masks, noise, times, ops: ElementwiseOps = EAGER_OPS):
     """A whole chunk: prefix pass, then one Euler step per row of `times` (see `flow_times`)."""
     config = model.config
     expert = model.paligemma_with_expert.gemma_expert.model
     batch, chunk = noise.shape[:2]
     steps = times.shape[0]
-    cache, prefix_pad = prefix_cache(model, images, img_masks, tokens, masks, suffix_len=chunk)
+    cache, prefix_pad = prefix_cache(model, images, img_masks, tokens, masks, suffix_len=chunk, ops=ops)
     prefix_len = prefix_pad.shape[1]
 
     # Per-chunk constants: time conditioning and AdaRMS modulations of all steps, bias, rotary.
@@ -164,14 +233,20 @@ def sample_actions(model: nn.Module, images, img_masks, tokens, masks, noise, ti
 
     dt = -1.0 / steps
     x_t = noise
+    layers = expert.layers
     for step in range(steps):
         hidden = model.action_in_proj(x_t).to(dtype)
-        for layer, kv, (mod_in, mod_post) in zip(expert.layers, cache, modulations, strict=True):
-            normed, gate = ada_rms_norm(layer.input_layernorm, hidden, mod_in[step])
-            hidden = _gated_residual(hidden, _attention(layer.self_attn, normed, cos, sin, bias, kv, prefix_len), gate)
-            normed, gate = ada_rms_norm(layer.post_attention_layernorm, hidden, mod_post[step])
-            hidden = _gated_residual(hidden, _mlp(layer.mlp, normed), gate)
-        hidden, _ = ada_rms_norm(expert.norm, hidden, final_modulation[step])
-        velocity = model.action_out_proj(hidden[:, -config.chunk_size :].to(torch.float32))
+        normed, gate = ops.ada_rms_norm(hidden, modulations[0][0][step], layers[0].input_layernorm.eps)
+        for index, (layer, kv, (_, mod_post)) in enumerate(zip(layers, cache, modulations, strict=True)):
+            attn_out = _action_attention(layer.self_attn, normed, cos, sin, bias, kv, prefix_len, ops)
+            eps = layer.post_attention_layernorm.eps
+            hidden, normed, next_gate = ops.gated_add_ada_rms_norm(hidden, attn_out, gate, mod_post[step], eps)
+            mlp_out = _mlp(layer.mlp, normed, ops)
+            if index + 1 < len(layers):
+                nxt_mod, nxt_eps = modulations[index + 1][0][step], layers[index + 1].input_layernorm.eps
+            else:
+                nxt_mod, nxt_eps = final_modulation[step], expert.norm.eps
+            hidden, normed, gate = ops.gated_add_ada_rms_norm(hidden, mlp_out, next_gate, nxt_mod, nxt_eps)
+        velocity = model.action_out_proj(normed[:, -config.chunk_size :].to(torch.float32))
         x_t = x_t + dt * velocity
     return x_t

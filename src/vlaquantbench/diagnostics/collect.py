@@ -66,12 +66,13 @@ class DiagnosticsObserver:
         return out
 
 
-def collect(records_dir: str | Path, model: str, scope: str, preset: str, output: str | Path,
+def collect(recording: str | Path, model: str, scope: str, preset: str, output: str | Path,
             checkpoint_dir: str | None = None, log: str | Path | None = None) -> dict:
-    """Snakemake entry: diagnostics of every layer in `scope` under `preset` on the recording."""
-    meta, trajectories = load_records(records_dir)
+    """Snakemake entry: diagnostics of every layer in `scope` under `preset` on the recording
+    (`records.json` or its folder)."""
+    meta, trajectories = load_records(recording)
     if meta["model"] != model:
-        raise UserError(f"diagnostics for {model!r} asked of a recording of {meta['model']!r} ({records_dir})")
+        raise UserError(f"diagnostics for {model!r} asked of a recording of {meta['model']!r} ({recording})")
     adapter = make_adapter(AdapterConfig(model=meta["model"], variant=meta["variant"], checkpoint=meta["checkpoint"],
                                          checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"],
                                          device=meta["device"], flow_steps=meta["flow_steps"]))

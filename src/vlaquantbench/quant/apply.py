@@ -134,11 +134,12 @@ class QuantReport:
                 quant_report[comp]["calibrated_layers"] = sum(n in self.result.calibrated for n in names)
         if self.config.calibration is not None:
             quant_report["act_calib"] = self.config.stats.provenance(self.config.calibration)
+        unfired = self.unfired()
+        hooks = {"selected": len(self.result.hooks), "fired": len(self.result.hooks) - len(unfired), "unfired": unfired}
         return {
             "quant_report": quant_report,
             "quant_format": self.result.format,
-            "hooks": {"selected": len(self.result.hooks), "fired": len(self.result.hooks) - len(self.unfired()),
-                      "unfired": self.unfired()},
+            "hooks": hooks,
             "selected_layers": self.selected,
         }
 

@@ -1,19 +1,21 @@
 """Rollout calibration (paper appendix `app:calib`): observe linear inputs during unquantized
 episodes, then smooth and clip them when quantizing.
 
-Collecting statistics (the runner's calibrate rule)::
+Collecting statistics (the runner's calibrate rule, `vlaquantbench.runner.calibration`)::
 
-    from vlaquantbench.quant.calibration import (
-        CalibrationSettings, calibration_key, observe, save_stats, load_stats)
-    from vlaquantbench.quant.scope import select_layers
+    from vlaquantbench.quant import CalibrationSettings, select_layers
+    from vlaquantbench.quant.calibration import calibration_key, keyed_fields, observe, save_stats
 
     settings = CalibrationSettings(alpha=0.5, quantile=0.999, components=("ah",))
-    key = calibration_key(model="pi05", checkpoint=..., revision=..., init_states=[20, 21], tasks=1,
-                          seed=0, settings=settings, code_revision=...)
-    layers = select_layers(policy, spec.components, "_".join(settings.components)).flat()
-    with observe(layers, settings.quantile) as observer:
+    fields = dict(model="pi05", checkpoint=..., revision=..., init_states=[20, 21], tasks=1, seed=0,
+                  settings=settings, code_revision=...)
+    layers = {}
+    for component in settings.components:
+        layers.update(select_layers(policy, spec.components, component).flat())
+    with observe(layers, quantile=settings.quantile) as observer:
         ...  # run the unquantized episodes
-    save_stats(observer.stats(key, keyed_fields), cache_dir / f"{key}.pt")
+    stats = observer.stats(calibration_key(**fields), keyed_fields(*fields.values()))
+    save_stats(stats, cache_dir / f"{stats.key}.pt")
 
 Using them: `QuantConfig.from_preset(..., calibration=settings, stats=load_stats(path))`. Observe
 every layer of the calibrated components (not only a subset) so one cache serves all subsets.
@@ -128,7 +130,7 @@ def per_call_quantile(x: torch.Tensor, q: float) -> torch.Tensor:
 class ActivationObserver:
     """Forward pre-hooks collecting `ChannelStats` on linear inputs; use through `observe`."""
 
-    def __init__(self, layers: Mapping[str, nn.Linear], quantile: float):
+    def __init__(self, layers: Mapping[str, nn.Linear], quantile: float | None):
         self.quantile = quantile
         self.layers: dict[str, ChannelStats] = {}
         self._handles = [layer.register_forward_pre_hook(self._hook_for(name)) for name, layer in layers.items()]
@@ -137,7 +139,8 @@ class ActivationObserver:
         def hook(module: nn.Module, args: tuple) -> None:
             x = args[0]
             absmax = x.detach().abs().float().reshape(-1, x.shape[-1]).amax(dim=0)
-            quantile = per_call_quantile(x, self.quantile)
+            # without a clip quantile (smoothing only) nothing reads it: keep the magnitude
+            quantile = absmax if self.quantile is None else per_call_quantile(x, self.quantile)
             seen = self.layers.get(name)
             if seen is None:
                 self.layers[name] = ChannelStats(absmax.cpu(), quantile.cpu(), 1)
@@ -157,7 +160,7 @@ class ActivationObserver:
 
 
 @contextlib.contextmanager
-def observe(layers: Mapping[str, nn.Linear], quantile: float = 0.999) -> Iterator[ActivationObserver]:
+def observe(layers: Mapping[str, nn.Linear], quantile: float | None = 0.999) -> Iterator[ActivationObserver]:
     """Observe the inputs of `layers` (qualified name -> linear) while the block runs."""
     observer = ActivationObserver(layers, quantile)
     try:

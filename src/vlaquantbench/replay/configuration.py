@@ -42,8 +42,9 @@ def quant_config(study: dict, name: str, preset: str) -> tuple[QuantConfig, int]
     return QuantConfig.from_preset(preset, scope=conf["scope"], only=only, exclude=exclude), conf["layers"]
 
 
-def replay_configuration(records_dir, study: dict, name: str, preset: str, output_dir, checkpoint_dir=None) -> ReplayRun:
-    meta, trajectories = load_records(records_dir)
+def replay_configuration(recording, study: dict, name: str, preset: str, output_dir, checkpoint_dir=None) -> ReplayRun:
+    """Replay configuration `name` at `preset` on a recording (`records.json` or its folder)."""
+    meta, trajectories = load_records(recording)
     cfg, expected_layers = quant_config(study, name, preset)
     adapter = make_adapter(AdapterConfig(model=meta["model"], variant=meta["variant"], checkpoint=meta["checkpoint"],
                                          checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"],
@@ -96,4 +97,4 @@ def replay_to(records_json, study: dict, name: str, preset: str, summary_out, ch
     if summary_out.stem != name:
         raise UserError(f"replay output {summary_out} must be named after its configuration {name!r}")
     with progress_to(log):
-        return replay_configuration(Path(records_json).parent, study, name, preset, summary_out.parent, checkpoint_dir)
+        return replay_configuration(records_json, study, name, preset, summary_out.parent, checkpoint_dir)

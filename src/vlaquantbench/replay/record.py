@@ -144,8 +144,10 @@ def record(settings: RecordSettings, out_dir: str | Path) -> dict:
 
 
 def load_records(records_dir: str | Path) -> tuple[dict, dict[str, dict[str, np.ndarray]]]:
-    """The provenance (`records.json`) and every trajectory's arrays."""
+    """The provenance (`records.json`, or the folder holding it) and every trajectory's arrays."""
     records_dir = Path(records_dir)
+    if records_dir.name == "records.json":
+        records_dir = records_dir.parent
     meta_path = records_dir / "records.json"
     if not meta_path.exists():
         raise UserError(f"no recording in {records_dir}: {meta_path} is missing")

@@ -27,13 +27,14 @@ def download_checkpoint(model: str, variant: str, checkpoint: str | None, revisi
     else:
         if not checkpoint or not revision:
             raise UserError(f"study.models.{model}: a full-variant model needs `checkpoint` and a pinned `revision`")
+        import httpx
         from huggingface_hub import snapshot_download
         from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError
 
         local_dir = stamp.parent / stamp.stem
         try:
             path = snapshot_download(checkpoint, revision=revision, local_dir=local_dir)
-        except (LocalEntryNotFoundError, HfHubHTTPError, OSError) as err:
+        except (LocalEntryNotFoundError, HfHubHTTPError, httpx.HTTPError, OSError) as err:
             reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
             raise UserError(
                 f"cannot download checkpoint {checkpoint}@{revision}: {reason} "

@@ -1,0 +1,61 @@
+"""`vqb rollout REF`: run one cell outside Snakemake, into the folder the workflow would use.
+
+    vqb rollout libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn            # demo study
+    vqb rollout REF --config config/paper.yaml --num-envs 8
+    vqb rollout REF --show                                                         # config + hash only
+
+Fetches the checkpoint and collects calibration statistics first when the cell needs them; an
+interrupted run resumes from its journal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import yaml
+
+from vlaquantbench.cells import calibration_config, cell_config, checkpoint_key, config_hash
+from vlaquantbench.errors import UserError
+from vlaquantbench.workflow import CELLS_DIR
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("rollout", help="run one cell's closed-loop episodes (resumable)")
+    parser.add_argument("ref", help="cell reference <benchmark>/<suite>/<model>/<cell>")
+    parser.add_argument("--config", default="config/config.yaml", help="config whose `study` defines the cell")
+    parser.add_argument("--results", default=".", help="folder holding results/ (default: current folder)")
+    parser.add_argument("--num-envs", type=int, help="LIBERO worker processes (default: study.execution)")
+    parser.add_argument("--show", action="store_true", help="print the canonical cell config and its hash, run nothing")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    path = Path(args.config)
+    if not path.is_file():
+        raise UserError(f"config file {path} does not exist")
+    study = (yaml.safe_load(path.read_text()) or {}).get("study") or {}
+    cfg = cell_config(args.ref, study)
+    out = Path(args.results) / CELLS_DIR / config_hash(cfg)
+    if args.show:
+        print(json.dumps({"config_hash": config_hash(cfg), "folder": str(out), "config": cfg}, indent=2))
+        return 0
+    from vlaquantbench.runner.calibration import calibrate
+    from vlaquantbench.runner.cell import run_cell
+    from vlaquantbench.runner.checkpoint import download_checkpoint
+
+    execution = dict(study.get("execution") or {})
+    if args.num_envs:
+        execution["num_envs"] = args.num_envs
+    stamp = Path(args.results) / "results" / "checkpoints" / checkpoint_key(cfg) / "checkpoint.json"
+    if not stamp.exists():
+        download_checkpoint(**{k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}, stamp=stamp)
+    stats = None
+    calib = calibration_config(cfg)
+    if calib is not None:
+        stats = Path(args.results) / "results" / "calibration" / f"{config_hash(calib)}.pt"
+        if not stats.exists():
+            calibrate(calib, stats, stamp, **execution)
+    print(run_cell(cfg, out, stamp, stats, **execution))
+    return 0

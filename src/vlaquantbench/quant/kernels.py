@@ -1,0 +1,248 @@
+"""Real-kernel quantization methods for `quantize_`: packed weights and integer/FP8 matrix products.
+
+Registered in the method table of `quant.apply` when this module is imported:
+
+    nf4          bitsandbytes 4-bit NormalFloat, blocks of 64, bf16 compute   (preset W4)
+    int8         bitsandbytes LLM.int8(): int8 weights, fp16 outlier columns  (preset W8)
+    int4wo       int4 weight-only, asymmetric groups, tinygemm kernel          (preset W4[G<g>])
+                 (`torch._weight_int4pack_mm`; AWQ's INT4 GEMM format without AWQ's scale search)
+    smoothquant  W8A8 int8: per-channel weights, dynamic per-token activations, `torch._int_mm`,
+                 with the rollout smoothing vector folded into the weights when calibrated  (W8A8)
+    fp8          W8A8 FP8 e4m3: per-channel weights, dynamic per-token activations,
+                 `torch._scaled_mm` with row-wise scales (the H100's native format)          (W8A8)
+
+Each selected `nn.Linear` is replaced in its parent by a module holding the packed weight (the
+bf16 weight is freed), and gets a counting pre-hook that changes nothing, so `unfired()` proves
+that the kernel ran. bitsandbytes is an optional extra (`pip install vlaquantbench[kernels]`);
+int4wo, smoothquant and fp8 need only PyTorch (int4wo and fp8 need a CUDA GPU).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F  # noqa: N812
+from torch import nn
+
+from vlaquantbench.errors import UserError
+from vlaquantbench.quant.apply import MethodResult, QuantConfig, register_method
+from vlaquantbench.quant.calibration import smoothing_factors
+from vlaquantbench.quant.hooks import CountingHook, InputTransform
+from vlaquantbench.quant.scope import Selection
+
+try:  # one-pass activation quantization on CUDA; the torch expression below elsewhere
+    import triton
+    import triton.language as tl
+    from triton.language.extra import libdevice
+except ImportError:  # pragma: no cover
+    triton = None
+
+FP8 = torch.float8_e4m3fn
+FP8_MAX = torch.finfo(FP8).max
+SCALE_FLOOR = 1e-8
+
+if triton is not None:
+
+    @triton.jit
+    def _quantize_rows(x_ptr, q_ptr, scale_ptr, n_cols, q_max, scale_floor, TO_INT: tl.constexpr, BLOCK: tl.constexpr):
+        row = tl.program_id(0).to(tl.int64)
+        cols = tl.arange(0, BLOCK)
+        inside = cols < n_cols
+        x = tl.load(x_ptr + row * n_cols + cols, mask=inside, other=0.0).to(tl.float32)
+        scale = tl.maximum(tl.max(tl.abs(x), axis=0), scale_floor) / q_max
+        y = tl.minimum(tl.maximum(x / scale, -q_max), q_max)
+        if TO_INT:
+            y = libdevice.rint(y)
+        tl.store(q_ptr + row * n_cols + cols, y.to(q_ptr.dtype.element_ty), mask=inside)
+        tl.store(scale_ptr + row, scale)
+
+
+def quantize_per_token(x2d: torch.Tensor, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Symmetric per-row quantization to int8 (round to nearest) or FP8 e4m3 (cast): (values, scales
+    as a float32 column). One kernel on CUDA; the same arithmetic as torch ops elsewhere."""
+    q_max = 127.0 if dtype == torch.int8 else FP8_MAX
+    if triton is not None and x2d.is_cuda:
+        x2d = x2d.contiguous()
+        rows, cols = x2d.shape
+        values = torch.empty(rows, cols, dtype=dtype, device=x2d.device)
+        scales = torch.empty(rows, 1, dtype=torch.float32, device=x2d.device)
+        block = triton.next_power_of_2(cols)
+        _quantize_rows[(rows,)](x2d, values, scales, cols, q_max, SCALE_FLOOR, TO_INT=dtype == torch.int8,
+                                BLOCK=block, num_warps=min(16, max(1, block // 512)))
+        return values, scales
+    scales = x2d.abs().amax(dim=-1, keepdim=True).float().clamp_min(SCALE_FLOOR) / q_max
+    y = (x2d.float() / scales).clamp(-q_max, q_max)
+    return (torch.round(y) if dtype == torch.int8 else y).to(dtype), scales
+
+
+class Int8DynamicLinear(nn.Module):
+    """W8A8 int8: y = (round(x/s_x) @ W_q^T) * s_x * s_w (+ b), int32 accumulation in `torch._int_mm`.
+
+    `smooth` (SmoothQuant's d) is folded into the weights and divided out of the input first."""
+
+    def __init__(self, linear: nn.Linear, smooth: torch.Tensor | None = None):
+        super().__init__()
+        weight = linear.weight.detach().float()
+        if smooth is not None:
+            weight = weight * smooth
+        scale = weight.abs().amax(dim=1, keepdim=True).clamp_min(1e-8) / 127.0
+        self.register_buffer("weight_int8", torch.clamp(torch.round(weight / scale), -128, 127).to(torch.int8))
+        self.register_buffer("weight_scale", scale.t().contiguous())  # 1 x out
+        self.register_buffer("smooth", None if smooth is None else smooth.float())
+        self.bias = linear.bias
+        self.out_dtype = linear.weight.dtype
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        shape = x.shape
+        x2d = x.reshape(-1, shape[-1])
+        if self.smooth is not None:
+            x2d = x2d.float() / self.smooth
+        x_q, scale = quantize_per_token(x2d, torch.int8)
+        rows = x_q.shape[0]
+        # cuBLASLt int8 products need more than 16 rows (and multiples of 8): pad small batches.
+        padded = max(32, (rows + 7) // 8 * 8)
+        if padded != rows:
+            x_q = F.pad(x_q, (0, 0, 0, padded - rows))
+        acc = torch._int_mm(x_q, self.weight_int8.t())[:rows]
+        y = (acc.float() * scale * self.weight_scale).to(self.out_dtype)
+        if self.bias is not None:
+            y = y + self.bias
+        return y.reshape(*shape[:-1], -1)
+
+
+class Fp8DynamicLinear(nn.Module):
+    """W8A8 FP8 e4m3 with per-output-channel weight scales and per-token activation scales."""
+
+    def __init__(self, linear: nn.Linear):
+        super().__init__()
+        weight = linear.weight.detach().float()
+        scale = weight.abs().amax(dim=1, keepdim=True).clamp_min(1e-12) / FP8_MAX
+        self.register_buffer("weight_fp8", (weight / scale).clamp(-FP8_MAX, FP8_MAX).to(FP8))
+        self.register_buffer("weight_scale", scale.t().contiguous())  # 1 x out, float32
+        self.bias = linear.bias
+        self.out_dtype = linear.weight.dtype
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        shape = x.shape
+        x2d = x.reshape(-1, shape[-1])
+        x_fp8, scale = quantize_per_token(x2d, FP8)
+        bias = None if self.bias is None else self.bias.to(self.out_dtype)
+        y = torch._scaled_mm(x_fp8, self.weight_fp8.t(), scale_a=scale, scale_b=self.weight_scale,
+                             bias=bias, out_dtype=self.out_dtype)
+        return y.reshape(*shape[:-1], -1)
+
+
+class Int4WeightOnlyLinear(nn.Module):
+    """int4 weights in asymmetric groups along the input, bf16 activations, tinygemm kernel.
+
+    tinygemm dequantizes w = (q - 8) * scale + zero, so zero = min + 8 * scale for q in 0..15."""
+
+    INNER_K_TILES = 8
+
+    def __init__(self, linear: nn.Linear, group_size: int):
+        super().__init__()
+        out_features, in_features = linear.weight.shape
+        if in_features % group_size:
+            raise UserError(f"int4wo: in_features {in_features} not divisible by group size {group_size}")
+        weight = linear.weight.detach().float().reshape(out_features, -1, group_size)
+        low = weight.amin(dim=-1, keepdim=True)
+        scale = ((weight.amax(dim=-1, keepdim=True) - low) / 15.0).clamp_min(1e-6)
+        q = torch.clamp(torch.round((weight - low) / scale), 0, 15).to(torch.uint8).reshape(out_features, in_features)
+        packed = (q[:, ::2] << 4 | q[:, 1::2]).contiguous()
+        self.register_buffer("weight_int4", torch._convert_weight_to_int4pack(packed, self.INNER_K_TILES))
+        zero = low + 8.0 * scale
+        scales_zeros = torch.stack([scale.squeeze(-1), zero.squeeze(-1)], dim=-1)  # out x groups x 2
+        self.register_buffer("scales_and_zeros", scales_zeros.transpose(0, 1).contiguous().to(torch.bfloat16))
+        self.group_size = group_size
+        self.bias = linear.bias
+        self.out_dtype = linear.weight.dtype
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        shape = x.shape
+        x2d = x.reshape(-1, shape[-1]).to(torch.bfloat16)
+        y = torch._weight_int4pack_mm(x2d, self.weight_int4, self.group_size, self.scales_and_zeros)
+        y = y.to(self.out_dtype)
+        if self.bias is not None:
+            y = y + self.bias
+        return y.reshape(*shape[:-1], -1)
+
+
+def _bnb_linear(linear: nn.Linear, kind: str) -> nn.Module:
+    try:
+        import bitsandbytes as bnb
+    except ImportError as err:
+        raise UserError(f"method {kind!r} needs bitsandbytes: pip install 'vlaquantbench[kernels]'") from err
+    device = linear.weight.device
+    has_bias = linear.bias is not None
+    if kind == "nf4":
+        module = bnb.nn.Linear4bit(linear.in_features, linear.out_features, bias=has_bias,
+                                   compute_dtype=torch.bfloat16, quant_type="nf4", device="meta")
+        module.weight = bnb.nn.Params4bit(linear.weight.detach(), requires_grad=False, quant_type="nf4")
+    else:
+        module = bnb.nn.Linear8bitLt(linear.in_features, linear.out_features, bias=has_bias,
+                                     has_fp16_weights=False, threshold=6.0, device="meta")
+        module.weight = bnb.nn.Int8Params(linear.weight.detach(), requires_grad=False, has_fp16_weights=False)
+    if has_bias:
+        module.bias = nn.Parameter(linear.bias.detach(), requires_grad=False)
+    return module.to(device)  # bitsandbytes quantizes on the move to a CUDA device
+
+
+def _require(config: QuantConfig, method: str, bits: int, act_bits: int | None) -> None:
+    preset = config.preset
+    if preset.weight is None or preset.weight.bits != bits or preset.act_bits != act_bits:
+        want = f"W{bits}" + (f"A{act_bits}" if act_bits else "")
+        raise UserError(f"method {method!r} implements {want}; preset {preset.name!r} does not match")
+
+
+def _replace_all(model: nn.Module, selection: Selection, make, fmt: str) -> MethodResult:
+    result = MethodResult(format=fmt)
+    for name, linear in selection.flat().items():
+        parent_name, _, child = name.rpartition(".")
+        new = make(name, linear)
+        setattr(model.get_submodule(parent_name) if parent_name else model, child, new)
+        # The report keeps the replaced layer (for its parameter count): drop its storage, keep its shape.
+        linear.weight = nn.Parameter(torch.empty_like(linear.weight, device="meta"), requires_grad=False)
+        result.hooks[name] = CountingHook(new, InputTransform())  # counts calls, changes nothing
+    return result
+
+
+def nf4(model, selection, config):
+    _require(config, "nf4", 4, None)
+    return _replace_all(model, selection, lambda n, m: _bnb_linear(m, "nf4"),
+                        "bitsandbytes NF4 (4-bit NormalFloat, block 64, bf16 compute)")
+
+
+def llm_int8(model, selection, config):
+    _require(config, "int8", 8, None)
+    return _replace_all(model, selection, lambda n, m: _bnb_linear(m, "int8"),
+                        "bitsandbytes LLM.int8() (int8 row-wise weights, fp16 outlier columns above 6.0)")
+
+
+def int4_weight_only(model, selection, config):
+    _require(config, "int4wo", 4, None)
+    group = config.preset.weight.group_size or 128
+    return _replace_all(model, selection, lambda n, m: Int4WeightOnlyLinear(m, group),
+                        f"int4 weight-only, asymmetric group {group}, tinygemm (torch._weight_int4pack_mm), bf16 activations")
+
+
+def smoothquant(model, selection, config):
+    _require(config, "smoothquant", 8, 8)
+
+    def make(name, linear):
+        stats = config.stats.layers.get(name) if config.calibration is not None else None
+        smooth = None if stats is None else smoothing_factors(stats.absmax, linear.weight, config.calibration.alpha)
+        return Int8DynamicLinear(linear, smooth)
+
+    calib = f", smoothing alpha={config.calibration.alpha}" if config.calibration is not None else ", no smoothing"
+    return _replace_all(model, selection, make,
+                        f"W8A8 int8 (per-channel weights, dynamic per-token activations, torch._int_mm){calib}")
+
+
+def fp8(model, selection, config):
+    _require(config, "fp8", 8, 8)
+    return _replace_all(model, selection, lambda n, m: Fp8DynamicLinear(m),
+                        "W8A8 FP8 e4m3 (per-channel weights, dynamic per-token activations, torch._scaled_mm row-wise)")
+
+
+for _name, _fn in {"nf4": nf4, "int8": llm_int8, "int4wo": int4_weight_only, "smoothquant": smoothquant,
+                   "fp8": fp8}.items():
+    register_method(_name, _fn)

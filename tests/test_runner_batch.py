@@ -1,0 +1,55 @@
+"""Two real LIBERO episodes run as one batch of two and one at a time give identical actions and outcomes."""
+
+from collections import defaultdict
+
+import numpy as np
+import pytest
+
+from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv
+from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+from vlaquantbench.quant import QuantConfig, quantize_
+from vlaquantbench.runner.loop import run_episodes
+
+pytestmark = pytest.mark.slow
+
+
+def test_batch_of_two_equals_batch_of_one():
+    suite = LiberoSuite("libero_spatial")
+    specs = [suite.episode_spec(0, 0), suite.episode_spec(1, 0)]
+    adapter = make_adapter(AdapterConfig(model="pi05", variant="demo", flow_steps=2))
+    adapter.load()
+    report = quantize_(adapter.model, QuantConfig.from_preset("W4A4", scope="ah"), components=adapter.components)
+
+    chunks = defaultdict(list)  # episode seed -> [(state observed, chunk predicted)]
+    act = adapter.act
+
+    def recording_act(observations, generators):
+        out = act(observations, generators)
+        for obs, generator, chunk in zip(observations, generators, out):
+            chunks[generator.initial_seed()].append((obs["state"].copy(), chunk.copy()))
+        return out
+
+    adapter.act = recording_act
+
+    def run(num_envs):
+        chunks.clear()
+        records = []
+        with LiberoVectorEnv(suite, num_envs, camera_size=64) as env:
+            run_episodes(adapter, env, specs, max_steps=12, on_finished=records.extend)
+        return sorted(records, key=lambda r: r["task_id"]), {seed: list(calls) for seed, calls in chunks.items()}
+
+    batched, batched_chunks = run(2)
+    single, single_chunks = run(1)
+
+    assert [(r["task_id"], r["episode"], r["seed"]) for r in batched] == [(0, 0, 0), (1, 0, 1009)]
+    for a, b in zip(batched, single):
+        assert (a["success"], a["steps"], a["actions_sha256"]) == (b["success"], b["steps"], b["actions_sha256"])
+    assert batched_chunks.keys() == single_chunks.keys() == {0, 1009}
+    for seed in batched_chunks:
+        assert len(batched_chunks[seed]) == len(single_chunks[seed]) == 2  # 12 steps, 10 executed per chunk
+        for (state_a, chunk_a), (state_b, chunk_b) in zip(batched_chunks[seed], single_chunks[seed]):
+            assert np.array_equal(state_a, state_b)
+            assert np.array_equal(chunk_a, chunk_b)
+    # The two episodes really differ (different tasks, init states and noise) and the hooks ran.
+    assert batched[0]["actions_sha256"] != batched[1]["actions_sha256"]
+    assert not report.unfired()
