@@ -95,6 +95,21 @@ def pi05():
     return model, spec.components, run
 
 
+def kernel_profile(fn) -> dict:
+    """Summed GPU kernel time of one call and its three costliest kernels (profile evidence)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        fn()
+        torch.cuda.synchronize()
+    events = [e for e in prof.key_averages() if e.self_device_time_total > 0]
+    top = sorted(events, key=lambda e: e.self_device_time_total, reverse=True)[:3]
+    return {"kernel_time_ms": sum(e.self_device_time_total for e in events) / 1e3,
+            "kernels": int(sum(e.count for e in events)),
+            "top": [{"name": e.key[:70], "ms": e.self_device_time_total / 1e3, "count": e.count} for e in top]}
+
+
 def graphed(fn):
     """`fn` captured as one CUDA graph (warm-up on a side stream first); returns a replaying callable."""
     stream = torch.cuda.Stream()
@@ -135,6 +150,7 @@ def measure(backbone, method: str, repeats: int, reference, capture: bool) -> di
             except Exception as err:  # e.g. a kernel library that synchronizes with the host
                 entry["graph_error"] = f"{type(err).__name__}: {err}"[:300]
                 torch.cuda.synchronize()
+        entry["profile"] = kernel_profile(run)
         out = run().float()
         entry.update(
             full_inference_ms=entry.get("graph_ms", entry["eager_ms"]),

@@ -67,6 +67,10 @@ class PiFamilyAdapter:
 
     name: str
     policy_module: str  # e.g. "lerobot.policies.pi05"
+    policy_class: str  # e.g. "PI05Policy"
+    config_class: str  # e.g. "PI05Config"
+    # Rollout calibration smooths VE, LLM and AH; both pi models leave the one-layer MP uncalibrated.
+    calibrated_components = ("ve", "llm", "ah")
 
     def __init__(self, config: AdapterConfig):
         self.config = config
@@ -105,13 +109,14 @@ class PiFamilyAdapter:
         if not self.config.checkpoint_dir:
             raise UserError(f"{self.name}: checkpoint {self.config.checkpoint} has no local snapshot; run its download rule")
         lib = importlib.import_module(self.policy_module)
-        policy_cls = getattr(lib, self.policy_class)
-        policy = policy_cls.from_pretrained(self.config.checkpoint_dir, local_files_only=True)
-        policy.config.device = self.config.device
+        policy_config = getattr(lib, self.config_class).from_pretrained(self.config.checkpoint_dir, local_files_only=True)
+        policy_config.device = self.config.device  # the checkpoint's saved device may not exist here
+        policy_config.dtype = self.config.dtype
+        policy = getattr(lib, self.policy_class).from_pretrained(
+            self.config.checkpoint_dir, config=policy_config, local_files_only=True
+        )
         self.policy_config = policy.config
         self.model = policy.model.to(self._device)
-        if self.config.dtype == "float32":
-            self.model = self.model.float()
         overrides = {"device_processor": {"device": self.config.device}}
         self.preprocessor = PolicyProcessorPipeline.from_pretrained(
             self.config.checkpoint_dir, "policy_preprocessor.json", local_files_only=True, overrides=overrides
@@ -140,6 +145,25 @@ class PiFamilyAdapter:
         )
 
     def _demo_processors(self, policy_config):
+        """lerobot's processor pipelines for this policy, with demo statistics and the offline tokenizer."""
+        from lerobot.processor import (
+            TokenizerProcessorStep,
+            make_default_policy_processor_steps,
+            make_policy_processor_pipelines,
+        )
+
+        steps = make_default_policy_processor_steps(policy_config, DEMO_STATS)
+        tokenize = TokenizerProcessorStep(
+            tokenizer=offline_byte_tokenizer(),
+            max_length=policy_config.tokenizer_max_length,
+            padding_side="right",
+            padding="max_length",
+        )
+        input_steps = self._input_steps(steps, tokenize, policy_config)
+        return make_policy_processor_pipelines(input_steps, [steps.unnormalize, steps.to_cpu])
+
+    def _input_steps(self, steps, tokenize, policy_config) -> list:
+        """The policy's preprocessing steps in lerobot's order (`make_<policy>_pre_post_processors`)."""
         raise NotImplementedError
 
     # -- episodes --------------------------------------------------------------------------

@@ -88,6 +88,7 @@ class Int8DynamicLinear(nn.Module):
         self.register_buffer("weight_int8", torch.clamp(torch.round(weight / scale), -128, 127).to(torch.int8))
         self.register_buffer("weight_scale", scale.t().contiguous())  # 1 x out
         self.register_buffer("smooth", None if smooth is None else smooth.float())
+        self.in_features, self.out_features = linear.in_features, linear.out_features
         self.bias = linear.bias
         self.out_dtype = linear.weight.dtype
 
@@ -118,6 +119,7 @@ class Fp8DynamicLinear(nn.Module):
         scale = weight.abs().amax(dim=1, keepdim=True).clamp_min(1e-12) / FP8_MAX
         self.register_buffer("weight_fp8", (weight / scale).clamp(-FP8_MAX, FP8_MAX).to(FP8))
         self.register_buffer("weight_scale", scale.t().contiguous())  # 1 x out, float32
+        self.in_features, self.out_features = linear.in_features, linear.out_features
         self.bias = linear.bias
         self.out_dtype = linear.weight.dtype
 
@@ -153,6 +155,7 @@ class Int4WeightOnlyLinear(nn.Module):
         scales_zeros = torch.stack([scale.squeeze(-1), zero.squeeze(-1)], dim=-1)  # out x groups x 2
         self.register_buffer("scales_and_zeros", scales_zeros.transpose(0, 1).contiguous().to(torch.bfloat16))
         self.group_size = group_size
+        self.in_features, self.out_features = linear.in_features, linear.out_features
         self.bias = linear.bias
         self.out_dtype = linear.weight.dtype
 

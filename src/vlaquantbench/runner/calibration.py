@@ -7,9 +7,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from tqdm import tqdm
 
 from vlaquantbench.envs.libero import EpisodeSpec, LiberoSuite, LiberoVectorEnv, episode_seed
-from vlaquantbench.runner.cell import load_policy
+from vlaquantbench.runner.cell import calibration_settings, load_policy
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.runner.provenance import code_revision
 
@@ -21,17 +22,15 @@ def calibrate(
     *,
     num_envs: int = 2,
     torch_threads: int | None = 1,
+    progress: bool = True,
 ) -> Path:
     """Collect statistics for `calib` (a `cells.calibration_config`) and save them to `output`."""
-    from vlaquantbench.quant import CalibrationSettings, select_layers
+    from vlaquantbench.quant import select_layers
     from vlaquantbench.quant.calibration import calibration_key, keyed_fields, observe, save_stats
 
     if torch_threads:
         torch.set_num_threads(torch_threads)
     settings_cfg, runner = calib["calibration"], calib["runner"]
-    settings = CalibrationSettings(
-        alpha=settings_cfg["alpha"], quantile=settings_cfg["quantile"], components=tuple(settings_cfg["components"])
-    )
     suite = LiberoSuite(calib["suite"])
     specs = [
         EpisodeSpec(task, state, init_state_id=state, seed=episode_seed(task, state, settings_cfg["seed"]))
@@ -41,6 +40,7 @@ def calibrate(
     for spec in specs:  # out-of-range init states fail here, before the policy loads
         suite.init_state(spec.task_id, spec.init_state_id)
     adapter = load_policy(calib, checkpoint_stamp)
+    settings = calibration_settings(settings_cfg, adapter)
     layers = {}
     for component in settings.components:
         layers.update(select_layers(adapter.model, adapter.components, component).flat())
@@ -59,6 +59,8 @@ def calibrate(
         with LiberoVectorEnv(
             suite, min(num_envs, len(specs)), camera_size=runner["camera_size"], settle_steps=runner["settle_steps"]
         ) as env:
-            run_episodes(adapter, env, specs, max_steps, on_finished=lambda records: None)
+            with tqdm(total=len(specs), desc=f"calibrate {calib['model']} {calib['suite']}", unit="ep",
+                      disable=not progress) as bar:
+                run_episodes(adapter, env, specs, max_steps, on_finished=lambda records: bar.update(len(records)))
     stats = observer.stats(calibration_key(**fields), keyed_fields(*fields.values()))
     return save_stats(stats, output)

@@ -61,6 +61,16 @@ def load_policy(cfg: dict[str, Any], stamp: str | Path | None):
     return adapter
 
 
+def calibration_settings(settings: dict[str, Any], adapter):
+    """The quantizer's calibration settings for a cell's `calibration` config, restricted to the
+    components this model calibrates (the pi models leave their MP uncalibrated, paper app:calib)."""
+    from vlaquantbench.quant import CalibrationSettings
+
+    calibrated = getattr(adapter, "calibrated_components", settings["components"])
+    components = tuple(c for c in settings["components"] if c in calibrated)
+    return CalibrationSettings(alpha=settings["alpha"], quantile=settings["quantile"], components=components)
+
+
 class CellRun:
     def __init__(
         self,
@@ -129,15 +139,11 @@ class CellRun:
         settings = self.cfg["calibration"]
         if settings is None:
             return None, None
-        from vlaquantbench.quant import CalibrationSettings
         from vlaquantbench.quant.calibration import load_stats
 
         if self.calibration_stats is None:
             raise UserError(f"cell {self.cfg['ref']} is calibrated but no calibration statistics were given")
-        calibration = CalibrationSettings(
-            alpha=settings["alpha"], quantile=settings["quantile"], components=tuple(settings["components"])
-        )
-        return calibration, load_stats(self.calibration_stats)
+        return calibration_settings(settings, self.adapter), load_stats(self.calibration_stats)
 
     def missing(self, journal: CellJournal) -> list:
         done = journal.done_keys()

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from vlaquantbench.models.pi_family_adapter import DEMO_STATS, STATE_KEY, PiFamilyAdapter, offline_byte_tokenizer
+from vlaquantbench.models.pi_family_adapter import STATE_KEY, PiFamilyAdapter
 
 
 class Pi0Adapter(PiFamilyAdapter):
@@ -11,30 +11,10 @@ class Pi0Adapter(PiFamilyAdapter):
     policy_class = "PI0Policy"
     config_class = "PI0Config"
 
-    def _demo_processors(self, policy_config):
+    def _input_steps(self, steps, tokenize, policy_config) -> list:
         from lerobot.policies.pi0.processor_pi0 import Pi0NewLineProcessor
-        from lerobot.processor import (
-            TokenizerProcessorStep,
-            make_default_policy_processor_steps,
-            make_policy_processor_pipelines,
-        )
 
-        # lerobot's pi0 pipeline (`make_pi0_pre_post_processors`) with the offline tokenizer.
-        steps = make_default_policy_processor_steps(policy_config, DEMO_STATS)
-        input_steps = [
-            steps.rename_observations,
-            steps.add_batch_dim,
-            Pi0NewLineProcessor(),
-            TokenizerProcessorStep(
-                tokenizer=offline_byte_tokenizer(),
-                max_length=policy_config.tokenizer_max_length,
-                padding_side="right",
-                padding="max_length",
-            ),
-            steps.to_device,
-            steps.normalize,
-        ]
-        return make_policy_processor_pipelines(input_steps, [steps.unnormalize, steps.to_cpu])
+        return [steps.rename_observations, steps.add_batch_dim, Pi0NewLineProcessor(), tokenize, steps.to_device, steps.normalize]
 
     def _sample(self, batch, images, image_masks, noise):
         from lerobot.policies.common.vla_utils import pad_vector

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from vlaquantbench.models.pi_family_adapter import DEMO_STATS, PiFamilyAdapter, offline_byte_tokenizer
+from vlaquantbench.models.pi_family_adapter import PiFamilyAdapter
 
 
 class Pi05Adapter(PiFamilyAdapter):
@@ -11,30 +11,12 @@ class Pi05Adapter(PiFamilyAdapter):
     policy_class = "PI05Policy"
     config_class = "PI05Config"
 
-    def _demo_processors(self, policy_config):
+    def _input_steps(self, steps, tokenize, policy_config) -> list:
         from lerobot.policies.pi05.processor_pi05 import Pi05PrepareStateTokenizerProcessorStep
-        from lerobot.processor import (
-            TokenizerProcessorStep,
-            make_default_policy_processor_steps,
-            make_policy_processor_pipelines,
-        )
 
-        # lerobot's pi0.5 pipeline (`make_pi05_pre_post_processors`) with the offline tokenizer.
-        steps = make_default_policy_processor_steps(policy_config, DEMO_STATS)
-        input_steps = [
-            steps.rename_observations,
-            steps.add_batch_dim,
-            steps.normalize,
-            Pi05PrepareStateTokenizerProcessorStep(max_state_dim=policy_config.max_state_dim),
-            TokenizerProcessorStep(
-                tokenizer=offline_byte_tokenizer(),
-                max_length=policy_config.tokenizer_max_length,
-                padding_side="right",
-                padding="max_length",
-            ),
-            steps.to_device,
-        ]
-        return make_policy_processor_pipelines(input_steps, [steps.unnormalize, steps.to_cpu])
+        prompt_with_state = Pi05PrepareStateTokenizerProcessorStep(max_state_dim=policy_config.max_state_dim)
+        # Normalize first: the prompt discretizes the normalized state into 256 bins.
+        return [steps.rename_observations, steps.add_batch_dim, steps.normalize, prompt_with_state, tokenize, steps.to_device]
 
     def _sample(self, batch, images, image_masks, noise):
         return self.model.sample_actions(

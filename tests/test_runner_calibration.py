@@ -1,0 +1,39 @@
+"""Rollout calibration on real LIBERO episodes feeds a calibrated cell, with provenance in its header."""
+
+import pytest
+import torch
+
+from vlaquantbench.cells import calibration_config, cell_config
+from vlaquantbench.quant.calibration import load_stats
+from vlaquantbench.records import read_cell
+from vlaquantbench.runner.calibration import calibrate
+from vlaquantbench.runner.cell import run_cell
+
+pytestmark = pytest.mark.slow
+
+STUDY = {
+    "models": {"pi05": {"variant": "demo", "checkpoint": "lerobot/pi05_libero_finetuned_v044"}},
+    "tasks": [0],
+    "episodes_per_task": 1,
+    "runner": {"max_steps": 10, "camera_size": 64, "flow_steps": 2},
+    "calibration": {"episodes": 1, "first_init_state": 20},
+}
+
+
+def test_calibration_statistics_drive_a_calibrated_cell(tmp_path):
+    cfg = cell_config("libero/libero_spatial/pi05/calib_ah-W4A4-ah-onlyself_attn", STUDY)
+    calib = calibration_config(cfg)
+    assert calib["calibration"]["init_states"] == [20] and calib["calibration"]["components"] == ["ah"]
+    stats_path = calibrate(calib, tmp_path / "stats.pt", num_envs=1)
+    stats = load_stats(stats_path)
+    assert len(stats.layers) == 167  # every AH linear ran during the unquantized episode
+    assert stats.keyed_fields["init_states"] == [20] and stats.keyed_fields["tasks"] == 1
+    q_proj = stats.layers["paligemma_with_expert.gemma_expert.model.layers.0.self_attn.q_proj"]
+    assert q_proj.calls == 2 * 1 and torch.all(q_proj.quantile <= q_proj.absmax)  # 1 chunk x 2 flow steps
+
+    cell = read_cell(run_cell(cfg, tmp_path / "cell", calibration_stats=stats_path, num_envs=1, progress=False))
+    report = cell.header["quant_report"]
+    assert report["ah"]["layers"] == 72 and report["ah"]["calibrated_layers"] == 72
+    assert report["act_calib"]["cache"] == f"{stats.key}.pt" and report["act_calib"]["alpha"] == 0.5
+    assert cell.header["calibration"] == cfg["calibration"]
+    assert cell.header["hooks"] == {"selected": 72, "fired": 72}
