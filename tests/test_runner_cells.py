@@ -103,6 +103,7 @@ def test_calibrated_cells_share_statistics_across_presets():
         ("calib_mp-W4A4-ah", "calib[_set<k>]"),
         ("calib_llm-W4A4-ah", "outside scope 'ah'"),
         ("ablate-W4A4-ah-nosuchsubset", "unknown subset 'nosuchsubset'"),
+        ("rtn-W9Z-ah", "unknown quantization preset 'W9Z'"),
     ],
 )
 def test_bad_cell_names_are_user_errors_naming_the_cell(cell, message):

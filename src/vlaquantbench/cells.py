@@ -128,6 +128,15 @@ def _subset_patterns(ref: str, model: str, scope: str, subset: str | None) -> tu
     return (list(named.only) if named.only else None, list(named.exclude) if named.exclude else None)
 
 
+def _check_preset(ref: str, preset: str) -> None:
+    from vlaquantbench.quant.presets import parse_preset
+
+    try:
+        parse_preset(preset)
+    except UserError as err:
+        raise UserError(f"cell {ref!r}: {err}") from None
+
+
 def cell_config(ref: str, study: dict[str, Any]) -> dict[str, Any]:
     """The canonical config of the cell `ref` under `study` (the config's `study` section).
 
@@ -142,6 +151,7 @@ def cell_config(ref: str, study: dict[str, Any]) -> dict[str, Any]:
     runner = {**DEFAULT_RUNNER, **{k: v for k, v in study.get("runner", {}).items() if k in RUNNER_OPTIONS}}
     if fields["flow_steps"] is not None:
         runner["flow_steps"] = fields["flow_steps"]
+    _check_preset(ref, fields["preset"])
     only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
     seed = int(study.get("seed", 0)) + fields["seed_offset"]
     cfg: dict[str, Any] = {

@@ -19,7 +19,7 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from vlaquantbench.cells import config_hash
+from vlaquantbench.cells import canonical, config_hash
 from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv, simulator_versions
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
@@ -117,7 +117,8 @@ class CellRun:
         )
         self.report = quantize_(self.adapter.model, quant, components=self.adapter.components)
         quantized = self.report.to_header()
-        self.header = {
+        # JSON round trip: the header compares equal to the journal's copy of it on a rerun.
+        self.header = canonical({
             "config_hash": config_hash(cfg),
             "ref": cfg["ref"],
             "cell": cfg["cell"],
@@ -133,7 +134,7 @@ class CellRun:
             "max_steps": self.max_steps,
             "versions": {**versions(), **{k: v for k, v in self.simulator.items() if k != "mujoco"}},
             "code_revision": code_revision(),
-        }
+        })
 
     def _calibration(self):
         settings = self.cfg["calibration"]
