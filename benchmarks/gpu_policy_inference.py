@@ -49,7 +49,7 @@ def time_chunks(fn, warmup: int, repeats: int) -> list[float]:
     return times
 
 
-def kernel_profile(fn) -> dict:
+def kernel_profile(fn, top_n: int = 5) -> dict:
     """GPU kernel count and summed kernel time of one chunk run without graphs (the floor a graph
     replay approaches once launch gaps are gone), with the five costliest kernel names."""
     from torch.profiler import ProfilerActivity, profile
@@ -60,7 +60,7 @@ def kernel_profile(fn) -> dict:
         torch.cuda.synchronize()
     events = [e for e in prof.key_averages() if e.device_time_total > 0]
     total_us = sum(e.self_device_time_total for e in events)
-    top = sorted(events, key=lambda e: e.self_device_time_total, reverse=True)[:5]
+    top = sorted(events, key=lambda e: e.self_device_time_total, reverse=True)[:top_n]
     return {
         "kernels": int(sum(e.count for e in events if e.self_device_time_total > 0)),
         "kernel_time_ms": total_us / 1e3,

@@ -29,29 +29,17 @@ import traceback
 from pathlib import Path
 
 import torch
-from torch import nn
 
 import vlaquantbench.quant.kernels  # noqa: F401  (registers the real-kernel methods)
+from gpu_policy_inference import chunk_inputs, kernel_profile, time_chunks  # this folder's sibling script
+from vlaquantbench.accel.captured import capture_graph
 from vlaquantbench.models.registry import Component
 from vlaquantbench.quant import QuantConfig, quantize_
 
 METHODS = {  # method -> preset it implements
-    "bf16": None, "nf4": "W4", "int8": "W8", "int4wo": "W4", "smoothquant": "W8A8", "fp8": "W8A8",
+    "bf16": None, "nf4": "W4", "int8": "W8", "int4wo": "W4", "smoothquant": "W8A8", "fp8": "W8A8", "fp8_tensor": "W8A8",
 }
 GIB = 2**30
-
-
-def timed(fn, repeats: int) -> list[float]:
-    for _ in range(3):
-        fn()
-    torch.cuda.synchronize()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        torch.cuda.synchronize()
-        times.append(time.perf_counter() - t0)
-    return times
 
 
 def llama7b():
@@ -79,12 +67,7 @@ def pi05():
 
     spec = get_model_spec("pi05")
     model = spec.build(variant="full", device="cuda", seed=0).eval()
-    g = torch.Generator().manual_seed(0)
-    images = [(torch.rand(1, 3, 224, 224, generator=g) * 2 - 1).cuda() for _ in range(3)]
-    img_masks = [torch.ones(1, dtype=torch.bool, device="cuda") for _ in range(3)]
-    tokens = torch.randint(0, 257152, (1, 200), generator=g).cuda()
-    masks = torch.ones(1, 200, dtype=torch.bool, device="cuda")
-    noise = torch.randn(1, 50, 32, generator=g).cuda()
+    images, img_masks, tokens, masks, noise = chunk_inputs(1, torch.device("cuda"))
     holder = {}
 
     def run():  # the sampler is made on first call, after quantization replaced the layers
@@ -95,31 +78,9 @@ def pi05():
     return model, spec.components, run
 
 
-def kernel_profile(fn) -> dict:
-    """Summed GPU kernel time of one call and its three costliest kernels (profile evidence)."""
-    from torch.profiler import ProfilerActivity, profile
-
-    torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CUDA]) as prof:
-        fn()
-        torch.cuda.synchronize()
-    events = [e for e in prof.key_averages() if e.self_device_time_total > 0]
-    top = sorted(events, key=lambda e: e.self_device_time_total, reverse=True)[:3]
-    return {"kernel_time_ms": sum(e.self_device_time_total for e in events) / 1e3,
-            "kernels": int(sum(e.count for e in events)),
-            "top": [{"name": e.key[:70], "ms": e.self_device_time_total / 1e3, "count": e.count} for e in top]}
-
-
 def graphed(fn):
-    """`fn` captured as one CUDA graph (warm-up on a side stream first); returns a replaying callable."""
-    stream = torch.cuda.Stream()
-    stream.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(stream):
-        fn()
-    torch.cuda.current_stream().wait_stream(stream)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        out = fn()
+    """`fn` captured as one CUDA graph; returns a replaying callable."""
+    graph, out = capture_graph(fn)
 
     def replay():
         graph.replay()
@@ -141,16 +102,16 @@ def measure(backbone, method: str, repeats: int, reference, capture: bool) -> di
         gc.collect()
         torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats()
-        times = timed(run, repeats)
+        times = time_chunks(run, warmup=3, repeats=repeats)
         entry["eager_ms"] = 1e3 * statistics.median(times)
         if capture:  # the same forward as one CUDA graph: launch gaps removed for every method alike
             try:
                 run = graphed(run)
-                entry["graph_ms"] = 1e3 * statistics.median(timed(run, repeats))
+                entry["graph_ms"] = 1e3 * statistics.median(time_chunks(run, warmup=3, repeats=repeats))
             except Exception as err:  # e.g. a kernel library that synchronizes with the host
                 entry["graph_error"] = f"{type(err).__name__}: {err}"[:300]
                 torch.cuda.synchronize()
-        entry["profile"] = kernel_profile(run)
+        entry["profile"] = kernel_profile(run, top_n=3)
         out = run().float()
         entry.update(
             full_inference_ms=entry.get("graph_ms", entry["eager_ms"]),

@@ -2,5 +2,6 @@
 fused activation quantization)."""
 
 from vlaquantbench.accel.captured import CapturedSampler
+from vlaquantbench.accel.fused_quant import fuse_activation_hooks
 
-__all__ = ["CapturedSampler"]
+__all__ = ["CapturedSampler", "fuse_activation_hooks"]

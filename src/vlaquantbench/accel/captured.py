@@ -12,7 +12,8 @@ warm-up chunk plus one recorded chunk, seconds at full size. Hook call counters 
 the warm-up and recorded chunks, which is enough to prove that every hook fired.
 
 `attention_backends` (a list of `torch.nn.attention.SDPBackend`) orders the SDPA kernels tried
-for the prefix; the benchmark found the memory-efficient kernel fastest on an H100.
+for the prefix; by default the memory-efficient kernel comes first, the fastest in the benchmark
+on an H100 (`kernel_choice_sweep_b1_ms`), with the others kept as fallbacks.
 
 `tf32=True` lets float32 matrix products (lerobot keeps the SigLIP tower and projector in float32)
 use TF32 tensor cores, as lerobot's own `compile_model` path does (`set_float32_matmul_precision
@@ -27,8 +28,12 @@ from dataclasses import dataclass
 
 import torch
 from torch import nn
+from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from vlaquantbench.accel import pi05_static
+
+PREFIX_ATTENTION = (SDPBackend.EFFICIENT_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBackend.CUDNN_ATTENTION,
+                    SDPBackend.MATH)
 
 
 @dataclass
@@ -42,7 +47,7 @@ class CapturedSampler:
     """Drop-in for `model.sample_actions(images, img_masks, tokens, masks, noise=..., num_steps=...)`."""
 
     def __init__(self, model: nn.Module, num_steps: int, *, use_graphs: bool | None = None, tf32: bool = True,
-                 attention_backends: Sequence | None = None, fuse_elementwise: bool | None = None):
+                 attention_backends: Sequence = PREFIX_ATTENTION, fuse_elementwise: bool | None = None):
         self.model = model
         self.num_steps = num_steps
         device = next(model.parameters()).device
@@ -79,8 +84,6 @@ class CapturedSampler:
         torch.backends.cuda.matmul.allow_tf32 = self.tf32
         try:
             if self.attention_backends:
-                from torch.nn.attention import sdpa_kernel
-
                 with sdpa_kernel(self.attention_backends, set_priority=True):
                     yield
             else:
@@ -97,21 +100,24 @@ class CapturedSampler:
             noise.clone(),
         )
 
-        def run():
-            return pi05_static.sample_actions(self.model, *inputs, self.times, self.ops)
-
         with self._kernel_choices():
-            # Warm up on a side stream (cuBLAS/cuDNN handles, Triton compilation), as CUDA graph
-            # capture requires, then record.
-            stream = torch.cuda.Stream()
-            stream.wait_stream(torch.cuda.current_stream())
-            with torch.cuda.stream(stream):
-                run()
-            torch.cuda.current_stream().wait_stream(stream)
-            graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(graph):
-                output = run()
+            graph, output = capture_graph(lambda: pi05_static.sample_actions(self.model, *inputs, self.times, self.ops))
         return _Graph(graph, inputs, output)
+
+
+def capture_graph(fn):
+    """Run `fn` once on a side stream (cuBLAS/cuDNN handles, autotuning, Triton and inductor
+    compilation happen there, as CUDA graph capture requires), then record it; returns the graph
+    and the output tensors that each `graph.replay()` rewrites."""
+    stream = torch.cuda.Stream()
+    stream.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(stream):
+        fn()
+    torch.cuda.current_stream().wait_stream(stream)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        output = fn()
+    return graph, output
 
 
 def _flatten(items) -> list[torch.Tensor]:

@@ -1,0 +1,73 @@
+"""Real-kernel quantization methods behind `quantize_` (vlaquantbench.quant.kernels), on a small
+real `transformers` LlamaModel on the CPU: int8 W8A8 through `torch._int_mm`, FP8 with tensor-wise
+scales through `torch._scaled_mm` (row-wise FP8, int4 and bitsandbytes need a GPU and are measured
+by benchmarks/gpu_real_kernels.py)."""
+
+import importlib.util
+
+import pytest
+import torch
+from transformers import LlamaConfig, LlamaModel
+
+import vlaquantbench.quant.kernels as kernels
+from vlaquantbench.errors import UserError
+from vlaquantbench.models.registry import Component
+from vlaquantbench.quant import QuantConfig, quantize_, registered_methods
+
+COMPONENTS = {"llm": Component(roots=("layers",))}
+
+
+def _llama(seed=0):
+    torch.manual_seed(seed)
+    config = LlamaConfig(hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
+                         num_key_value_heads=4, vocab_size=100)
+    return LlamaModel(config).eval()
+
+
+def _rel(a, b):
+    return ((a - b).norm() / b.norm()).item()
+
+
+def test_methods_are_registered():
+    assert {"nf4", "int8", "int4wo", "smoothquant", "fp8", "fp8_tensor"} <= set(registered_methods())
+
+
+@pytest.mark.parametrize("method, fmt, tolerance", [("smoothquant", "int8", 0.02), ("fp8_tensor", "FP8 e4m3", 0.1)])
+def test_kernel_method_replaces_layers_and_stays_close(method, fmt, tolerance):
+    model = _llama()
+    x = torch.randn(1, 20, 64, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        reference = model(inputs_embeds=x).last_hidden_state
+        report = quantize_(model, QuantConfig.from_preset("W8A8", scope="llm", method=method), components=COMPONENTS)
+        out = model(inputs_embeds=x).last_hidden_state
+    assert report.components == {"llm": {"layers": 14, "params": 2 * (4 * 64 * 64 + 3 * 64 * 128)}}
+    assert not any(isinstance(m, torch.nn.Linear) for m in model.layers.modules())
+    assert report.unfired() == []  # each packed layer's counting hook saw the forward pass
+    assert fmt in report.result.format
+    err = _rel(out, reference)
+    assert 0 < err < tolerance  # quantized (not a no-op) yet close
+
+
+def test_int8_w8a8_matches_its_definition():
+    """`torch._int_mm` result equals (round(x/s_x) @ round(W/s_w)^T) * s_x * s_w computed in float."""
+    linear = torch.nn.Linear(48, 40)
+    x = torch.randn(3, 5, 48)
+    layer = kernels.Int8DynamicLinear(linear)
+    s_w = linear.weight.abs().amax(dim=1, keepdim=True) / 127
+    w_q = torch.round(linear.weight / s_w).clamp(-128, 127)
+    s_x = x.reshape(-1, 48).abs().amax(dim=-1, keepdim=True) / 127
+    x_q = torch.round(x.reshape(-1, 48) / s_x).clamp(-128, 127)
+    expected = (x_q @ w_q.t()) * s_x * s_w.t() + linear.bias
+    with torch.no_grad():
+        assert torch.allclose(layer(x).reshape(-1, 40), expected, rtol=1e-5, atol=1e-5)
+
+
+def test_preset_must_match_the_method():
+    with pytest.raises(UserError, match="implements W8A8"):
+        quantize_(_llama(), QuantConfig.from_preset("W4", scope="llm", method="smoothquant"), components=COMPONENTS)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("bitsandbytes") is not None, reason="bitsandbytes installed")
+def test_bitsandbytes_methods_name_the_missing_extra():
+    with pytest.raises(UserError, match=r"vlaquantbench\[kernels\]"):
+        quantize_(_llama(), QuantConfig.from_preset("W4", scope="llm", method="nf4"), components=COMPONENTS)
