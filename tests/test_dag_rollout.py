@@ -13,10 +13,10 @@ import pytest
 import yaml
 
 from vlaquantbench.records import read_cell
+from paths import ROOT
 
 pytestmark = pytest.mark.slow
 
-ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = [sys.executable, "-m", "snakemake", "--cores", "2"]
 BASELINE = "libero/libero_spatial/pi05/rtn-BASELINE-e2e"
 ATTENTION = "libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn"
@@ -69,7 +69,7 @@ def test_demo_dag_builds_the_table_reruns_nothing_then_only_the_changed_cell(tmp
     assert set(cells) == {BASELINE, ATTENTION}
     assert read_cell(cells[ATTENTION]).header["hooks"]["selected"] == 72
     assert len(read_cell(cells[ATTENTION]).episodes) == 1
-    assert rf"\#L" in table and " 72 & " in table
+    assert r"\#L" in table and " 72 & " in table
 
     assert "Nothing to be done" in snakemake(checkout, "-n", "tables/lattice.tex")
 

@@ -2,16 +2,14 @@
 
 import csv
 import json
-from pathlib import Path
 
 import pandas as pd
 import pytest
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import EPISODE_COLUMNS, find_cells, read_cell, write_cell
+from paths import REFERENCE, RECORDS
 
-REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "reference"
-RECORDS = REFERENCE / "records"
 HEADER = {"kind": "header", "model": "pi05", "preset": "W4A4", "scope": "ah", "quant_report": {"ah": {"layers": 3, "params": 9}}}
 
 

@@ -8,9 +8,8 @@ import pytest
 from vlaquantbench.cli import main
 from vlaquantbench.errors import UserError
 from vlaquantbench.manifest import read_manifest, verify_manifest, write_manifest
+from paths import ROOT, RECORDS
 
-ROOT = Path(__file__).resolve().parents[1]
-RECORDS = ROOT.parent / "shared" / "reference" / "records"
 FROZEN = ROOT / "manifests" / "reference.tsv"
 CELL = Path("libero/libero_spatial/pi05/ablate-W4A4-ah-onlyadarms.jsonl")
 

@@ -2,7 +2,6 @@
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,8 +10,8 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.replay import composition as C
 from vlaquantbench.replay.analysis import Roles, analyze, analyze_files
 from vlaquantbench.replay.run import ReplayRun
+from paths import REFERENCE
 
-REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "reference"
 
 
 def rows(*vectors):

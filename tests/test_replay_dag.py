@@ -4,15 +4,14 @@ real LIBERO, through Snakemake."""
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from vlaquantbench.replay.run import ReplayRun
 from vlaquantbench.replay.tables import write_replay_table
+from paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 STUDY = "results/replay/pi05_libero_spatial"
 TARGETS = ["tables/replay_composition.tex", "tables/replay_bias.tex", "figures/replay_formats.pdf",
            "results/diagnostics/pi05-ah-W4A4.json"]

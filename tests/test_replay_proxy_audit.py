@@ -11,7 +11,6 @@ import json
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
@@ -19,9 +18,8 @@ from vlaquantbench.diagnostics.files import Diagnostics
 from vlaquantbench.diagnostics.proxy_audit import correlations, load_cohort, scope_table, write_proxy_audit
 from vlaquantbench.errors import UserError
 from vlaquantbench.replay.study import success_rates
+from paths import ROOT, REFERENCE
 
-ROOT = Path(__file__).resolve().parents[1]
-REFERENCE = ROOT.parent / "shared" / "reference"
 DIAG = REFERENCE / "authors-files" / "diagnostics" / "v2"
 SUMMARY = REFERENCE / "authors-summary.csv"
 

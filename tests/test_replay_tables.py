@@ -4,17 +4,14 @@ import re
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.replay.study import StudyResults, load_study, success_rates
 from vlaquantbench.replay.tables import write_replay_table
+from paths import ROOT, REFERENCE, PAPER_TEX as PAPER
 
-ROOT = Path(__file__).resolve().parents[1]
-REFERENCE = ROOT.parent / "shared" / "reference"
-PAPER = ROOT.parent / "shared" / "spec" / "vlaquantbench-paper.tex"
 AUTHORS_REPLAY = REFERENCE / "authors-files/results/replay/pi05_spatial"
 AUTHORS_SUMMARY = REFERENCE / "authors-summary.csv"
 
@@ -97,14 +94,14 @@ def test_snakemake_renders_replay_targets_from_reference_config(tmp_path):
 
 
 def test_success_column_from_the_records_in_reference_mode(tmp_path):
-    """Without success_summary, SR comes from this project's tables/summary.csv, built from the
+    """With success_summary emptied, SR comes from this project's tables/summary.csv, built from the
     authors' records: the five W4A4 cells have records, the W4/W4A8 cells do not."""
     for item in ("Snakefile", "rules", "workflow", "config", "src", "manifests"):
         if (ROOT / item).exists():
             (tmp_path / item).symlink_to(ROOT / item)
     cmd = [sys.executable, "-m", "snakemake", "tables/replay_all_formats.tex", "--cores", "2",
            "--configfile", "config/reference.yaml", "--config", f"replay_analysis_dir={AUTHORS_REPLAY}",
-           f"records_dir={REFERENCE / 'records'}"]
+           f"records_dir={REFERENCE / 'records'}", "success_summary="]
     proc = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = table_rows((tmp_path / "tables/replay_all_formats.tex").read_text(), "tab:replay_allformats")

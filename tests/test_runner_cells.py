@@ -1,14 +1,13 @@
 """Cell names in the authors' grammar -> canonical cell configs and their hashes."""
 
 import csv
-from pathlib import Path
 
 import pytest
 
 from vlaquantbench.cells import calibration_config, cell_config, config_hash, parse_cell_name, study_cells
 from vlaquantbench.errors import UserError
+from paths import REFERENCE
 
-REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "reference"
 STUDY = {
     "models": {
         "pi05": {

@@ -4,7 +4,6 @@ every reference cell, and the `vqb scopes` command's output and errors."""
 
 import functools
 import json
-from pathlib import Path
 
 import pytest
 
@@ -12,8 +11,9 @@ from vlaquantbench.cli import main as vqb
 from vlaquantbench.errors import UserError
 from vlaquantbench.models import get_model_spec
 from vlaquantbench.quant import get_subset, select_layers, subsets_for
+from paths import RECORDS
 
-RECORDS = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "records" / "libero"
+LIBERO_RECORDS = RECORDS / "libero"
 
 # paper tab:vla_params: layers / parameters in millions (to 0.1M)
 PAPER = {
@@ -81,14 +81,14 @@ def test_issue_subsets_are_all_defined():
 
 
 def reference_cells():
-    for path in sorted(RECORDS.glob("*/*/*.jsonl")):
+    for path in sorted(LIBERO_RECORDS.glob("*/*/*.jsonl")):
         header = json.loads(path.open().readline())
         if header["preset"] != "BASELINE":
             yield pytest.param(path, header, id=f"{path.parent.parent.name}/{path.parent.name}/{path.stem}")
 
 
-@pytest.mark.skipif(not RECORDS.is_dir(), reason="reference records not beside the checkout")
-@pytest.mark.parametrize("path, header", list(reference_cells()) if RECORDS.is_dir() else [])
+@pytest.mark.skipif(not LIBERO_RECORDS.is_dir(), reason="reference records not beside the checkout")
+@pytest.mark.parametrize("path, header", list(reference_cells()) if LIBERO_RECORDS.is_dir() else [])
 def test_authors_recorded_counts_are_reproduced(path, header):
     """Each reference cell's quant_report (layers and parameters per component) from its name."""
     model, scope = header["model"], header["scope"]

@@ -1,7 +1,6 @@
 """Statistics: Wilson intervals against the authors' summary, the task-clustered bootstrap, Spearman."""
 
 import csv
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -11,8 +10,8 @@ from scipy.stats import rankdata
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import read_cell
 from vlaquantbench.stats import spearman, task_clustered_bootstrap, wilson_interval
+from paths import REFERENCE
 
-REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "reference"
 SPATIAL = REFERENCE / "records" / "libero" / "libero_spatial"
 
 

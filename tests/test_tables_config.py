@@ -1,16 +1,14 @@
 """Where the analysis rules find a cell's records, and which cells they read (WorkflowConfig)."""
 
 import shutil
-from pathlib import Path
 
 import pytest
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import read_cell, write_cell
 from vlaquantbench.workflow import WorkflowConfig
+from paths import ROOT, RECORDS
 
-ROOT = Path(__file__).resolve().parents[1]
-RECORDS = ROOT.parent / "shared" / "reference" / "records"
 REF = "libero/libero_spatial/pi05/rtn-W4A4-ah"
 
 

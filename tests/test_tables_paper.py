@@ -2,17 +2,14 @@
 
 import re
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import find_cells, read_cell
 from vlaquantbench.tables import TableDefinition, load_table, render_latex, write_summary
+from paths import ROOT, REFERENCE, PAPER_TEX as PAPER
 
-ROOT = Path(__file__).resolve().parents[1]
-REFERENCE = ROOT.parent / "shared" / "reference"
-PAPER = ROOT.parent / "shared" / "spec" / "vlaquantbench-paper.tex"
 TABLES = ("lattice", "oft_protect_fc2", "clustered", "calibrated_subsets")
 BOOTSTRAP_TOLERANCE_PP = 1.5
 

@@ -10,9 +10,8 @@ from test_tables_paper import latex_rows, paper_rows
 
 from vlaquantbench.records import find_cells, read_cell
 from vlaquantbench.tables import load_table, render_latex, summarize
+from paths import ROOT, RECORDS
 
-ROOT = Path(__file__).resolve().parents[1]
-RECORDS = ROOT.parent / "shared" / "reference" / "records"
 TABLES = ("lattice", "oft_protect_fc2", "clustered", "calibrated_subsets")
 FLIPPED = "libero/libero_spatial/pi05/ablate-W4A4-ah-onlyadarms"  # 187/200 successes; flipping one failure gives 188
 

@@ -57,6 +57,9 @@ DEFAULT_RUNNER = {
     "max_steps": None,  # None: the suite's step limit for the model family
     "camera_size": 256,
     "settle_steps": 10,
+    # auto | captured | eager (`models.adapter.resolve_sampler`); hashed because the captured and
+    # eager samplers order floating-point operations differently, so actions can differ in the last bits.
+    "sampler": "auto",
 }
 RUNNER_OPTIONS = tuple(DEFAULT_RUNNER)
 DEFAULT_CALIBRATION = {
@@ -236,7 +239,10 @@ def calibration_config(cfg: dict[str, Any]) -> dict[str, Any] | None:
     if cfg["calibration"] is None:
         return None
     keep = ("benchmark", "suite", "model", "variant", "checkpoint", "revision")
-    return canonical({**{k: cfg[k] for k in keep}, "calibration": cfg["calibration"], "runner": cfg["runner"]})
+    # Observers are Python hooks that must run on every chunk; a captured graph would replay
+    # without them, so calibration always samples eagerly, whatever the cell's sampler.
+    runner = {**cfg["runner"], "sampler": "eager"}
+    return canonical({**{k: cfg[k] for k in keep}, "calibration": cfg["calibration"], "runner": runner})
 
 
 def checkpoint_key(cfg: dict[str, Any]) -> str:

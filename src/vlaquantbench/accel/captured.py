@@ -32,6 +32,8 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from vlaquantbench.accel import pi05_static
 
+# Quantization methods whose layers cannot run inside a CUDA graph, with the reason.
+UNCAPTURABLE_METHODS = {"int8": "bitsandbytes LLM.int8() synchronizes with the host on its outlier columns"}
 PREFIX_ATTENTION = (SDPBackend.EFFICIENT_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBackend.CUDNN_ATTENTION,
                     SDPBackend.MATH)
 

@@ -37,6 +37,9 @@ class AdapterConfig:
     executed_chunk: int = 10
     flow_steps: int = 10
     seed: int = 0  # demo weights
+    # "captured" or "eager" (`resolve_sampler`). Eager unless a cell resolves otherwise: the replay
+    # and diagnostics probes wrap lerobot's `sample_actions`/`denoise_step`, which only eager calls.
+    sampler: str = "eager"
 
     @classmethod
     def from_cell(cls, cfg: dict[str, Any], checkpoint_dir: str | None) -> "AdapterConfig":
@@ -50,6 +53,7 @@ class AdapterConfig:
             dtype=runner["dtype"],
             executed_chunk=runner["executed_chunk"],
             flow_steps=runner["flow_steps"],
+            sampler=resolve_sampler(cfg),
         )
 
 
@@ -65,6 +69,11 @@ class PolicyAdapter(Protocol):
 
     def load(self) -> None: ...
 
+    def prepare_inference(self, report) -> dict:
+        """Set up the configured sampler once quantization (`report`) has installed its hooks;
+        returns the cell header's `inference` record."""
+        ...
+
     def reset(self, seed: int) -> torch.Generator: ...
 
     def act(self, observations: Sequence[dict], generators: Sequence[torch.Generator]) -> np.ndarray:
@@ -78,11 +87,47 @@ _ADAPTERS = {
 }
 
 
+def adapter_class(model: str) -> type:
+    """The adapter class of `model` (each model's `adapter.py` defines `ADAPTER`)."""
+    if model not in _ADAPTERS:
+        raise UserError(f"no rollout adapter for model {model!r}; adapters exist for {', '.join(_ADAPTERS)}")
+    return importlib.import_module(_ADAPTERS[model]).ADAPTER
+
+
 def make_adapter(config: AdapterConfig) -> PolicyAdapter:
-    """The adapter for `config.model` (each model's `adapter.py` defines `ADAPTER`)."""
-    if config.model not in _ADAPTERS:
-        raise UserError(f"no rollout adapter for model {config.model!r}; adapters exist for {', '.join(_ADAPTERS)}")
-    return importlib.import_module(_ADAPTERS[config.model]).ADAPTER(config)
+    return adapter_class(config.model)(config)
+
+
+SAMPLERS = ("auto", "captured", "eager")
+
+
+def resolve_sampler(cfg: dict[str, Any]) -> str:
+    """A cell's `runner.sampler` made concrete: "captured" or "eager".
+
+    `auto` is the fastest path that computes the cell: the captured sampler (one CUDA graph per
+    chunk, `accel.CapturedSampler`; benchmarks/README.md) on CUDA where the model and method allow
+    it, else eager. On the CPU `auto` stays eager: there the eager path with `BatchInvariantLinears`
+    is what makes an episode's actions bit-identical at batch 1 and batch 4 (the captured code
+    computes per-chunk constants for all batch rows and steps in one product). UserError naming
+    `study.runner.sampler` for an unknown or impossible choice, before the policy loads.
+    """
+    from vlaquantbench.accel.captured import UNCAPTURABLE_METHODS
+
+    choice = cfg["runner"]["sampler"]
+    if choice not in SAMPLERS:
+        raise UserError(f"study.runner.sampler must be one of {', '.join(SAMPLERS)}, got {choice!r}")
+    if choice == "eager":
+        return choice
+    obstacle = None
+    if not adapter_class(cfg["model"]).supports_captured_sampler:
+        obstacle = f"model {cfg['model']} has no captured sampler"
+    elif cfg["method"] in UNCAPTURABLE_METHODS:
+        obstacle = f"method {cfg['method']} cannot be captured ({UNCAPTURABLE_METHODS[cfg['method']]})"
+    if choice == "captured":
+        if obstacle:
+            raise UserError(f"cell {cfg['ref']}: study.runner.sampler is 'captured' but {obstacle}; use 'auto' or 'eager'")
+        return choice
+    return "captured" if obstacle is None and torch.device(cfg["runner"]["device"]).type == "cuda" else "eager"
 
 
 def episode_generator(seed: int, device: str | torch.device = "cpu") -> torch.Generator:

@@ -71,6 +71,7 @@ class PiFamilyAdapter:
     config_class: str  # e.g. "PI05Config"
     # Rollout calibration smooths VE, LLM and AH; both pi models leave the one-layer MP uncalibrated.
     calibrated_components = ("ve", "llm", "ah")
+    supports_captured_sampler = False  # `AdapterConfig.sampler` "captured" (see `resolve_sampler`)
 
     def __init__(self, config: AdapterConfig):
         self.config = config
@@ -92,8 +93,9 @@ class PiFamilyAdapter:
         else:
             self._load_checkpoint()
         self.model.eval()
-        # CPU float32 runs promise bit-identical actions at any batch size (see BatchInvariantLinears).
-        self._invariance = BatchInvariantLinears(self.model) if self._device.type == "cpu" else None
+        # Eager CPU float32 runs promise bit-identical actions at any batch size (see BatchInvariantLinears).
+        eager_cpu = self._device.type == "cpu" and self.config.sampler == "eager"
+        self._invariance = BatchInvariantLinears(self.model) if eager_cpu else None
         self.predicted_chunk = int(self.policy_config.chunk_size)
         self.image_keys = list(self.policy_config.image_features)
         if not 0 < self.executed_chunk <= self.predicted_chunk:
@@ -165,6 +167,9 @@ class PiFamilyAdapter:
     def _input_steps(self, steps, tokenize, policy_config) -> list:
         """The policy's preprocessing steps in lerobot's order (`make_<policy>_pre_post_processors`)."""
         raise NotImplementedError
+
+    def prepare_inference(self, report) -> dict:
+        return {"sampler": "eager"}
 
     # -- episodes --------------------------------------------------------------------------
     def reset(self, seed: int) -> torch.Generator:

@@ -117,6 +117,7 @@ class CellRun:
         )
         self.report = quantize_(self.adapter.model, quant, components=self.adapter.components)
         quantized = self.report.to_header()
+        inference = self.adapter.prepare_inference(self.report)
         # JSON round trip: the header compares equal to the journal's copy of it on a rerun.
         self.header = canonical({
             "config_hash": config_hash(cfg),
@@ -131,6 +132,7 @@ class CellRun:
             "selected_layers": quantized["selected_layers"],
             "hooks": {"selected": len(self.report.result.hooks)},
             "chunk": {"predicted": self.adapter.predicted_chunk, "executed": self.adapter.executed_chunk},
+            "inference": inference,
             "max_steps": self.max_steps,
             "versions": {**versions(), **{k: v for k, v in self.simulator.items() if k != "mujoco"}},
             "code_revision": code_revision(),

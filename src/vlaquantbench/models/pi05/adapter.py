@@ -10,6 +10,8 @@ class Pi05Adapter(PiFamilyAdapter):
     policy_module = "lerobot.policies.pi05"
     policy_class = "PI05Policy"
     config_class = "PI05Config"
+    supports_captured_sampler = True
+    _captured = None
 
     def _input_steps(self, steps, tokenize, policy_config) -> list:
         from lerobot.policies.pi05.processor_pi05 import Pi05PrepareStateTokenizerProcessorStep
@@ -18,15 +20,27 @@ class Pi05Adapter(PiFamilyAdapter):
         # Normalize first: the prompt discretizes the normalized state into 256 bins.
         return [steps.rename_observations, steps.add_batch_dim, steps.normalize, prompt_with_state, tokenize, steps.to_device]
 
+    def prepare_inference(self, report) -> dict:
+        if self.config.sampler != "captured":
+            return super().prepare_inference(report)
+        from vlaquantbench.accel import CapturedSampler, fuse_activation_hooks, fused_quant
+
+        # Fused per-token quantization is bit-identical to the hooks' own on CUDA; elsewhere it
+        # would fall back to them, so it is only swapped in there.
+        fused = (report is not None and self._device.type == "cuda" and fused_quant.triton is not None
+                 and fuse_activation_hooks(report) > 0)
+        # Graphs are captured on first use, so after the hooks are in place.
+        self._captured = CapturedSampler(self.model, num_steps=self.config.flow_steps)
+        graphs = self._captured.use_graphs
+        return {"sampler": "captured", "cuda_graph": graphs, "fused_quant": fused, "tf32": graphs and self._captured.tf32}
+
     def _sample(self, batch, images, image_masks, noise):
-        return self.model.sample_actions(
-            images,
-            image_masks,
-            batch["observation.language.tokens"],
-            batch["observation.language.attention_mask"],
-            noise=noise,
-            num_steps=self.config.flow_steps,
-        )
+        tokens, masks = batch["observation.language.tokens"], batch["observation.language.attention_mask"]
+        if self.config.sampler == "captured":
+            if self._captured is None:  # used without `prepare_inference`: no hooks to fuse
+                self.prepare_inference(None)
+            return self._captured(images, image_masks, tokens, masks, noise)
+        return self.model.sample_actions(images, image_masks, tokens, masks, noise=noise, num_steps=self.config.flow_steps)
 
 
 ADAPTER = Pi05Adapter
