@@ -116,3 +116,23 @@ def test_unknown_model_and_bad_reference():
         cell_config("libero/libero_spatial/pi0/rtn-W4-e2e", STUDY)
     with pytest.raises(UserError, match="<benchmark>/<suite>/<model>/<cell>"):
         cell_config("libero_spatial/pi05/rtn-W4-e2e", STUDY)
+
+
+def test_awq_cells_calibrate_every_scope_component_with_sampled_rows():
+    cfg = cell_config(ref("awq-W4-llm"), STUDY)
+    assert cfg["method"] == "awq" and cfg["preset"] == "W4" and cfg["scope"] == "llm"
+    assert cfg["calibration"] == {
+        "components": ["llm"],
+        "alpha": None,
+        "quantile": None,
+        "sample_rows": 128,
+        "tasks": [0],
+        "init_states": [20, 21],
+        "seed": 0,
+    }
+    calib = calibration_config(cfg)
+    assert calib["calibration"] == cfg["calibration"] and calib["runner"]["sampler"] == "eager"
+    assert calibration_config(cell_config(ref("awq-W3-llm"), STUDY)) == calib  # W3 and W4 share statistics
+    e2e = cell_config(ref("awq-W4-e2e"), STUDY)["calibration"]
+    assert e2e["components"] == ["ve", "mp", "llm", "ah"] and e2e["sample_rows"] == 128
+    assert config_hash(cfg) != config_hash(cell_config(ref("rtn-W4-llm"), STUDY))

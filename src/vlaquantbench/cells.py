@@ -12,7 +12,9 @@ A cell reference is `<benchmark>/<suite>/<model>/<cell>`; the cell name follows 
 
 `seed<N>` offsets every episode seed by N; `steps<N>` sets the number of flow-matching
 integration steps. `calib_set<k>` collects calibration statistics on init states
-`first + 2k, first + 2k + 1` (the paper's disjoint calibration sets). The canonical cell config
+`first + 2k, first + 2k + 1` (the paper's disjoint calibration sets). `awq` cells collect their
+statistics in the same calibration episodes: mean |x| and `AWQ_SAMPLE_ROWS` sampled input rows of
+every layer of the scope, without rollout smoothing or clipping. The canonical cell config
 (`cell_config`) holds everything that changes an episode's outcome; `config_hash` names the cell's
 output folder, so two cells share a folder exactly when they would produce the same records.
 """
@@ -62,6 +64,7 @@ DEFAULT_RUNNER = {
     "sampler": "auto",
 }
 RUNNER_OPTIONS = tuple(DEFAULT_RUNNER)
+AWQ_SAMPLE_ROWS = 128  # input rows per layer for AWQ's scale search (the paper: 128 calibration samples)
 DEFAULT_CALIBRATION = {
     "episodes": 2,
     "first_init_state": 20,
@@ -192,10 +195,26 @@ def _tasks(ref: str, study: dict[str, Any]) -> list[int]:
 
 def _calibration(ref: str, fields: dict[str, Any], study: dict[str, Any], seed: int) -> dict[str, Any] | None:
     parsed = fields["calibration"]
-    if parsed is None:
+    if parsed is None and fields["method"] != "awq":
         return None
     settings = {**DEFAULT_CALIBRATION, **study.get("calibration", {})}
+    observed = _observed(ref, fields, settings)
+    first = int(settings["first_init_state"]) + 2 * ((parsed or {}).get("set") or 0)
+    episodes = int(settings["episodes"])
+    return {
+        **observed,
+        "tasks": list(range(int(settings["tasks"]))),
+        "init_states": list(range(first, first + episodes)),
+        "seed": seed,
+    }
+
+
+def _observed(ref: str, fields: dict[str, Any], settings: dict[str, Any]) -> dict[str, Any]:
+    """Which components the calibration episodes observe, and what the quantizer does with it."""
     scope_components = SCOPE_COMPONENTS[fields["scope"]]
+    if fields["method"] == "awq":  # AWQ's own scale search: no rollout smoothing or clipping
+        return {"components": scope_components, "alpha": None, "quantile": None, "sample_rows": AWQ_SAMPLE_ROWS}
+    parsed = fields["calibration"]
     if parsed["components"] == "all":
         components = scope_components
     elif parsed["components"] in scope_components:
@@ -204,15 +223,10 @@ def _calibration(ref: str, fields: dict[str, Any], study: dict[str, Any], seed: 
         raise UserError(
             f"cell {ref!r}: calibrates {parsed['components']!r}, which is outside scope {fields['scope']!r}"
         )
-    first = int(settings["first_init_state"]) + 2 * (parsed["set"] or 0)
-    episodes = int(settings["episodes"])
     return {
         "components": components,
         "alpha": parsed["alpha"] if parsed["alpha"] is not None else float(settings["alpha"]),
         "quantile": float(settings["quantile"]),
-        "tasks": list(range(int(settings["tasks"]))),
-        "init_states": list(range(first, first + episodes)),
-        "seed": seed,
     }
 
 

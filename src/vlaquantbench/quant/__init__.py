@@ -1,6 +1,7 @@
 """Post-training quantization of VLA policies: RTN grids, presets, scoped application with
 counting activation hooks, and rollout calibration. See `vlaquantbench.quant.apply`."""
 
+from vlaquantbench.quant import kernels  # noqa: F401  (registers the real-kernel and AWQ methods)
 from vlaquantbench.quant.apply import (
     HooksNotFired,
     MethodResult,

@@ -66,11 +66,13 @@ class QuantConfig:
 @dataclass
 class MethodResult:
     """What a quantization method did: a format description, its counting hooks by layer name,
-    and the names of layers it calibrated."""
+    the names of layers it calibrated, and method-specific provenance for the header's
+    `quant_report` (e.g. AWQ's chosen scale exponents under "awq")."""
 
     format: str
     hooks: dict[str, CountingHook] = field(default_factory=dict)
     calibrated: set[str] = field(default_factory=set)
+    details: dict = field(default_factory=dict)
 
 
 MethodFn = Callable[[nn.Module, Selection, QuantConfig], MethodResult]
@@ -134,6 +136,7 @@ class QuantReport:
                 quant_report[comp]["calibrated_layers"] = sum(n in self.result.calibrated for n in names)
         if self.config.calibration is not None:
             quant_report["act_calib"] = self.config.stats.provenance(self.config.calibration)
+        quant_report.update(self.result.details)
         unfired = self.unfired()
         hooks = {"selected": len(self.result.hooks), "fired": len(self.result.hooks) - len(unfired), "unfired": unfired}
         return {

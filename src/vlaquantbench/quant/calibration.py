@@ -24,6 +24,10 @@ Per layer and input channel j the observer keeps `absmax[j]`, the running max of
 token of every call, and `quantile[j]`, the max over calls of that call's per-channel `quantile`
 of |a_j| (not a quantile of all tokens pooled). A single-token call contributes its magnitude; a
 call larger than `QUANTILE_MAX_ELEMENTS` is sampled at a fixed token stride for the quantile.
+With `sample_rows` > 0 (AWQ statistics, `vlaquantbench.quant.awq`) it also keeps the per-channel
+sum of |a_j| over all rows (`absmean`) and at most `sample_rows` input rows: the rows whose index
+in the stream of all observed rows is a multiple of a stride that doubles whenever the sample would
+overflow, so the sample is deterministic and evenly spread over every call.
 At quantization, with a_j and w_j = max_i |W_ij| floored at 1e-5,
 d_j = max(a_j^alpha / w_j^(1 - alpha), 1e-5); weights become W diag(d), and the input hook divides
 by d, clips at max(quantile_j / d_j, 1e-5), then quantizes (`vlaquantbench.quant.hooks`).
@@ -53,9 +57,10 @@ class CalibrationSettings:
     """Smoothing strength, clip quantile (None: smooth without clipping, an exact identity
     before quantization) and the components whose layers are smoothed and clipped."""
 
-    alpha: float = 0.5
+    alpha: float | None = 0.5  # None: no rollout smoothing (statistics for AWQ only)
     quantile: float | None = 0.999
     components: tuple[str, ...] = ("ah",)
+    sample_rows: int = 0  # > 0: also keep mean |a_j| and this many input rows per layer (AWQ)
 
 
 @dataclass
@@ -63,6 +68,15 @@ class ChannelStats:
     absmax: torch.Tensor  # [in_features], running max |a_j|
     quantile: torch.Tensor  # [in_features], max over calls of the per-call quantile of |a_j|
     calls: int = 0
+    abs_sum: torch.Tensor | None = None  # [in_features] float64, sum of |a_j| over all rows (sample_rows > 0)
+    rows: int = 0  # rows (tokens) observed
+    samples: torch.Tensor | None = None  # [<= sample_rows, in_features], rows at `sample_stride`
+    sample_stride: int = 1
+
+    @property
+    def absmean(self) -> torch.Tensor | None:
+        """Mean |a_j| over every observed row, or None when rows were not tracked."""
+        return None if self.abs_sum is None else (self.abs_sum / max(self.rows, 1)).float()
 
 
 @dataclass
@@ -109,10 +123,12 @@ def keyed_fields(model, checkpoint, revision, init_states, tasks, seed, settings
         "init_states": [int(s) for s in init_states],
         "tasks": int(tasks),
         "seed": int(seed),
-        "alpha": float(settings.alpha),
+        "alpha": None if settings.alpha is None else float(settings.alpha),
         "quantile": settings.quantile,
         "components": sorted(settings.components),
         "code_revision": code_revision,
+        # only when requested, so the keys of existing smoothing-only caches stay what they were
+        **({"sample_rows": int(settings.sample_rows)} if settings.sample_rows else {}),
     }
 
 
@@ -127,11 +143,28 @@ def per_call_quantile(x: torch.Tensor, q: float) -> torch.Tensor:
     return torch.quantile(tokens, q, dim=0)
 
 
+def keep_strided_rows(
+    samples: torch.Tensor | None, stride: int, seen: int, rows: torch.Tensor, limit: int
+) -> tuple[torch.Tensor, int]:
+    """Add `rows` (stream positions `seen`, `seen + 1`, ...) to `samples`, which holds the rows at
+    every multiple of `stride` before `seen`; the stride doubles (dropping every other kept row)
+    until at most `limit` rows remain. Only the kept rows leave the device. Returns (sample, stride)."""
+    total = seen + rows.shape[0]
+    new_stride = stride
+    while -(-total // new_stride) > limit:  # multiples of the stride below `total`
+        new_stride *= 2
+    picked = rows[(-seen) % new_stride :: new_stride].cpu()
+    if samples is None:
+        return picked, new_stride
+    return torch.cat([samples[:: new_stride // stride], picked]), new_stride
+
+
 class ActivationObserver:
     """Forward pre-hooks collecting `ChannelStats` on linear inputs; use through `observe`."""
 
-    def __init__(self, layers: Mapping[str, nn.Linear], quantile: float | None):
+    def __init__(self, layers: Mapping[str, nn.Linear], quantile: float | None, sample_rows: int = 0):
         self.quantile = quantile
+        self.sample_rows = sample_rows
         self.layers: dict[str, ChannelStats] = {}
         self._handles = [layer.register_forward_pre_hook(self._hook_for(name)) for name, layer in layers.items()]
 
@@ -148,8 +181,18 @@ class ActivationObserver:
                 seen.absmax = torch.maximum(seen.absmax, absmax.cpu())
                 seen.quantile = torch.maximum(seen.quantile, quantile.cpu())
                 seen.calls += 1
+            if self.sample_rows:
+                self._track_rows(self.layers[name], x.detach().float().reshape(-1, x.shape[-1]))
 
         return hook
+
+    def _track_rows(self, stats: ChannelStats, rows: torch.Tensor) -> None:
+        abs_sum = rows.abs().sum(dim=0, dtype=torch.float64).cpu()
+        stats.abs_sum = abs_sum if stats.abs_sum is None else stats.abs_sum + abs_sum
+        stats.samples, stats.sample_stride = keep_strided_rows(
+            stats.samples, stats.sample_stride, stats.rows, rows, self.sample_rows
+        )
+        stats.rows += rows.shape[0]
 
     def close(self) -> None:
         for handle in self._handles:
@@ -160,17 +203,22 @@ class ActivationObserver:
 
 
 @contextlib.contextmanager
-def observe(layers: Mapping[str, nn.Linear], quantile: float | None = 0.999) -> Iterator[ActivationObserver]:
-    """Observe the inputs of `layers` (qualified name -> linear) while the block runs."""
-    observer = ActivationObserver(layers, quantile)
+def observe(
+    layers: Mapping[str, nn.Linear], quantile: float | None = 0.999, sample_rows: int = 0
+) -> Iterator[ActivationObserver]:
+    """Observe the inputs of `layers` (qualified name -> linear) while the block runs; with
+    `sample_rows` > 0 also keep the AWQ statistics (mean |x| and a strided sample of input rows)."""
+    observer = ActivationObserver(layers, quantile, sample_rows)
     try:
         yield observer
     finally:
         observer.close()
 
 
-def smoothing_factors(act_absmax: torch.Tensor, weight: torch.Tensor, alpha: float) -> torch.Tensor:
+def smoothing_factors(act_absmax: torch.Tensor, weight: torch.Tensor, alpha: float | None) -> torch.Tensor:
     """d_j = max(a_j^alpha / w_j^(1-alpha), 1e-5), a_j and w_j = max_i |W_ij| floored at 1e-5."""
+    if alpha is None:
+        raise UserError("calibration settings without a smoothing alpha (statistics for AWQ only) cannot smooth")
     a = act_absmax.float().to(weight.device).clamp_min(FLOOR)
     w = weight.detach().float().abs().amax(dim=0).clamp_min(FLOOR)
     return (a.pow(alpha) / w.pow(1.0 - alpha)).clamp_min(FLOOR)
@@ -183,12 +231,19 @@ def save_stats(stats: CalibrationStats, path: str | Path) -> Path:
     payload = {
         "key": stats.key,
         "keyed_fields": stats.keyed_fields,
-        "layers": {n: {"absmax": s.absmax, "quantile": s.quantile, "calls": s.calls} for n, s in stats.layers.items()},
+        "layers": {n: _layer_payload(s) for n, s in stats.layers.items()},
     }
     tmp = path.with_suffix(path.suffix + ".tmp")
     torch.save(payload, tmp)
     tmp.replace(path)
     return path
+
+
+def _layer_payload(stats: ChannelStats) -> dict:
+    payload = {"absmax": stats.absmax, "quantile": stats.quantile, "calls": stats.calls}
+    if stats.abs_sum is not None:
+        payload.update(abs_sum=stats.abs_sum, rows=stats.rows, samples=stats.samples, sample_stride=stats.sample_stride)
+    return payload
 
 
 def load_stats(path: str | Path, expected_key: str | None = None) -> CalibrationStats:
@@ -198,5 +253,5 @@ def load_stats(path: str | Path, expected_key: str | None = None) -> Calibration
     payload = torch.load(path, map_location="cpu", weights_only=True)
     if expected_key is not None and payload["key"] != expected_key:
         raise UserError(f"calibration cache {path} has key {payload['key']}, expected {expected_key}")
-    layers = {n: ChannelStats(s["absmax"], s["quantile"], s["calls"]) for n, s in payload["layers"].items()}
+    layers = {n: ChannelStats(**s) for n, s in payload["layers"].items()}
     return CalibrationStats(key=payload["key"], keyed_fields=payload["keyed_fields"], layers=layers)

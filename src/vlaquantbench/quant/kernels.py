@@ -6,6 +6,8 @@ Registered in the method table of `quant.apply` when this module is imported:
     int8         bitsandbytes LLM.int8(): int8 weights, fp16 outlier columns  (preset W8)
     int4wo       int4 weight-only, asymmetric groups, tinygemm kernel          (preset W4[G<g>])
                  (`torch._weight_int4pack_mm`; AWQ's INT4 GEMM format without AWQ's scale search)
+    awq          activation-aware weight quantization (`quant.awq` scale search on calibration
+                 rows): W4 on CUDA as int4wo with the scales, fake-quantized elsewhere (W<b>[G<g>])
     smoothquant  W8A8 int8: per-channel weights, dynamic per-token activations, `torch._int_mm`,
                  with the rollout smoothing vector folded into the weights when calibrated  (W8A8)
     fp8          W8A8 FP8 e4m3: per-channel weights, dynamic per-token activations,
@@ -26,7 +28,9 @@ from torch import nn
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.apply import MethodResult, QuantConfig, register_method
+from vlaquantbench.quant.awq import search_scales
 from vlaquantbench.quant.calibration import smoothing_factors
+from vlaquantbench.quant.grid import fake_quant_weight
 from vlaquantbench.quant.hooks import CountingHook, InputTransform
 from vlaquantbench.quant.scope import Selection
 
@@ -203,14 +207,18 @@ def _require(config: QuantConfig, method: str, bits: int, act_bits: int | None) 
         raise UserError(f"method {method!r} implements {want}; preset {preset.name!r} does not match")
 
 
+def _swap(model: nn.Module, name: str, linear: nn.Linear, new: nn.Module) -> None:
+    parent_name, _, child = name.rpartition(".")
+    setattr(model.get_submodule(parent_name) if parent_name else model, child, new)
+    # The report keeps the replaced layer (for its parameter count): drop its storage, keep its shape.
+    linear.weight = nn.Parameter(torch.empty_like(linear.weight, device="meta"), requires_grad=False)
+
+
 def _replace_all(model: nn.Module, selection: Selection, make, fmt: str) -> MethodResult:
     result = MethodResult(format=fmt)
     for name, linear in selection.flat().items():
-        parent_name, _, child = name.rpartition(".")
         new = make(name, linear)
-        setattr(model.get_submodule(parent_name) if parent_name else model, child, new)
-        # The report keeps the replaced layer (for its parameter count): drop its storage, keep its shape.
-        linear.weight = nn.Parameter(torch.empty_like(linear.weight, device="meta"), requires_grad=False)
+        _swap(model, name, linear, new)
         result.hooks[name] = CountingHook(new, InputTransform())  # counts calls, changes nothing
     return result
 
@@ -232,6 +240,73 @@ def int4_weight_only(model, selection, config):
     group = config.preset.weight.group_size or 128
     return _replace_all(model, selection, lambda n, m: Int4WeightOnlyLinear(m, group),
                         f"int4 weight-only, asymmetric group {group}, tinygemm (torch._weight_int4pack_mm), bf16 activations")
+
+
+def _awq_rows(selection: Selection, config: QuantConfig) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+    """(mean |x|, sampled rows) of every selected layer; UserError before any weight changes."""
+    layers = config.stats.layers if config.stats is not None else {}
+    found = {n: (layers[n].absmean, layers[n].samples) for n in selection.flat()
+             if n in layers and layers[n].samples is not None}
+    missing = [n for n in selection.flat() if n not in found]
+    if missing:
+        raise UserError(
+            f"method 'awq' needs AWQ calibration statistics (mean |x| and sampled input rows) for {len(missing)} "
+            f"selected layers, e.g. {missing[0]}: collect them on the unquantized policy with "
+            "quant.calibration.observe(layers, sample_rows=128) and pass stats=... (the runner's calibrate "
+            "step does this for awq cells)"
+        )
+    return found
+
+
+def _int4_kernel_fits(linear: nn.Linear, grid) -> bool:
+    """tinygemm packs 4-bit asymmetric groups of 32..256 with K a multiple of 128, N of 8, on CUDA."""
+    return (linear.weight.is_cuda and grid.bits == 4 and not grid.symmetric and grid.group_size in (32, 64, 128, 256)
+            and linear.in_features % max(128, grid.group_size) == 0 and linear.out_features % 8 == 0)
+
+
+def awq(model, selection, config):
+    """AWQ: per layer, the `quant.awq` scale search on the calibration rows, then Q(W diag(s)) with
+    an input hook dividing by s. W4 asymmetric groups on CUDA use the int4wo tinygemm kernel
+    (its grid spans [min, max] of each group, not the zero-including range of `quant.grid`)."""
+    grid = config.preset.weight
+    if grid is None or config.preset.act_bits is not None:
+        raise UserError(f"method 'awq' is weight-only (W<b>[G<g>]); preset {config.preset.name!r} does not match")
+    stats = _awq_rows(selection, config)
+    fmt = f"awq-int{grid.bits}-" + (f"g{grid.group_size}" if grid.group_size else "channel")
+    hooks, alphas, rows, error_ratios, kernel_layers = {}, [], [], [], 0
+    for name, linear in selection.flat().items():
+        absmean, samples = stats[name]
+        search = search_scales(linear.weight, absmean, samples, grid.bits, grid.group_size, grid.symmetric)
+        with torch.no_grad():
+            scaled = (linear.weight.float() * search.scales).to(linear.weight.dtype)
+            if _int4_kernel_fits(linear, grid):
+                linear.weight.copy_(scaled)
+                target = Int4WeightOnlyLinear(linear, grid.group_size)
+                _swap(model, name, linear, target)
+                kernel_layers += 1
+            else:
+                linear.weight.copy_(fake_quant_weight(scaled, grid.bits, grid.group_size, grid.symmetric))
+                target = linear
+        hooks[name] = CountingHook(target, InputTransform(smooth=search.scales))
+        alphas.append(search.alpha)
+        rows.append(samples.shape[0])
+        error_ratios.append(search.error / search.rtn_error if search.rtn_error > 0 else 1.0)
+    described = (
+        f"{fmt}: activation-aware scales (alpha grid 0..1 step 0.05 on calibration rows), weights "
+        f"{grid.describe()}; {kernel_layers} layers on tinygemm (torch._weight_int4pack_mm), "
+        f"{len(hooks) - kernel_layers} fake-quantized"
+    )
+    details = {
+        "format": fmt,
+        "alpha_histogram": {f"{a:.2f}": alphas.count(a) for a in sorted(set(alphas))},
+        "alpha_mean": sum(alphas) / len(alphas) if alphas else None,
+        "calibration_rows": {"min": min(rows, default=0), "max": max(rows, default=0)},
+        # mean over layers of E(alpha*) / E(0) on the calibration rows (1.0: no gain over RTN)
+        "error_vs_rtn_mean": sum(error_ratios) / len(error_ratios) if error_ratios else None,
+        "kernel_layers": kernel_layers,
+        "stats_cache": f"{config.stats.key}.pt" if config.stats is not None else None,
+    }
+    return MethodResult(format=described, hooks=hooks, calibrated=set(hooks), details={"awq": details})
 
 
 def smoothquant(model, selection, config):
@@ -259,6 +334,6 @@ def fp8_tensorwise(model, selection, config):
                         "W8A8 FP8 e4m3 (one weight scale, one dynamic activation scale per call, torch._scaled_mm, fast accumulation)")
 
 
-for _name, _fn in {"nf4": nf4, "int8": llm_int8, "int4wo": int4_weight_only, "smoothquant": smoothquant,
-                   "fp8": fp8, "fp8_tensor": fp8_tensorwise}.items():
+for _name, _fn in {"nf4": nf4, "int8": llm_int8, "int4wo": int4_weight_only, "awq": awq,
+                   "smoothquant": smoothquant, "fp8": fp8, "fp8_tensor": fp8_tensorwise}.items():
     register_method(_name, _fn)

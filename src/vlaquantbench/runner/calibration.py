@@ -55,7 +55,7 @@ def calibrate(
         code_revision=code_revision(),
     )
     max_steps = runner["max_steps"] or suite.max_steps(calib["model"])
-    with observe(layers, quantile=settings.quantile) as observer:
+    with observe(layers, quantile=settings.quantile, sample_rows=settings.sample_rows) as observer:
         with LiberoVectorEnv(
             suite, min(num_envs, len(specs)), camera_size=runner["camera_size"], settle_steps=runner["settle_steps"]
         ) as env:
