@@ -1,6 +1,7 @@
 # VLAQuantBench workflow: checkpoints -> calibration -> closed-loop rollouts -> records -> tables.
 #   snakemake --cores 2 tables/lattice.tex                                   # demo study (config/config.yaml)
-#   snakemake --cores 2 --configfile config/reference.yaml tables/lattice.tex # authors' records, no GPU
+#   snakemake tables/lattice.tex --cores 2 --configfile config/reference.yaml # authors' records, no GPU
+# (targets before --configfile: Snakemake 9 reads every later word as another config file)
 from snakemake.utils import min_version, validate
 
 min_version("9.0")
