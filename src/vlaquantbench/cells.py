@@ -38,7 +38,15 @@ SCOPE_COMPONENTS = {
     "ve_mp_llm": ["ve", "mp", "llm"],
 }
 PLAIN_METHODS = ("rtn", "ablate", "awq", "nf4", "int8", "smoothquant")
+# Cell methods that are RTN grids in the quantizer: ablate = RTN on a named subset, calib* = RTN after
+# rollout smoothing/clipping; every other method names a registered quantization method.
+RTN_METHODS = ("rtn", "ablate")
 CALIBRATION_COMPONENTS = ("ah", "llm", "ve", "all")
+
+
+def quantizer_method(cell_method: str) -> str:
+    """The quantization method (`vlaquantbench.quant` dispatch name) a cell's method runs."""
+    return "rtn" if cell_method in RTN_METHODS or cell_method.startswith("calib") else cell_method
 
 _CELL_NAME = re.compile(
     r"^(?:seed(?P<seed>\d+)-)?(?:steps(?P<steps>\d+)-)?"

@@ -19,7 +19,7 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from vlaquantbench.cells import canonical, config_hash
+from vlaquantbench.cells import canonical, config_hash, quantizer_method
 from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv, simulator_versions
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
@@ -29,17 +29,10 @@ from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.runner.provenance import code_revision, versions
 
 JOURNAL = "journal.jsonl"
-# Cell-name methods that are RTN grids in the quantizer (ablate = RTN on a named subset;
-# calib* = RTN after rollout smoothing/clipping); the others name registered methods.
-_RTN_METHODS = ("rtn", "ablate")
 
 
 class CellFailed(UserError):
     """A protocol check failed; the cell's records are not written (its journal is kept)."""
-
-
-def quant_method(cell_method: str) -> str:
-    return "rtn" if cell_method in _RTN_METHODS or cell_method.startswith("calib") else cell_method
 
 
 def checkpoint_dir(stamp: str | Path | None) -> str | None:
@@ -114,7 +107,7 @@ class CellRun:
             scope=cfg["scope"],
             only=cfg["only"],
             exclude=cfg["exclude"],
-            method=quant_method(cfg["method"]),
+            method=quantizer_method(cfg["method"]),
             calibration=calibration,
             stats=stats,
         )
