@@ -49,9 +49,9 @@ def time_chunks(fn, warmup: int, repeats: int) -> list[float]:
     return times
 
 
-def kernel_profile(fn, top_n: int = 5) -> dict:
+def kernel_profile(fn, top_n: int = 25) -> dict:
     """GPU kernel count and summed kernel time of one chunk run without graphs (the floor a graph
-    replay approaches once launch gaps are gone), with the five costliest kernel names."""
+    replay approaches once launch gaps are gone), with the costliest kernel names."""
     from torch.profiler import ProfilerActivity, profile
 
     torch.cuda.synchronize()
@@ -88,6 +88,32 @@ def fused_kernel_check(device) -> dict:
     return out
 
 
+def fused_norm_quant_check(device) -> dict:
+    """Fraction of elements where inductor's quantization fused into a norm (`pi05_static`, the
+    captured form's producers) equals `quant.grid` applied eagerly to the same input: the bare
+    quantization compiled with the same options; the AdaRMS norm with its quantization fused against
+    the compiled norm alone followed by eager quantization (the hooks' order) and against the eager
+    norm (whose float32 reduction order differs, which moves row scales)."""
+    from vlaquantbench.accel import pi05_static
+    from vlaquantbench.quant.grid import fake_quant_activation
+
+    ops = pi05_static.compiled_ops()
+    g = torch.Generator(device="cpu").manual_seed(1)
+    out = {}
+    for bits in (4, 8):
+        x = (torch.randn(4, 50, 1024, generator=g) * torch.rand(4, 50, 1, generator=g) * 8).to(device, torch.bfloat16)
+        modulation = (torch.randn(4, 3 * 1024, generator=g) * 0.5).to(device, torch.bfloat16)
+        bare = torch.compile(fake_quant_activation, dynamic=False, options=pi05_static._EAGER_NUMERICS)
+        out[f"quant_a{bits}"] = (bare(x, bits) == fake_quant_activation(x, bits)).float().mean().item()
+        scale, shift = modulation[:, None, :1024], modulation[:, None, 1024:2048]
+        fused = ops.ada_rms_norm(x, scale, shift, 1e-6, bits)
+        compiled_norm = ops.ada_rms_norm(x, scale, shift, 1e-6, None)
+        out[f"ada_rms_norm_quant_a{bits}_vs_compiled_norm"] = (fused == fake_quant_activation(compiled_norm, bits)).float().mean().item()
+        eager = fake_quant_activation(pi05_static.ada_rms_norm(x, scale, shift, 1e-6), bits)
+        out[f"ada_rms_norm_quant_a{bits}_vs_eager_norm"] = (fused == eager).float().mean().item()
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", required=True)
@@ -109,32 +135,39 @@ def main() -> None:
                  for n, m in select_layers(model, spec.components, "e2e", None, None).flat().items()}
     results = {"cells": [], "checks": {"fused_equal_fraction": fused_kernel_check(device)}, "profiles": {}}
     print("fused kernel == reference:", results["checks"]["fused_equal_fraction"], flush=True)
+    results["checks"]["fused_norm_quant_equal_fraction"] = fused_norm_quant_check(device)
+    print("norm-fused quantization == reference:", results["checks"]["fused_norm_quant_equal_fraction"], flush=True)
 
     # Kernel choices for the captured form, timed on the baseline at batch 1; the fastest is used below.
     from torch.nn.attention import SDPBackend
 
-    backend_sets = {"default": None, "efficient": [SDPBackend.EFFICIENT_ATTENTION]}
+    backend_sets = {"efficient": [SDPBackend.EFFICIENT_ATTENTION], "cudnn": [SDPBackend.CUDNN_ATTENTION,
+                    SDPBackend.EFFICIENT_ATTENTION]}
+    # (TF32, fused elementwise ops, prefix attention): first the steps of the captured form one by
+    # one, then the prefix attention kernels with everything else on ("folded": one batched product
+    # over the query heads; else SDPA with that kernel first; the vision tower's SDPA follows it).
+    choices = [(False, False, "efficient"), (True, False, "efficient"), (True, True, "efficient"),
+               (True, True, "cudnn"), (True, True, "folded")]
     sweep = {}
     b1 = chunk_inputs(1, device)
-    for tf32, fuse in ((False, False), (True, False), (True, True)):
-        for label, backends in backend_sets.items():
-            t0 = time.perf_counter()
-            sampler = CapturedSampler(model, num_steps=steps, tf32=tf32, attention_backends=backends,
-                                      fuse_elementwise=fuse)
-            try:
-                ms = 1e3 * statistics.median(time_chunks(lambda: sampler(*b1), warmup=2, repeats=args.repeats))
-            except RuntimeError as err:  # a backend that rejects these shapes
-                ms = float("nan")
-                print(f"sweep {label} tf32={tf32}: {err}"[:200], flush=True)
-            sweep[f"{label}_tf32={tf32}_fuse={fuse}"] = ms
-            print(f"sweep captured b1 attention={label} tf32={tf32} fused elementwise={fuse}: {ms:.2f} ms "
-                  f"(first call incl. compile {time.perf_counter() - t0:.1f} s)", flush=True)
-            del sampler
-    results["kernel_choice_sweep_b1_ms"] = sweep
-    best = min((k for k in sweep if sweep[k] == sweep[k]), key=sweep.get)
-    best_backends = backend_sets[best.split("_tf32=")[0]]
-    best_tf32 = "tf32=True" in best
-    best_fuse = best.endswith("fuse=True")
+    for tf32, fuse, prefix in choices:
+        t0 = time.perf_counter()
+        options = {"tf32": tf32, "fuse_elementwise": fuse, "prefix_sdpa": prefix != "folded",
+                   "attention_backends": backend_sets.get(prefix, backend_sets["efficient"])}
+        sampler = CapturedSampler(model, num_steps=steps, **options)
+        key = f"tf32={tf32}_fuse={fuse}_prefix={prefix}"
+        try:
+            ms = 1e3 * statistics.median(time_chunks(lambda: sampler(*b1), warmup=2, repeats=args.repeats))
+        except RuntimeError as err:  # a backend that rejects these shapes
+            ms = float("nan")
+            print(f"sweep {key}: {err}"[:200], flush=True)
+        sweep[key] = (ms, options)
+        print(f"sweep captured b1 {key}: {ms:.2f} ms (first call incl. compile {time.perf_counter() - t0:.1f} s)",
+              flush=True)
+        del sampler
+    results["kernel_choice_sweep_b1_ms"] = {k: ms for k, (ms, _) in sweep.items()}
+    best = min((k for k in sweep if sweep[k][0] == sweep[k][0]), key=lambda k: sweep[k][0])
+    captured_options = sweep[best][1]
     results["captured_kernel_choice"] = best
     torch.cuda.empty_cache()
 
@@ -159,8 +192,7 @@ def main() -> None:
             images, img_masks, tokens, masks, noise=noise.clone(), num_steps=steps))}
 
         fused = fuse_activation_hooks(report)
-        sampler = CapturedSampler(model, num_steps=steps, tf32=best_tf32, attention_backends=best_backends,
-                                  fuse_elementwise=best_fuse)
+        sampler = CapturedSampler(model, num_steps=steps, **captured_options)
         for b in args.batches:
             images, img_masks, tokens, masks, noise = inputs[b]
             torch.cuda.synchronize()
@@ -174,6 +206,11 @@ def main() -> None:
             print(f"[{preset}] captured b{b}: {1e3 * statistics.median(times):.2f} ms (capture {capture_s:.1f} s)",
                   flush=True)
         cell["fused_hooks"] = fused
+        groups = sampler._groups
+        layer_groups = [g for layer in groups.prefix + groups.expert for g in (layer.qkv, layer.out, layer.mlp_in, layer.mlp_out)]
+        layer_groups += [g for layer in groups.vision for g in (layer.qkv, layer.out, layer.mlp_in, layer.mlp_out)]
+        cell["linear_groups"] = {"fused": sum(g.fused for g in layer_groups), "total": len(layer_groups),
+                                 "quantized_by_producer_or_group": sum(g.act_bits is not None for g in layer_groups)}
         cell["unfired_after_capture"] = report.unfired()
         cell["hook_calls_eager_plus_capture"] = sum(report.hook_calls().values())
         cell["hook_calls_eager"] = eager_hook_calls
@@ -190,7 +227,7 @@ def main() -> None:
             with sampler._kernel_choices():
                 results["profiles"][preset]["captured_form_without_graph"] = kernel_profile(
                     lambda: pi05_static.sample_actions(model, images, img_masks, tokens, masks, noise, sampler.times,
-                                                       sampler.ops))
+                                                       sampler.ops, sampler._groups, sampler.prefix_sdpa))
         report.remove_hooks()
         results["cells"].append(cell)
         del sampler

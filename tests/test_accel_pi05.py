@@ -52,3 +52,61 @@ def test_static_sampler_depends_on_the_observation(demo_model):
     other_image = [images[0].flip(-1), images[1], images[2]]
     assert _rel(sampler(other_image, img_masks, tokens, masks, noise), base) > 1e-3
     assert _rel(sampler(images, img_masks, tokens.roll(1, dims=1), masks, noise), base) > 1e-3
+
+
+class _Wrapped:
+    """A transform the linear groups cannot see into: its layers run as modules, hooks included."""
+
+    def __init__(self, transform):
+        self.transform = transform
+
+    def __call__(self, x):
+        return self.transform(x)
+
+
+def test_grouped_linears_with_fused_quantization_equal_the_hooks_exactly():
+    """q/k/v and gate/up as one product each, per-token W4A4 quantization done by the producing norm
+    or GELU: bit-identical (float32, CPU) to every linear called as a module through its own hook,
+    with the same hook call counts."""
+    from vlaquantbench.quant import QuantConfig, quantize_
+
+    spec = get_model_spec("pi05")
+    model = spec.build(variant="demo", device="cpu", seed=0)
+    report = quantize_(model, QuantConfig.from_preset("W4A4", scope="e2e"), components=spec.components)
+    images, img_masks, tokens, masks, noise = _inputs(batch=2, seed=1)
+    sampler = CapturedSampler(model, num_steps=2)
+    grouped = sampler(images, img_masks, tokens, masks, noise)
+    groups = sampler._groups
+    layer_groups = [g for layer in groups.prefix + groups.expert for g in (layer.qkv, layer.out, layer.mlp_in, layer.mlp_out)]
+    layer_groups += [g for layer in groups.vision for g in (layer.qkv, layer.out, layer.mlp_in, layer.mlp_out)]
+    assert len(layer_groups) == 4 * (27 + 18 + 18)
+    assert all(g.fused and g.act_bits == 4 for g in layer_groups)
+    grouped_calls = report.hook_calls()
+
+    for hook in report.result.hooks.values():
+        hook.transform, hook.calls = _Wrapped(hook.transform), 0
+    sampler.reset()
+    per_module = sampler(images, img_masks, tokens, masks, noise)
+    assert not any(g.fused for layer in sampler._groups.expert for g in (layer.qkv, layer.mlp_in))
+    assert torch.equal(grouped, per_module)
+    assert report.hook_calls() == grouped_calls
+    assert report.unfired() == []
+
+
+def test_a_calibrated_transform_keeps_its_layers_apart():
+    """Smoothing vectors are per layer: such layers are never merged into one product."""
+    from torch import nn
+
+    from vlaquantbench.accel.linear_groups import LinearGroup
+    from vlaquantbench.quant.hooks import CountingHook, InputTransform
+
+    torch.manual_seed(0)
+    layers = [nn.Linear(16, 8, bias=False) for _ in range(3)]
+    plain = [CountingHook(layer, InputTransform(act_bits=8)) for layer in layers]
+    assert LinearGroup(layers).fused
+    plain[1].remove()
+    CountingHook(layers[1], InputTransform(smooth=torch.rand(16) + 0.5, act_bits=8))
+    group = LinearGroup(layers)
+    assert not group.fused and group.act_bits is None
+    x = torch.randn(4, 16)
+    assert all(torch.equal(a, layer(x)) for a, layer in zip(group(x), layers))

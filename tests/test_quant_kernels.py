@@ -1,25 +1,26 @@
 """Real-kernel quantization methods behind `quantize_` (vlaquantbench.quant.kernels), on a small
 real `transformers` LlamaModel on the CPU: int8 W8A8 through `torch._int_mm`, FP8 with tensor-wise
 scales through `torch._scaled_mm` (row-wise FP8, int4 and bitsandbytes need a GPU and are measured
-by benchmarks/gpu_real_kernels.py)."""
+by benchmarks/gpu_real_kernels.py), eager and compiled by inductor layer by layer as that benchmark does."""
 
 import importlib.util
 
 import pytest
 import torch
+from torch._dynamo.utils import counters
 from transformers import LlamaConfig, LlamaModel
 
-import vlaquantbench.quant.kernels as kernels
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.registry import Component
-from vlaquantbench.quant import QuantConfig, quantize_, registered_methods
+from vlaquantbench.quant import QuantConfig, kernels, quantize_, registered_methods
+from vlaquantbench.quant.calibration import observe
 
 COMPONENTS = {"llm": Component(roots=("layers",))}
 
 
-def _llama(seed=0):
+def _llama(seed=0, width=64):
     torch.manual_seed(seed)
-    config = LlamaConfig(hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
+    config = LlamaConfig(hidden_size=width, intermediate_size=2 * width, num_hidden_layers=2, num_attention_heads=4,
                          num_key_value_heads=4, vocab_size=100)
     return LlamaModel(config).eval()
 
@@ -29,7 +30,7 @@ def _rel(a, b):
 
 
 def test_methods_are_registered():
-    assert {"nf4", "int8", "int4wo", "smoothquant", "fp8", "fp8_tensor"} <= set(registered_methods())
+    assert {"nf4", "int8", "int4wo", "smoothquant", "fp8", "fp8_tensor", "fp8_static"} <= set(registered_methods())
 
 
 @pytest.mark.parametrize("method, fmt, tolerance", [("smoothquant", "int8", 0.02), ("fp8_tensor", "FP8 e4m3", 0.1)])
@@ -71,3 +72,67 @@ def test_preset_must_match_the_method():
 def test_bitsandbytes_methods_name_the_missing_extra():
     with pytest.raises(UserError, match=r"vlaquantbench\[kernels\]"):
         quantize_(_llama(), QuantConfig.from_preset("W4", scope="llm", method="nf4"), components=COMPONENTS)
+
+
+@pytest.mark.parametrize("method", ["smoothquant", "fp8_tensor"])
+def test_compiled_layers_share_one_graph_and_match_eager(method):
+    """Each decoder layer compiled by inductor: the activation quantization is traced into the layer's
+    graph (no graph break), both layers reuse that graph (no recompilation per layer), and the fused
+    code computes what eager does (float32 model: 1e-5 relative)."""
+    model = _llama(width=256)
+    x = torch.randn(1, 32, 256, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        unquantized = model(inputs_embeds=x, use_cache=False).last_hidden_state
+        report = quantize_(model, QuantConfig.from_preset("W8A8", scope="llm", method=method), components=COMPONENTS)
+        eager = model(inputs_embeds=x, use_cache=False).last_hidden_state
+        assert report.unfired() == []
+        for hook in report.result.hooks.values():  # dynamo would guard on their call counters
+            hook.remove()
+        torch._dynamo.reset()
+        counters.clear()
+        for layer in model.layers:
+            layer.compile()
+        compiled = model(inputs_embeds=x, use_cache=False).last_hidden_state
+    assert counters["stats"]["unique_graphs"] == 1
+    assert sum(counters["graph_break"].values()) == 0
+    assert _rel(compiled, eager) < 1e-5
+    assert _rel(compiled, unquantized) > 1e-3  # still quantized
+    torch._dynamo.reset()
+
+
+def _observed(model, x):
+    layers = {n: m for n, m in model.named_modules() if isinstance(m, torch.nn.Linear)}
+    with observe(layers, quantile=None) as observer, torch.no_grad():
+        model(inputs_embeds=x)
+    return observer.stats("test", {})
+
+
+def test_static_fp8_uses_the_calibrated_input_range():
+    model = _llama()
+    x = torch.randn(1, 20, 64, generator=torch.Generator().manual_seed(1))
+    stats = _observed(model, x)
+    with torch.no_grad():
+        reference = model(inputs_embeds=x).last_hidden_state
+        cfg = QuantConfig.from_preset("W8A8", scope="llm", method="fp8_static", stats=stats)
+        report = quantize_(model, cfg, components=COMPONENTS)
+        out = model(inputs_embeds=x).last_hidden_state
+    assert report.unfired() == [] and report.result.calibrated == set(report.selected)
+    q_proj = model.layers[0].self_attn.q_proj
+    expected = stats.layers["layers.0.self_attn.q_proj"].absmax.max() / kernels.FP8_MAX
+    assert q_proj.input_scale.item() == pytest.approx(expected.item())
+    assert 0 < _rel(out, reference) < 0.1
+
+
+def test_static_fp8_equals_dynamic_at_the_calibrated_range_and_saturates_beyond():
+    linear = torch.nn.Linear(64, 32)
+    x = torch.randn(10, 64)
+    static = kernels.Fp8StaticLinear(linear, x.abs().amax(dim=0))
+    dynamic = kernels.Fp8DynamicLinear(linear, tensorwise=True)
+    with torch.no_grad():
+        assert torch.equal(static(x), dynamic(x))
+        assert torch.isfinite(static(10 * x)).all()  # clamped at the e4m3 maximum, not cast to NaN
+
+
+def test_static_fp8_needs_calibration_statistics():
+    with pytest.raises(UserError, match="'fp8_static' needs calibration statistics"):
+        quantize_(_llama(), QuantConfig.from_preset("W8A8", scope="llm", method="fp8_static"), components=COMPONENTS)

@@ -5,15 +5,24 @@ noise. On CUDA it captures, per batch size, one graph of `pi05_static.sample_act
 input buffers on first use and afterwards only copies inputs in and replays it, so a chunk costs
 one launch instead of thousands. On other devices it runs the same static code eagerly.
 
-The graph records the addresses of the weights, not their values, so a cell that rounds weights in
-place (`quantize_`) reuses it. Hooks are Python: whatever they launch is recorded at capture, so a
-sampler must be (re)captured after hooks are installed or removed -- call `reset()`; capture is one
-warm-up chunk plus one recorded chunk, seconds at full size. Hook call counters advance only during
-the warm-up and recorded chunks, which is enough to prove that every hook fired.
+Make the sampler after quantization, or call `reset()` after installing, removing or changing
+hooks or weights: on first use it groups each Gemma layer's linears (`accel.linear_groups`, which
+copy the q/k/v and gate/up weights into one matrix each and read the hooks' transforms), and hooks
+are Python, so whatever they launch is recorded at capture. Capture is one warm-up chunk plus one
+recorded chunk, seconds at full size; the compiled elementwise kernels are kept across `reset()`.
+Hook call counters advance only during the warm-up and recorded chunks, which is enough to prove
+that every hook fired.
 
-`attention_backends` (a list of `torch.nn.attention.SDPBackend`) orders the SDPA kernels tried
-for the prefix; by default the memory-efficient kernel comes first, the fastest in the benchmark
-on an H100 (`kernel_choice_sweep_b1_ms`), with the others kept as fallbacks.
+A batch smaller than one already captured (same image, prompt and chunk sizes) is padded to it
+with copies of its last observation and replays that graph, instead of capturing (and compiling
+for) every batch size a closed-loop runner meets as its episodes finish at different times. Rows
+do not interact, so the padding changes nothing in the real rows of that graph.
+
+Attention: the VLM prefix's 8 query heads share one KV head and are folded into one batched
+product by default (`pi05_static._attention`); `prefix_sdpa=True` runs SDPA there instead, with
+`attention_backends` (a list of `torch.nn.attention.SDPBackend`) ordering the kernels tried, which
+also applies to the vision tower's SDPA. The defaults are the fastest in the benchmark on an H100
+(`kernel_choice_sweep_b1_ms`), with the other kernels kept as fallbacks.
 
 `tf32=True` lets float32 matrix products (lerobot keeps the SigLIP tower and projector in float32)
 use TF32 tensor cores, as lerobot's own `compile_model` path does (`set_float32_matmul_precision
@@ -30,11 +39,12 @@ import torch
 from torch import nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from vlaquantbench.accel import pi05_static
+from vlaquantbench.accel import fused_quant, pi05_static
+from vlaquantbench.accel.fused_quant import fused_fake_quant
 
 # Quantization methods whose layers cannot run inside a CUDA graph, with the reason.
 UNCAPTURABLE_METHODS = {"int8": "bitsandbytes LLM.int8() synchronizes with the host on its outlier columns"}
-PREFIX_ATTENTION = (SDPBackend.EFFICIENT_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBackend.CUDNN_ATTENTION,
+SDPA_ORDER = (SDPBackend.EFFICIENT_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBackend.CUDNN_ATTENTION,
                     SDPBackend.MATH)
 
 
@@ -49,36 +59,52 @@ class CapturedSampler:
     """Drop-in for `model.sample_actions(images, img_masks, tokens, masks, noise=..., num_steps=...)`."""
 
     def __init__(self, model: nn.Module, num_steps: int, *, use_graphs: bool | None = None, tf32: bool = True,
-                 attention_backends: Sequence = PREFIX_ATTENTION, fuse_elementwise: bool | None = None):
+                 attention_backends: Sequence = SDPA_ORDER, prefix_sdpa: bool = False,
+                 fuse_elementwise: bool | None = None):
         self.model = model
         self.num_steps = num_steps
         device = next(model.parameters()).device
         self.use_graphs = device.type == "cuda" if use_graphs is None else use_graphs
         self.tf32 = tf32
         self.attention_backends = list(attention_backends) if attention_backends else None
+        self.prefix_sdpa = prefix_sdpa
         self.times = pi05_static.flow_times(num_steps, device)
         # Inductor fuses the elementwise work between the matrix products, op by op (compiling the
         # whole loop took over three minutes on an H100); the graph is then captured around the
         # compiled kernels as around eager ones.
         fuse = self.use_graphs if fuse_elementwise is None else fuse_elementwise
         self.ops = pi05_static.compiled_ops() if fuse else pi05_static.EAGER_OPS
-        self._graphs: dict[tuple, _Graph] = {}
+        self._graphs: dict[tuple, dict[int, _Graph]] = {}  # input shapes past the batch -> batch -> graph
+        self._groups: pi05_static.ModelGroups | None = None
 
     def reset(self) -> None:
-        """Drop every captured graph (after installing or removing hooks)."""
+        """Drop every captured graph and the linear groups (after changing hooks or weights)."""
         self._graphs.clear()
+        self._groups = None
+
+    def _model_groups(self) -> pi05_static.ModelGroups:
+        if self._groups is None:
+            quantize = fused_fake_quant if self.use_graphs and fused_quant.triton is not None else None
+            self._groups = pi05_static.ModelGroups.of(self.model, quantize)
+        return self._groups
 
     def __call__(self, images: Sequence[torch.Tensor], img_masks: Sequence[torch.Tensor], tokens, masks, noise):
+        groups = self._model_groups()
         if not self.use_graphs:
-            return pi05_static.sample_actions(self.model, images, img_masks, tokens, masks, noise, self.times, self.ops)
-        key = tuple(tuple(t.shape) for t in (*images, tokens, noise))
-        entry = self._graphs.get(key)
-        if entry is None:
-            entry = self._graphs[key] = self._capture(images, img_masks, tokens, masks, noise)
+            return pi05_static.sample_actions(self.model, images, img_masks, tokens, masks, noise, self.times, self.ops,
+                                              groups, self.prefix_sdpa)
+        batch = noise.shape[0]
+        by_batch = self._graphs.setdefault(tuple(tuple(t.shape[1:]) for t in (*images, tokens, noise)), {})
+        size = min((b for b in by_batch if b >= batch), default=batch)
+        if size not in by_batch:
+            by_batch[size] = self._capture(images, img_masks, tokens, masks, noise, groups)
+        entry = by_batch[size]
         for static, value in zip(_flatten(entry.inputs), _flatten((images, img_masks, tokens, masks, noise)), strict=True):
-            static.copy_(value, non_blocking=True)
+            static[:batch].copy_(value, non_blocking=True)
+            if size > batch:
+                static[batch:].copy_(value[-1:].expand_as(static[batch:]), non_blocking=True)
         entry.graph.replay()
-        return entry.output.clone()
+        return entry.output[:batch].clone()
 
     @contextlib.contextmanager
     def _kernel_choices(self):
@@ -93,7 +119,7 @@ class CapturedSampler:
         finally:
             torch.backends.cuda.matmul.allow_tf32 = previous
 
-    def _capture(self, images, img_masks, tokens, masks, noise) -> _Graph:
+    def _capture(self, images, img_masks, tokens, masks, noise, groups) -> _Graph:
         inputs = (
             [t.clone() for t in images],
             [t.clone() for t in img_masks],
@@ -103,7 +129,9 @@ class CapturedSampler:
         )
 
         with self._kernel_choices():
-            graph, output = capture_graph(lambda: pi05_static.sample_actions(self.model, *inputs, self.times, self.ops))
+            graph, output = capture_graph(
+                lambda: pi05_static.sample_actions(self.model, *inputs, self.times, self.ops, groups,
+                                                   self.prefix_sdpa))
         return _Graph(graph, inputs, output)
 
 

@@ -12,14 +12,22 @@ Mirrors lerobot 0.6.1 `PI05Pytorch.sample_actions` (prefix pass that fills the K
   so quantized results are the same;
 * the KV cache is one preallocated buffer per layer whose action-token slots are overwritten each
   step (lerobot clones a `DynamicCache` and concatenates every step);
-* attention runs through `scaled_dot_product_attention`, not the eager matmul-softmax-matmul
-  lerobot forces;
+* attention folds the 8 query heads that share one KV head into one batched product (or runs
+  through `scaled_dot_product_attention` for the prefix, a kernel choice);
 * the (Ada)RMSNorm and gated-residual arithmetic is written out here (same float32 formulas as
-  lerobot's `PiGemmaRMSNorm`), so a compiler can fuse it.
+  lerobot's `PiGemmaRMSNorm`), so a compiler can fuse it;
+* all cameras pass the vision tower as one batch, its encoder layers written out like the Gemma
+  ones (LayerNorm and residual arithmetic as ops, q/k/v as one group);
+* each SigLIP and Gemma layer's linears run as `accel.linear_groups` groups (q/k/v as one
+  product, gate/up as one), and where a group's hooks only quantize per token, that quantization
+  is done by the op that produces the group's input (the norm, the GELU, the head merge), so it
+  fuses into that kernel.
 
-Every linear layer is still called as a module, so quantization hooks installed on it run (and a
-captured graph records what they launch). `tests/test_accel_pi05.py` checks the result against
-lerobot's own `sample_actions` on the demo model.
+Layers a group cannot fuse (calibrated or wrapped transforms, packed real-kernel layers) and the
+layers outside the groups (projector, action and time projections, AdaRMS modulations) are called
+as modules, so their hooks run as installed (and a captured graph records what they launch);
+every hook counts its calls either way. `tests/test_accel_pi05.py` checks the result against
+lerobot's own `sample_actions` on the demo model, with and without quantization.
 """
 
 from __future__ import annotations
@@ -33,6 +41,9 @@ from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding
 from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 from torch import nn
 from transformers.models.gemma.modeling_gemma import apply_rotary_pos_emb
+
+from vlaquantbench.accel.linear_groups import LinearGroup
+from vlaquantbench.quant.grid import fake_quant_activation
 
 
 def flow_times(num_steps: int, device: torch.device) -> torch.Tensor:
@@ -53,33 +64,93 @@ def _rms(x: torch.Tensor, eps: float) -> torch.Tensor:
     return x * torch.rsqrt(torch.mean(torch.square(x.float()), dim=-1, keepdim=True) + eps)
 
 
-def rms_norm(x: torch.Tensor, weight: torch.Tensor, eps: float) -> torch.Tensor:
+def _as_float32(x: torch.Tensor) -> torch.Tensor:
+    """`x.float()` for a bf16 tensor, written as the bit-level widening it is. Inside one fused
+    kernel a compiler may drop a float32 -> bf16 -> float32 round trip and quantize the unrounded
+    value; a hook sees the rounded bf16 tensor, and this form keeps that rounding."""
+    if x.dtype != torch.bfloat16:
+        return x.float()
+    return (x.view(torch.int16).to(torch.int32) << 16).view(torch.float32)
+
+
+def _quantized(x: torch.Tensor, bits: int | None) -> torch.Tensor:
+    """The per-token fake quantization the consuming layers' hooks apply (`quant.grid`), done by
+    the producing op so that a compiler fuses it into the same kernel (None: none)."""
+    return x if bits is None else fake_quant_activation(_as_float32(x), bits).to(x.dtype)
+
+
+def rms_norm(x: torch.Tensor, weight: torch.Tensor, eps: float, bits: int | None = None) -> torch.Tensor:
     """`PiGemmaRMSNorm(x)` without a condition."""
-    return (_rms(x, eps) * (1.0 + weight.float())).type_as(x)
+    return _quantized((_rms(x, eps) * (1.0 + weight.float())).type_as(x), bits)
 
 
-def add_rms_norm(hidden, update, weight, eps: float):
+def add_rms_norm(hidden, update, weight, eps: float, bits: int | None = None):
     """Residual add, then the next RMSNorm: returns (new hidden, its normalized copy)."""
     hidden = hidden + update
-    return hidden, rms_norm(hidden, weight, eps)
+    return hidden, rms_norm(hidden, weight, eps, bits)
 
 
-def ada_rms_norm(x: torch.Tensor, modulation: torch.Tensor, eps: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """`PiGemmaRMSNorm(x, cond)` given `modulation = norm.dense(cond)` (B x 3D), computed ahead."""
-    scale, shift, gate = modulation.unsqueeze(1).chunk(3, dim=-1)
+def modulation(dense_out: torch.Tensor, steps: int, batch: int, dtype: torch.dtype):
+    """An AdaRMSNorm's `dense(cond)` output for all steps (steps * B x 3D), split once per chunk
+    into per-step (scale, shift, gate) of shape steps x B x 1 x D, the gate already in the
+    activation dtype (as `PiGemmaRMSNorm` returns it)."""
+    scale, shift, gate = dense_out.view(steps, batch, 1, -1).chunk(3, dim=-1)
+    return scale, shift, gate.to(dtype)
+
+
+def ada_rms_norm(x: torch.Tensor, scale: torch.Tensor, shift: torch.Tensor, eps: float, bits: int | None = None):
+    """`PiGemmaRMSNorm(x, cond)`'s normalized output, given the scale and shift of `modulation`."""
     normed = _rms(x, eps) * (1 + scale.float()) + shift.float()
-    return normed.to(x.dtype), gate.to(x.dtype)
+    return _quantized(normed.to(x.dtype), bits)
 
 
-def gated_add_ada_rms_norm(hidden, update, gate, modulation, eps: float):
-    """Gated residual `hidden + update * gate`, then the next AdaRMSNorm: (new hidden, normed, gate)."""
+def gated_add_ada_rms_norm(hidden, update, gate, scale, shift, eps: float, bits: int | None = None):
+    """Gated residual `hidden + update * gate`, then the next AdaRMSNorm: (new hidden, normed)."""
     hidden = hidden + update * gate
-    return (hidden, *ada_rms_norm(hidden, modulation, eps))
+    return hidden, ada_rms_norm(hidden, scale, shift, eps, bits)
 
 
-def gelu_tanh_mul(gate: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+def gelu_tanh_mul(gate: torch.Tensor, up: torch.Tensor, bits: int | None = None) -> torch.Tensor:
     """GemmaMLP's `act_fn(gate_proj(x)) * up_proj(x)` with Gemma's `gelu_pytorch_tanh`."""
-    return F.gelu(gate, approximate="tanh") * up
+    return _quantized(F.gelu(gate, approximate="tanh") * up, bits)
+
+
+def layer_norm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, eps: float, bits: int | None = None):
+    """`nn.LayerNorm` (the vision tower's), with the consuming layers' input quantization."""
+    return _quantized(F.layer_norm(x, x.shape[-1:], weight, bias, eps), bits)
+
+
+def add_layer_norm(hidden, update, weight, bias, eps: float, bits: int | None = None):
+    """Residual add, then the next LayerNorm: returns (new hidden, its normalized copy)."""
+    hidden = hidden + update
+    return hidden, layer_norm(hidden, weight, bias, eps, bits)
+
+
+def gelu_tanh(x: torch.Tensor, bits: int | None = None) -> torch.Tensor:
+    """SigLIP's MLP activation (`gelu_pytorch_tanh`), with fc2's input quantization."""
+    return _quantized(F.gelu(x, approximate="tanh"), bits)
+
+
+def rotary_into_cache(query, key, value, cos, sin, cache_keys, cache_values, start: int):
+    """Rotary embedding of queries and keys; the keys and values go into the layer's KV buffers at
+    `start` (in the same kernel once compiled). Returns the rotated queries, contiguous, so that
+    the heads fold into one matrix product without another copy."""
+    query, key = apply_rotary_pos_emb(query, key, cos, sin)
+    length = key.shape[2]
+    cache_keys[:, :, start : start + length] = key
+    cache_values[:, :, start : start + length] = value
+    return query.contiguous()
+
+
+def merge_heads(out: torch.Tensor, bits: int | None = None) -> torch.Tensor:
+    """Attention output B x heads x L x D -> B x L x (heads * D), with o_proj's input quantization."""
+    batch, heads, length, dim = out.shape
+    return _quantized(out.transpose(1, 2).reshape(batch, length, heads * dim), bits)
+
+
+def attention_probs(scores: torch.Tensor, scaling: float, bias: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """Gemma's eager attention weights: scores * scaling + bias, float32 softmax, cast back."""
+    return torch.softmax(scores * scaling + bias, dim=-1, dtype=torch.float32).to(dtype)
 
 
 @dataclass(frozen=True)
@@ -90,63 +161,111 @@ class ElementwiseOps:
     add_rms_norm: Callable = add_rms_norm
     ada_rms_norm: Callable = ada_rms_norm
     gated_add_ada_rms_norm: Callable = gated_add_ada_rms_norm
-    rotary: Callable = apply_rotary_pos_emb
+    rotary_into_cache: Callable = rotary_into_cache
     gelu_tanh_mul: Callable = gelu_tanh_mul
+    attention_probs: Callable = attention_probs
+    merge_heads: Callable = merge_heads
+    layer_norm: Callable = layer_norm
+    add_layer_norm: Callable = add_layer_norm
+    gelu_tanh: Callable = gelu_tanh
 
 
 EAGER_OPS = ElementwiseOps()
 
+# Inductor keeps eager's arithmetic where quantization decisions hang on it: the bf16 rounding of
+# a norm's output before it is quantized (`emulate_precision_casts`) and IEEE division in x / scale
+# (`division_rounding`; Triton's `/` is approximate), so a fused quantization rounds as the hook.
+_EAGER_NUMERICS = {"emulate_precision_casts": True, "eager_numerics.division_rounding": True}
+
 
 def compiled_ops() -> ElementwiseOps:
     """Each elementwise op compiled on its own by inductor (seconds per op and shape, not minutes
-    like the whole loop), so a norm, residual or rotary becomes one or two kernels."""
-    return ElementwiseOps(**{f.name: torch.compile(getattr(EAGER_OPS, f.name), dynamic=False)
+    like the whole loop), so a norm with its quantization, a residual or a rotary becomes one or
+    two kernels."""
+    # One compilation per op, input shape (VLM or expert, batch size) and bit width: more than
+    # dynamo's default limit of 8, past which it would silently run the op uncompiled.
+    torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
+    return ElementwiseOps(**{f.name: torch.compile(getattr(EAGER_OPS, f.name), dynamic=False, options=_EAGER_NUMERICS)
                              for f in fields(ElementwiseOps)})
 
 
-def _project_qkv(attn: nn.Module, hidden, cos, sin, kv, start: int, ops: ElementwiseOps):
+@dataclass
+class LayerGroups:
+    """A transformer layer's linears grouped by shared input (see `accel.linear_groups`): q/k/v,
+    the attention output, the MLP's input projections (Gemma gate/up, SigLIP fc1) and its output."""
+
+    qkv: LinearGroup
+    out: LinearGroup
+    mlp_in: LinearGroup
+    mlp_out: LinearGroup
+
+    @classmethod
+    def of(cls, layer: nn.Module, quantize=None) -> "LayerGroups":
+        attn, mlp = layer.self_attn, layer.mlp
+        if hasattr(mlp, "gate_proj"):  # Gemma
+            out, mlp_in, mlp_out = attn.o_proj, [mlp.gate_proj, mlp.up_proj], mlp.down_proj
+        else:  # SigLIP
+            out, mlp_in, mlp_out = attn.out_proj, [mlp.fc1], mlp.fc2
+        return cls(LinearGroup([attn.q_proj, attn.k_proj, attn.v_proj], quantize), LinearGroup([out], quantize),
+                   LinearGroup(mlp_in, quantize), LinearGroup([mlp_out], quantize))
+
+
+@dataclass
+class ModelGroups:
+    """Linear groups of the vision tower's, the VLM's and the action expert's layers, made once
+    per capture."""
+
+    vision: list[LayerGroups]
+    prefix: list[LayerGroups]
+    expert: list[LayerGroups]
+
+    @classmethod
+    def of(cls, model: nn.Module, quantize=None) -> "ModelGroups":
+        pwe = model.paligemma_with_expert
+        vision = pwe.paligemma.model.vision_tower.vision_model
+        return cls([LayerGroups.of(layer, quantize) for layer in vision.encoder.layers],
+                   [LayerGroups.of(layer, quantize) for layer in pwe.paligemma.model.language_model.layers],
+                   [LayerGroups.of(layer, quantize) for layer in pwe.gemma_expert.model.layers])
+
+
+def _project_qkv(attn: nn.Module, qkv: LinearGroup, hidden, cos, sin, kv, start: int, ops: ElementwiseOps,
+                 prequantized: bool):
     """q/k/v projections and rotary; this call's keys/values go into the `kv` buffers at `start`."""
     batch, length, _ = hidden.shape
     shape = (batch, length, -1, attn.head_dim)
-    query = attn.q_proj(hidden).view(shape).transpose(1, 2)
-    key = attn.k_proj(hidden).view(shape).transpose(1, 2)
-    value = attn.v_proj(hidden).view(shape).transpose(1, 2)
-    query, key = ops.rotary(query, key, cos, sin)
-    kv[0][:, :, start : start + length].copy_(key)
-    kv[1][:, :, start : start + length].copy_(value)
-    return query
+    query, key, value = (y.view(shape).transpose(1, 2) for y in qkv(hidden, prequantized))
+    return ops.rotary_into_cache(query, key, value, cos, sin, kv[0], kv[1], start)
 
 
-def _prefix_attention(attn: nn.Module, hidden, cos, sin, bias, kv, ops: ElementwiseOps):
-    """Prefix self-attention through SDPA (memory-efficient kernel; 8 query heads share 1 KV head)."""
+def _attention(attn: nn.Module, groups: LayerGroups, hidden, cos, sin, bias, kv, start: int, ops: ElementwiseOps,
+               prequantized: bool, sdpa: bool = False):
+    """Self-attention of `hidden` (at cache positions `start`...) over the cache up to its end.
+
+    Folded (default): the 8 query heads share one KV head, so they fold into one batched matrix
+    product (8 x L rows against the keys), then scores * scaling + bias, float32 softmax and the
+    product with the values -- Gemma's eager arithmetic, in three kernels whatever L. Fused
+    attention kernels with a bias were slower here: they parallelize over query blocks and leave
+    the GPU idle on 50 action queries. `sdpa=True` runs `scaled_dot_product_attention` instead
+    (prefix only)."""
     batch, length, _ = hidden.shape
-    query = _project_qkv(attn, hidden, cos, sin, kv, 0, ops)
-    heads = query.shape[1]
-    keys = kv[0][:, :, :length].expand(batch, heads, length, attn.head_dim)
-    values = kv[1][:, :, :length].expand(batch, heads, length, attn.head_dim)
-    out = F.scaled_dot_product_attention(query, keys, values, attn_mask=bias, scale=attn.scaling)
-    return attn.o_proj(out.transpose(1, 2).reshape(batch, length, -1))
-
-
-def _action_attention(attn: nn.Module, hidden, cos, sin, bias, kv, start: int, ops: ElementwiseOps):
-    """Action tokens attending to prefix + action keys. With one KV head, all 8 heads' queries fold
-    into one batched matrix product (8 x 50 rows against ~1000 keys): fused attention kernels
-    parallelize over query blocks and leave the GPU mostly idle on 50 queries. Same arithmetic as
-    Gemma's eager attention: scores * scaling + bias, float32 softmax, product with values."""
-    batch, length, _ = hidden.shape
-    query = _project_qkv(attn, hidden, cos, sin, kv, start, ops)
+    query = _project_qkv(attn, groups.qkv, hidden, cos, sin, kv, start, ops, prequantized)
     heads, end = query.shape[1], start + length
-    keys, values = kv[0][:, 0, :end], kv[1][:, 0, :end]  # B x end x head_dim
-    scores = torch.bmm(query.reshape(batch, heads * length, -1), keys.transpose(1, 2))
-    scores = scores.view(batch, heads, length, end) * attn.scaling + bias
-    probs = torch.softmax(scores, dim=-1, dtype=torch.float32).to(values.dtype)
-    out = torch.bmm(probs.view(batch, heads * length, end), values).view(batch, heads, length, -1)
-    return attn.o_proj(out.transpose(1, 2).reshape(batch, length, -1))
+    if sdpa:
+        keys = kv[0][:, :, :end].expand(batch, heads, end, attn.head_dim)
+        values = kv[1][:, :, :end].expand(batch, heads, end, attn.head_dim)
+        out = F.scaled_dot_product_attention(query, keys, values, attn_mask=bias, scale=attn.scaling)
+    else:
+        keys, values = kv[0][:, 0, :end], kv[1][:, 0, :end]  # B x end x head_dim
+        scores = torch.bmm(query.reshape(batch, heads * length, -1), keys.transpose(1, 2))
+        probs = ops.attention_probs(scores.view(batch, heads, length, end), attn.scaling, bias, values.dtype)
+        out = torch.bmm(probs.view(batch, heads * length, end), values).view(batch, heads, length, -1)
+    return groups.out(ops.merge_heads(out, groups.out.act_bits), prequantized=groups.out.fused)[0]
 
 
-def _mlp(mlp: nn.Module, x: torch.Tensor, ops: ElementwiseOps) -> torch.Tensor:
-    """GemmaMLP, its three projections called as modules."""
-    return mlp.down_proj(ops.gelu_tanh_mul(mlp.gate_proj(x), mlp.up_proj(x)))
+def _mlp(groups: LayerGroups, x: torch.Tensor, ops: ElementwiseOps, prequantized: bool) -> torch.Tensor:
+    """GemmaMLP: gate/up (one group), the activation (with down_proj's input quantization), down."""
+    gate, up = groups.mlp_in(x, prequantized)
+    return groups.mlp_out(ops.gelu_tanh_mul(gate, up, groups.mlp_out.act_bits), prequantized=groups.mlp_out.fused)[0]
 
 
 def _layers_dtype(gemma_model: nn.Module) -> torch.dtype:
@@ -167,20 +286,57 @@ def _new_cache(gemma_model: nn.Module, batch: int, length: int, device, dtype) -
             for _ in gemma_model.layers]
 
 
+def embed_images(model: nn.Module, images, ops: ElementwiseOps = EAGER_OPS,
+                 groups: list[LayerGroups] | None = None) -> list[torch.Tensor]:
+    """lerobot's `embed_image` (SigLIP tower in float32, projector) for every camera in one batch
+    (lerobot embeds one camera per call: three times the kernels for the same rows), with the
+    encoder layers written out like the Gemma ones: LayerNorm and residual arithmetic as
+    (compiled) ops, q/k/v as one group, SDPA as SigLIP's own attention calls it."""
+    batch = images[0].shape[0]
+    paligemma = model.paligemma_with_expert.paligemma.model
+    vision = paligemma.vision_tower.vision_model
+    if vision.config.hidden_act != "gelu_pytorch_tanh" or vision.use_head:
+        raise NotImplementedError(f"vision tower with {vision.config.hidden_act} / head: not the pi0.5 SigLIP")
+    layers = vision.encoder.layers
+    groups = groups or [LayerGroups.of(layer) for layer in layers]
+    hidden = vision.embeddings(torch.cat(list(images)).to(torch.float32))
+    first = layers[0].layer_norm1
+    normed = ops.layer_norm(hidden, first.weight, first.bias, first.eps, groups[0].qkv.act_bits)
+    for index, (layer, group) in enumerate(zip(layers, groups, strict=True)):
+        attn = layer.self_attn
+        rows, length, _ = normed.shape
+        query, key, value = (y.view(rows, length, -1, attn.head_dim).transpose(1, 2)
+                             for y in group.qkv(normed, group.qkv.fused))
+        out = F.scaled_dot_product_attention(query, key, value, scale=attn.scale)
+        attn_out = group.out(ops.merge_heads(out, group.out.act_bits), prequantized=group.out.fused)[0]
+        norm2 = layer.layer_norm2
+        hidden, normed = ops.add_layer_norm(hidden, attn_out, norm2.weight, norm2.bias, norm2.eps, group.mlp_in.act_bits)
+        activated = ops.gelu_tanh(group.mlp_in(normed, group.mlp_in.fused)[0], group.mlp_out.act_bits)
+        mlp_out = group.mlp_out(activated, prequantized=group.mlp_out.fused)[0]
+        if index + 1 < len(layers):  # the residual, then the next layer's first LayerNorm
+            nxt, bits = layers[index + 1].layer_norm1, groups[index + 1].qkv.act_bits
+        else:  # the tower's final LayerNorm feeds the projector, a module call with its own hook
+            nxt, bits = vision.post_layernorm, None
+        hidden, normed = ops.add_layer_norm(hidden, mlp_out, nxt.weight, nxt.bias, nxt.eps, bits)
+    return list(paligemma.multi_modal_projector(normed).split(batch))
+
+
 @torch.no_grad()
-def prefix_cache(model: nn.Module, images, img_masks, tokens, masks, suffix_len: int, ops: ElementwiseOps = EAGER_OPS):
+def prefix_cache(model: nn.Module, images, img_masks, tokens, masks, suffix_len: int, ops: ElementwiseOps = EAGER_OPS,
+                 groups: ModelGroups | None = None, prefix_sdpa: bool = False):
     """Run the VLM over images and prompt; return per-layer KV buffers (prefix filled, `suffix_len`
     free slots after it) and the prefix pad mask."""
     pwe = model.paligemma_with_expert
     embs, pads = [], []
-    for img, img_mask in zip(images, img_masks, strict=True):
-        emb = pwe.embed_image(img)
+    groups = groups or ModelGroups.of(model)
+    for emb, img_mask in zip(embed_images(model, images, ops, groups.vision), img_masks, strict=True):
         embs.append(emb)
         pads.append(img_mask[:, None].expand(emb.shape[0], emb.shape[1]))
     embs.append(pwe.embed_language_tokens(tokens))
     pads.append(masks)
     pad = torch.cat(pads, dim=1)
     lm = pwe.paligemma.model.language_model
+    layers = lm.layers
     dtype = _layers_dtype(lm)
     hidden = torch.cat(embs, dim=1).to(dtype)
     batch, length = pad.shape
@@ -188,27 +344,31 @@ def prefix_cache(model: nn.Module, images, img_masks, tokens, masks, suffix_len:
     bias = _attention_bias(pad[:, None, :] & pad[:, :, None], dtype)
     cos, sin = lm.rotary_emb(hidden, torch.cumsum(pad, dim=1) - 1)
     cache = _new_cache(lm, batch, length + suffix_len, hidden.device, dtype)
-    layers = lm.layers
-    normed = ops.rms_norm(hidden, layers[0].input_layernorm.weight, layers[0].input_layernorm.eps)
-    for index, (layer, kv) in enumerate(zip(layers, cache, strict=True)):
-        attn_out = _prefix_attention(layer.self_attn, normed, cos, sin, bias, kv, ops)
+    first, layer_groups = layers[0].input_layernorm, groups.prefix
+    normed = ops.rms_norm(hidden, first.weight, first.eps, layer_groups[0].qkv.act_bits)
+    for index, (layer, group, kv) in enumerate(zip(layers, layer_groups, cache, strict=True)):
+        attn_out = _attention(layer.self_attn, group, normed, cos, sin, bias, kv, 0, ops, group.qkv.fused, prefix_sdpa)
         post = layer.post_attention_layernorm
-        hidden, normed = ops.add_rms_norm(hidden, attn_out, post.weight, post.eps)
-        mlp_out = _mlp(layer.mlp, normed, ops)
+        hidden, normed = ops.add_rms_norm(hidden, attn_out, post.weight, post.eps, group.mlp_in.act_bits)
+        mlp_out = _mlp(group, normed, ops, group.mlp_in.fused)
         if index + 1 < len(layers):
-            nxt = layers[index + 1].input_layernorm
-            hidden, normed = ops.add_rms_norm(hidden, mlp_out, nxt.weight, nxt.eps)
+            nxt, nxt_bits = layers[index + 1].input_layernorm, layer_groups[index + 1].qkv.act_bits
+            hidden, normed = ops.add_rms_norm(hidden, mlp_out, nxt.weight, nxt.eps, nxt_bits)
     return cache, pad
 
 
 @torch.no_grad()
-def sample_actions(model: nn.Module, images, img_masks, tokens, masks, noise, times, ops: ElementwiseOps = EAGER_OPS):
-    """A whole chunk: prefix pass, then one Euler step per row of `times` (see `flow_times`)."""
+def sample_actions(model: nn.Module, images, img_masks, tokens, masks, noise, times, ops: ElementwiseOps = EAGER_OPS,
+                   groups: ModelGroups | None = None, prefix_sdpa: bool = False):
+    """A whole chunk: prefix pass, then one Euler step per row of `times` (see `flow_times`).
+    `groups` (made after quantization) defaults to groups made now; `prefix_sdpa` as `sdpa` in
+    `_attention`."""
     config = model.config
+    groups = groups or ModelGroups.of(model)
     expert = model.paligemma_with_expert.gemma_expert.model
     batch, chunk = noise.shape[:2]
     steps = times.shape[0]
-    cache, prefix_pad = prefix_cache(model, images, img_masks, tokens, masks, suffix_len=chunk, ops=ops)
+    cache, prefix_pad = prefix_cache(model, images, img_masks, tokens, masks, chunk, ops, groups, prefix_sdpa)
     prefix_len = prefix_pad.shape[1]
 
     # Per-chunk constants: time conditioning and AdaRMS modulations of all steps, bias, rotary.
@@ -217,36 +377,40 @@ def sample_actions(model: nn.Module, images, img_masks, tokens, masks, noise, ti
         step_times, model.action_in_proj.out_features, config.min_period, config.max_period, device=times.device
     ).type(times.dtype)
     cond = F.silu(model.time_mlp_out(F.silu(model.time_mlp_in(time_emb))))
-    modulations = [(layer.input_layernorm.dense(cond).view(steps, batch, -1),
-                    layer.post_attention_layernorm.dense(cond).view(steps, batch, -1)) for layer in expert.layers]
-    final_modulation = expert.norm.dense(cond).view(steps, batch, -1)
+    dtype = _layers_dtype(expert)
+    modulations = [(modulation(layer.input_layernorm.dense(cond), steps, batch, dtype),
+                    modulation(layer.post_attention_layernorm.dense(cond), steps, batch, dtype)) for layer in expert.layers]
+    final_modulation = modulation(expert.norm.dense(cond), steps, batch, dtype)
     # Action tokens see every non-padding prefix token and each other (one autoregressive block).
     allowed = torch.cat(
         [prefix_pad[:, None, :].expand(batch, chunk, prefix_len),
          torch.ones(batch, chunk, chunk, dtype=torch.bool, device=prefix_pad.device)],
         dim=2,
     )
-    dtype = _layers_dtype(expert)
     bias = _attention_bias(allowed, dtype)
     positions = prefix_pad.sum(dim=-1, keepdim=True) + torch.arange(chunk, device=prefix_pad.device)[None]
     cos, sin = expert.rotary_emb(noise.to(dtype), positions)
 
     dt = -1.0 / steps
     x_t = noise
-    layers = expert.layers
+    layers, layer_groups = expert.layers, groups.expert
     for step in range(steps):
         hidden = model.action_in_proj(x_t).to(dtype)
-        normed, gate = ops.ada_rms_norm(hidden, modulations[0][0][step], layers[0].input_layernorm.eps)
-        for index, (layer, kv, (_, mod_post)) in enumerate(zip(layers, cache, modulations, strict=True)):
-            attn_out = _action_attention(layer.self_attn, normed, cos, sin, bias, kv, prefix_len, ops)
-            eps = layer.post_attention_layernorm.eps
-            hidden, normed, next_gate = ops.gated_add_ada_rms_norm(hidden, attn_out, gate, mod_post[step], eps)
-            mlp_out = _mlp(layer.mlp, normed, ops)
+        scale, shift, gate = (m[step] for m in modulations[0][0])
+        normed = ops.ada_rms_norm(hidden, scale, shift, layers[0].input_layernorm.eps, layer_groups[0].qkv.act_bits)
+        for index, (layer, group, kv) in enumerate(zip(layers, layer_groups, cache, strict=True)):
+            attn_out = _attention(layer.self_attn, group, normed, cos, sin, bias, kv, prefix_len, ops, group.qkv.fused)
+            scale, shift, post_gate = (m[step] for m in modulations[index][1])
+            hidden, normed = ops.gated_add_ada_rms_norm(hidden, attn_out, gate, scale, shift,
+                                                        layer.post_attention_layernorm.eps, group.mlp_in.act_bits)
+            mlp_out = _mlp(group, normed, ops, group.mlp_in.fused)
             if index + 1 < len(layers):
-                nxt_mod, nxt_eps = modulations[index + 1][0][step], layers[index + 1].input_layernorm.eps
-            else:
-                nxt_mod, nxt_eps = final_modulation[step], expert.norm.eps
-            hidden, normed, gate = ops.gated_add_ada_rms_norm(hidden, mlp_out, next_gate, nxt_mod, nxt_eps)
+                nxt, nxt_eps = modulations[index + 1][0], layers[index + 1].input_layernorm.eps
+                nxt_bits = layer_groups[index + 1].qkv.act_bits
+            else:  # the final norm feeds action_out_proj (float32), a module call with its own hook
+                nxt, nxt_eps, nxt_bits = final_modulation, expert.norm.eps, None
+            scale, shift, gate = (m[step] for m in nxt)
+            hidden, normed = ops.gated_add_ada_rms_norm(hidden, mlp_out, post_gate, scale, shift, nxt_eps, nxt_bits)
         velocity = model.action_out_proj(normed[:, -config.chunk_size :].to(torch.float32))
         x_t = x_t + dt * velocity
     return x_t

@@ -29,14 +29,16 @@ class AdapterConfig:
     """What an adapter needs to build its policy; filled from a canonical cell config."""
 
     model: str
-    variant: str  # "full": released checkpoint; "demo": reduced-width random weights
+    # "full": released checkpoint; "demo": reduced-width random weights; "random": the released
+    # architecture at full size with seeded random weights (throughput benchmarks without a checkpoint)
+    variant: str
     checkpoint: str | None = None
     checkpoint_dir: str | None = None  # local snapshot of `checkpoint` (full variant)
     device: str = "cpu"
     dtype: str = "float32"
     executed_chunk: int = 10
     flow_steps: int = 10
-    seed: int = 0  # demo weights
+    seed: int = 0  # demo and random weights
     # "captured" or "eager" (`resolve_sampler`). Eager unless a cell resolves otherwise: the replay
     # and diagnostics probes wrap lerobot's `sample_actions`/`denoise_step`, which only eager calls.
     sampler: str = "eager"

@@ -11,7 +11,10 @@ Full variant: `PI0xPolicy.from_pretrained` and the checkpoint's own processor fi
 PaliGemma tokenizer). Demo variant: the reduced-width random-weight model of the model spec, and
 lerobot's processor steps with LIBERO-like normalization ranges and an offline byte-level
 tokenizer (the PaliGemma tokenizer cannot be fetched offline; a random-weight policy has no
-vocabulary to match, so this changes nothing it could have learned).
+vocabulary to match, so this changes nothing it could have learned). Random variant: the released
+architecture at full size (the model spec's "full" build) with seeded random weights, in
+lerobot's precision layout for `dtype` (bfloat16 with the vision path kept in float32, or all
+float32), and the demo processors: what throughput benchmarks need when no checkpoint can load.
 """
 
 from __future__ import annotations
@@ -88,7 +91,11 @@ class PiFamilyAdapter:
     def load(self) -> None:
         if self.config.variant == "demo":
             self.model = get_model_spec(self.name).build(variant="demo", device=self._device, seed=self.config.seed)
-            self.policy_config = self._demo_policy_config()
+            self.policy_config = self._demo_policy_config("float32")
+            self.preprocessor, self.postprocessor = self._demo_processors(self.policy_config)
+        elif self.config.variant == "random":
+            self.model = self._random_full_model()
+            self.policy_config = self._demo_policy_config(self.config.dtype)
             self.preprocessor, self.postprocessor = self._demo_processors(self.policy_config)
         else:
             self._load_checkpoint()
@@ -127,7 +134,16 @@ class PiFamilyAdapter:
             self.config.checkpoint_dir, "policy_postprocessor.json", local_files_only=True
         )
 
-    def _demo_policy_config(self):
+    def _random_full_model(self) -> nn.Module:
+        if self.config.dtype not in ("bfloat16", "float32"):
+            raise UserError(f"{self.name}: variant 'random' runs in bfloat16 or float32, not {self.config.dtype!r}")
+        # The full build casts like lerobot's bfloat16 policy; float32 undoes it the way lerobot does.
+        model = get_model_spec(self.name).build(variant="full", device=self._device, seed=self.config.seed)
+        if self.config.dtype == "float32":
+            model.paligemma_with_expert.to_bfloat16_for_selected_params("float32")
+        return model
+
+    def _demo_policy_config(self, dtype: str):
         import importlib
 
         from lerobot.configs import FeatureType, PolicyFeature
@@ -137,7 +153,7 @@ class PiFamilyAdapter:
         image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 224, 224))
         return config_cls(
             device=self.config.device,
-            dtype="float32",
+            dtype=dtype,
             input_features={
                 CAMERA_KEYS["agentview"]: image,
                 CAMERA_KEYS["wrist"]: image,

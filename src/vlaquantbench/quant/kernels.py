@@ -13,6 +13,8 @@ Registered in the method table of `quant.apply` when this module is imported:
     fp8          W8A8 FP8 e4m3: per-channel weights, dynamic per-token activations,
                  `torch._scaled_mm` with row-wise scales (the H100's native format)          (W8A8)
     fp8_tensor   the same with one scale per weight tensor and one per activation tensor (W8A8)
+    fp8_static   FP8 with one weight scale and one static activation scale per layer, from the
+                 calibration statistics' input absmax (as FP8 inference stacks serve)      (W8A8)
 
 Each selected `nn.Linear` is replaced in its parent by a module holding the packed weight (the
 bf16 weight is freed), and gets a counting pre-hook that changes nothing, so `unfired()` proves
@@ -29,7 +31,7 @@ from torch import nn
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.apply import MethodResult, QuantConfig, register_method
 from vlaquantbench.quant.awq import search_scales
-from vlaquantbench.quant.calibration import smoothing_factors
+from vlaquantbench.quant.calibration import ChannelStats, smoothing_factors
 from vlaquantbench.quant.grid import fake_quant_weight
 from vlaquantbench.quant.hooks import CountingHook, InputTransform
 from vlaquantbench.quant.scope import Selection
@@ -63,9 +65,11 @@ if triton is not None:
 
 def quantize_per_token(x2d: torch.Tensor, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
     """Symmetric per-row quantization to int8 (round to nearest) or FP8 e4m3 (cast): (values, scales
-    as a float32 column). One kernel on CUDA; the same arithmetic as torch ops elsewhere."""
+    as a float32 column). One Triton kernel in eager CUDA code; the same arithmetic as torch ops
+    elsewhere and under `torch.compile`, where inductor fuses those ops into the kernel that
+    produces `x2d` (e.g. the RMSNorm before a projection) instead of launching a kernel of its own."""
     q_max = 127.0 if dtype == torch.int8 else FP8_MAX
-    if triton is not None and x2d.is_cuda:
+    if triton is not None and x2d.is_cuda and not torch.compiler.is_compiling():
         x2d = x2d.contiguous()
         rows, cols = x2d.shape
         values = torch.empty(rows, cols, dtype=dtype, device=x2d.device)
@@ -140,16 +144,35 @@ class Fp8DynamicLinear(_PackedLinear):
         self.register_buffer("weight_fp8", (weight / scale).clamp(-FP8_MAX, FP8_MAX).to(FP8))
         self.register_buffer("weight_scale", scale.reshape(1, -1).contiguous())  # 1 x out (or 1 x 1), float32
 
+    def _quantize_input(self, x2d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if not self.tensorwise:
+            return quantize_per_token(x2d, FP8)
+        # One global amax, then one pass: dividing by the float32 scale promotes x inside the
+        # kernel (no float32 copy of x first); under `torch.compile` both fuse into x's producer.
+        scale = (x2d.abs().amax().float().clamp_min(SCALE_FLOOR) / FP8_MAX).reshape(1, 1)
+        return torch.div(x2d, scale).clamp_(-FP8_MAX, FP8_MAX).to(FP8), scale
+
     def _matmul(self, x2d: torch.Tensor) -> torch.Tensor:
-        if self.tensorwise:
-            scale = (x2d.abs().amax().float().clamp_min(SCALE_FLOOR) / FP8_MAX).reshape(1, 1)
-            x_fp8 = (x2d.float() / scale).clamp(-FP8_MAX, FP8_MAX).to(FP8)
-        else:
-            x_fp8, scale = quantize_per_token(x2d, FP8)
+        x_fp8, scale = self._quantize_input(x2d)
         # Fast accumulation (Hopper's FP8 tensor-core accumulator without periodic FP32 promotion),
         # as FP8 inference stacks use it: 8.0 instead of 9.9 ms of GEMMs on the LLaMA benchmark.
         return torch._scaled_mm(x_fp8, self.weight_fp8.t(), scale_a=scale, scale_b=self.weight_scale,
                                 out_dtype=self.out_dtype, use_fast_accum=x2d.is_cuda)
+
+
+class Fp8StaticLinear(Fp8DynamicLinear):
+    """W8A8 FP8 e4m3 with one weight scale and one static activation scale per layer, calibrated:
+    the largest |x| the layer saw during calibration / 448. Quantizing the input is then one
+    divide, clamp and cast with no reduction, which `torch.compile` fuses into the op producing
+    the input; inputs beyond the calibrated range saturate at +-448 (the e4m3 maximum)."""
+
+    def __init__(self, linear: nn.Linear, input_absmax: torch.Tensor):
+        super().__init__(linear, tensorwise=True)
+        scale = input_absmax.float().amax().clamp_min(SCALE_FLOOR) / FP8_MAX
+        self.register_buffer("input_scale", scale.reshape(1, 1).to(linear.weight.device))
+
+    def _quantize_input(self, x2d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return torch.div(x2d, self.input_scale).clamp_(-FP8_MAX, FP8_MAX).to(FP8), self.input_scale
 
 
 class Int4WeightOnlyLinear(_PackedLinear):
@@ -242,19 +265,14 @@ def int4_weight_only(model, selection, config):
                         f"int4 weight-only, asymmetric group {group}, tinygemm (torch._weight_int4pack_mm), bf16 activations")
 
 
-def _awq_rows(selection: Selection, config: QuantConfig) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
-    """(mean |x|, sampled rows) of every selected layer; UserError before any weight changes."""
+def _layer_stats(selection: Selection, config: QuantConfig, method: str, what: str, how: str,
+                 usable=lambda stats: True) -> dict[str, ChannelStats]:
+    """The calibration statistics of every selected layer; UserError before any weight changes."""
     layers = config.stats.layers if config.stats is not None else {}
-    found = {n: (layers[n].absmean, layers[n].samples) for n in selection.flat()
-             if n in layers and layers[n].samples is not None}
+    found = {n: layers[n] for n in selection.flat() if n in layers and usable(layers[n])}
     missing = [n for n in selection.flat() if n not in found]
     if missing:
-        raise UserError(
-            f"method 'awq' needs AWQ calibration statistics (mean |x| and sampled input rows) for {len(missing)} "
-            f"selected layers, e.g. {missing[0]}: collect them on the unquantized policy with "
-            "quant.calibration.observe(layers, sample_rows=128) and pass stats=... (the runner's calibrate "
-            "step does this for awq cells)"
-        )
+        raise UserError(f"method {method!r} needs {what} for {len(missing)} selected layers, e.g. {missing[0]}: {how}")
     return found
 
 
@@ -271,11 +289,14 @@ def awq(model, selection, config):
     grid = config.preset.weight
     if grid is None or config.preset.act_bits is not None:
         raise UserError(f"method 'awq' is weight-only (W<b>[G<g>]); preset {config.preset.name!r} does not match")
-    stats = _awq_rows(selection, config)
+    stats = _layer_stats(selection, config, "awq", "AWQ calibration statistics (mean |x| and sampled input rows)",
+                         "collect them on the unquantized policy with quant.calibration.observe(layers, "
+                         "sample_rows=128) and pass stats=... (the runner's calibrate step does this for awq cells)",
+                         usable=lambda layer: layer.samples is not None)
     fmt = f"awq-int{grid.bits}-" + (f"g{grid.group_size}" if grid.group_size else "channel")
     hooks, alphas, rows, error_ratios, kernel_layers = {}, [], [], [], 0
     for name, linear in selection.flat().items():
-        absmean, samples = stats[name]
+        absmean, samples = stats[name].absmean, stats[name].samples
         search = search_scales(linear.weight, absmean, samples, grid.bits, grid.group_size, grid.symmetric)
         with torch.no_grad():
             scaled = (linear.weight.float() * search.scales).to(linear.weight.dtype)
@@ -334,6 +355,19 @@ def fp8_tensorwise(model, selection, config):
                         "W8A8 FP8 e4m3 (one weight scale, one dynamic activation scale per call, torch._scaled_mm, fast accumulation)")
 
 
+def fp8_static(model, selection, config):
+    """FP8 W8A8 with static activation scales from the calibration statistics' per-channel absmax."""
+    _require(config, "fp8_static", 8, 8)
+    layers = _layer_stats(selection, config, "fp8_static", "calibration statistics (input absmax)",
+                          "observe them on the unquantized policy with quant.calibration.observe(layers) "
+                          "and pass stats=...")
+    result = _replace_all(model, selection, lambda n, m: Fp8StaticLinear(m, layers[n].absmax),
+                          "W8A8 FP8 e4m3 (one weight scale, one static calibrated activation scale per layer, "
+                          "torch._scaled_mm, fast accumulation)")
+    result.calibrated = set(result.hooks)
+    return result
+
+
 for _name, _fn in {"nf4": nf4, "int8": llm_int8, "int4wo": int4_weight_only, "awq": awq,
-                   "smoothquant": smoothquant, "fp8": fp8, "fp8_tensor": fp8_tensorwise}.items():
+                   "smoothquant": smoothquant, "fp8": fp8, "fp8_tensor": fp8_tensorwise, "fp8_static": fp8_static}.items():
     register_method(_name, _fn)

@@ -22,7 +22,7 @@ def download_checkpoint(model: str, variant: str, checkpoint: str | None, revisi
     """
     stamp = Path(stamp)
     info: dict[str, Any] = {"model": model, "variant": variant, "checkpoint": checkpoint, "revision": revision}
-    if variant == "demo":
+    if variant in ("demo", "random"):  # random weights: nothing to fetch
         info["path"] = None
     else:
         if not checkpoint or not revision:

