@@ -19,7 +19,8 @@ applied identically to every method:
 * compiled_graph: each decoder layer compiled by inductor (`nn.Module.compile`; the 32 identical
                   layers share one compiled graph, so the elementwise work between the matrix
                   products -- norms, rotary, residuals, per-token activation quantization -- is
-                  fused once), then the whole forward captured as one CUDA graph. The counting
+                  fused once), run with inductor's own CUDA graphs ("reduce-overhead"; on the
+                  CPU: `compiled`, without graphs). The counting
                   hooks are removed first: they proved in the eager run that every kernel layer
                   fired, change nothing, and their Python call counters would make dynamo
                   recompile per layer. `compile_s` is the first compiled call, inductor cache
