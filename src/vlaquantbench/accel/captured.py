@@ -6,8 +6,8 @@ input buffers on first use and afterwards only copies inputs in and replays it, 
 one launch instead of thousands. On other devices it runs the same static code eagerly.
 
 Make the sampler after quantization, or call `reset()` after installing, removing or changing
-hooks or weights: on first use it groups each Gemma layer's linears (`accel.linear_groups`, which
-copy the q/k/v and gate/up weights into one matrix each and read the hooks' transforms), and hooks
+hooks or weights: on first use it groups each SigLIP and Gemma layer's linears (`accel.linear_groups`,
+which copy the q/k/v and gate/up weights into one matrix each and read the hooks' transforms), and hooks
 are Python, so whatever they launch is recorded at capture. Capture is one warm-up chunk plus one
 recorded chunk, seconds at full size; the compiled elementwise kernels are kept across `reset()`.
 Hook call counters advance only during the warm-up and recorded chunks, which is enough to prove
@@ -45,7 +45,7 @@ from vlaquantbench.accel.fused_quant import fused_fake_quant
 # Quantization methods whose layers cannot run inside a CUDA graph, with the reason.
 UNCAPTURABLE_METHODS = {"int8": "bitsandbytes LLM.int8() synchronizes with the host on its outlier columns"}
 SDPA_ORDER = (SDPBackend.EFFICIENT_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBackend.CUDNN_ATTENTION,
-                    SDPBackend.MATH)
+              SDPBackend.MATH)
 
 
 @dataclass
