@@ -33,17 +33,17 @@ GOAL_S = 30.0
 
 
 def loop_bootstrap(a, b, draws=5000, seed=0):
-    """The two-stage bootstrap written draw by draw (the shape of a direct transcription)."""
+    """The two-stage bootstrap written draw by draw, call by call (the paper's procedure; same numbers)."""
     rng = np.random.default_rng(seed)
     tasks = sorted(a["task_id"].unique())
-    outcomes = [
-        {t: cell.loc[cell["task_id"] == t, "success"].to_numpy(dtype=float) for t in tasks} for cell in (a, b)
-    ]
+    groups = [[cell.loc[cell["task_id"] == t, "success"].to_numpy(dtype=float) for t in tasks] for cell in (a, b)]
     differences = []
     for _ in range(draws):
-        picked = rng.choice(tasks, size=len(tasks))
-        rates = [[rng.choice(cell[t], size=len(cell[t])).mean() for t in picked] for cell in outcomes]
-        differences.append(100.0 * np.mean(np.subtract(*rates)))
+        values = []
+        for pick in rng.integers(0, len(tasks), len(tasks)):
+            x, y = groups[0][pick], groups[1][pick]
+            values.append(x[rng.integers(0, len(x), len(x))].mean() - y[rng.integers(0, len(y), len(y))].mean())
+        differences.append(100.0 * np.mean(values))
     return np.percentile(differences, [2.5, 97.5])
 
 

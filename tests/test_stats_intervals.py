@@ -71,6 +71,35 @@ def test_bootstrap_clusters_by_task():
     assert task_clustered_bootstrap(ragged, reference).low == 100.0
 
 
+def literal_bootstrap(a, b, draws, rng):
+    """The paper's procedure call by call: per draw T task picks, then per picked task A's and B's episodes."""
+    tasks = sorted(a["task_id"].unique())
+    groups = [[cell.loc[cell["task_id"] == t, "success"].to_numpy(float) for t in tasks] for cell in (a, b)]
+    differences = []
+    for _ in range(draws):
+        values = []
+        for pick in rng.integers(0, len(tasks), len(tasks)):
+            x, y = groups[0][pick], groups[1][pick]
+            x, y = x[rng.integers(0, len(x), len(x))], y[rng.integers(0, len(y), len(y))]
+            values.append(x.mean() - y.mean())
+        differences.append(100 * np.mean(values))
+    return np.percentile(differences, [2.5, 97.5])
+
+
+@pytest.mark.parametrize("ragged", [False, True])
+def test_bootstrap_consumes_the_stream_as_the_literal_procedure(ragged):
+    """Batched draws equal the call-by-call procedure on a continued stream, for equal and unequal task sizes."""
+    a = read_cell(SPATIAL / "pi05" / "ablate-W4A4-ah-onlyadarms.jsonl").episodes
+    b = read_cell(SPATIAL / "xvla" / "rtn-BASELINE-e2e.jsonl").episodes  # 19 episodes per task
+    if ragged:
+        a = a[~((a["task_id"] == 3) & (a["episode"] >= 15))]  # task 3 keeps 15 episodes
+    ours, theirs = np.random.default_rng(7), np.random.default_rng(7)
+    for _ in range(2):  # the second contrast continues both streams
+        got = task_clustered_bootstrap(a, b, draws=300, rng=ours)
+        assert [got.low, got.high] == literal_bootstrap(a, b, 300, theirs).tolist()
+    assert ours.integers(0, 2**62) == theirs.integers(0, 2**62)  # both streams at the same position
+
+
 def test_bootstrap_needs_the_same_tasks():
     with pytest.raises(UserError, match="same tasks"):
         task_clustered_bootstrap(cell([[1]] * 10), cell([[1]] * 9))

@@ -11,8 +11,12 @@ values:                           # the columns after the row label
   - {stat: delta, cell: cell, minus: baseline}
 rows:
   - {label: attention, cell: libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn}
+bootstrap: {draws: 5000, seed: 0, stream: shared}   # optional; for `bootstrap` columns
 ```
 A row names its cells under its own keys (they override `cells`); a null cell prints `--`.
+`bootstrap.stream`: `per_contrast` (default) gives every contrast its own `default_rng(seed)`;
+`shared` draws all contrasts from one `default_rng(seed)` in row order, as the paper's tab:clustered
+does, so there a row's interval depends on the rows above it.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from typing import Any
 import yaml
 
 from vlaquantbench.errors import UserError
+from vlaquantbench.stats import BOOTSTRAP_DRAWS, BOOTSTRAP_SEED
 
 STATS = {
     "rate": ("cell",),  # success rate, one decimal
@@ -33,6 +38,27 @@ STATS = {
     "bootstrap": ("cell", "minus"),  # task-clustered bootstrap interval of A - B
 }
 ENVIRONMENTS = ("tabular", "longtable")
+STREAMS = ("per_contrast", "shared")
+
+
+@dataclass(frozen=True)
+class BootstrapSpec:
+    draws: int = BOOTSTRAP_DRAWS
+    seed: int = BOOTSTRAP_SEED
+    stream: str = "per_contrast"
+
+    @classmethod
+    def from_dict(cls, where: str, raw: dict[str, Any] | None) -> "BootstrapSpec":
+        raw = raw or {}
+        unknown = sorted(set(raw) - {"draws", "seed", "stream"})
+        if unknown:
+            raise UserError(f"{where}: bootstrap has unknown key(s) {unknown}; allowed: draws, seed, stream")
+        spec = cls(**raw)
+        if spec.stream not in STREAMS:
+            raise UserError(f"{where}: bootstrap.stream must be one of {STREAMS}, got {spec.stream!r}")
+        if not isinstance(spec.draws, int) or spec.draws < 1:
+            raise UserError(f"{where}: bootstrap.draws must be a positive integer, got {spec.draws!r}")
+        return spec
 
 
 @dataclass(frozen=True)
@@ -51,6 +77,7 @@ class TableDefinition:
     rows: list[dict[str, Any]]
     caption: str
     environment: str = "tabular"
+    bootstrap: BootstrapSpec = BootstrapSpec()
 
     @classmethod
     def from_dict(cls, name: str, raw: dict[str, Any]) -> "TableDefinition":
@@ -81,7 +108,8 @@ class TableDefinition:
                     if key not in merged:
                         raise UserError(f"{where}: rows[{index}] ({row['label']}) names no cell {key!r}")
             rows.append(merged)
-        return cls(name, raw["align"], raw["header"], values, rows, raw["caption"], environment)
+        bootstrap = BootstrapSpec.from_dict(where, raw.get("bootstrap"))
+        return cls(name, raw["align"], raw["header"], values, rows, raw["caption"], environment, bootstrap)
 
     def refs(self) -> list[str]:
         """Every cell reference the table reads, sorted: the workflow's inputs for this table."""

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
-from typing import Mapping
+from typing import Callable, Mapping
+
+import numpy as np
 
 from vlaquantbench.records import Cell, read_cell
 from vlaquantbench.stats import task_clustered_bootstrap, wilson_interval
-from vlaquantbench.tables.definition import ColumnSpec, TableDefinition
+from vlaquantbench.tables.definition import BootstrapSpec, ColumnSpec, TableDefinition
 
 MISSING = "--"
 
@@ -21,7 +24,7 @@ def _rate(cell: Cell) -> float:
     return 100.0 * cell.n_successes / cell.n_episodes
 
 
-def format_value(spec: ColumnSpec, cell: Cell | None, minus: Cell | None) -> str:
+def format_value(spec: ColumnSpec, cell: Cell | None, minus: Cell | None, bootstrap: Callable) -> str:
     if cell is None or (spec.minus and minus is None):
         return MISSING
     if spec.stat == "rate":
@@ -33,16 +36,24 @@ def format_value(spec: ColumnSpec, cell: Cell | None, minus: Cell | None) -> str
         return str(cell.quantized_layers)
     if spec.stat == "delta":
         return _signed(_rate(cell) - _rate(minus))
-    contrast = task_clustered_bootstrap(cell.episodes, minus.episodes)
+    contrast = bootstrap(cell.episodes, minus.episodes)
     return f"[{_signed(contrast.low)}, {_signed(contrast.high)}]"
 
 
+def bootstrapper(spec: BootstrapSpec) -> Callable:
+    """The table's contrast bootstrap: one generator for all rows (`shared`, consumed in row order) or one per contrast."""
+    shared = np.random.default_rng(spec.seed) if spec.stream == "shared" else None
+    return partial(task_clustered_bootstrap, draws=spec.draws, seed=spec.seed, rng=shared)
+
+
 def table_rows(definition: TableDefinition, cells: Mapping[str, Cell]) -> list[list[str]]:
-    """Each row as [label, value, ...]: the table's numbers before LaTeX layout."""
+    """Each row as [label, value, ...]: the table's numbers before LaTeX layout (rows in order: a shared
+    bootstrap stream is consumed top to bottom)."""
+    bootstrap = bootstrapper(definition.bootstrap)
     rows = []
     for row in definition.rows:
         values = [
-            format_value(spec, cells.get(row[spec.cell]), cells.get(row[spec.minus]) if spec.minus else None)
+            format_value(spec, cells.get(row[spec.cell]), cells.get(row[spec.minus]) if spec.minus else None, bootstrap)
             for spec in definition.values
         ]
         rows.append([row["label"], *values])
