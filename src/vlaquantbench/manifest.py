@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
+from vlaquantbench.atomic import atomic_write
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import find_cells, read_cell, record_files
 
@@ -59,9 +60,7 @@ def write_manifest(records_dir: str | Path, output: str | Path, cells: Iterable[
 
 
 def _write_rows(rows: list[ManifestRow], output: str | Path) -> Path:
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    with open(output, "w", newline="") as handle:
+    with atomic_write(output, newline="") as handle:
         writer = csv.writer(handle, delimiter="\t", lineterminator="\n")
         writer.writerow(COLUMNS)
         for row in rows:

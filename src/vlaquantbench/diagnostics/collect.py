@@ -16,6 +16,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from vlaquantbench.atomic import write_text
 from vlaquantbench.diagnostics.measures import MEASURES, layer_measures
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
@@ -101,6 +102,5 @@ def collect(recording: str | Path, model: str, scope: str, preset: str, output: 
         },
         "layers": observer.result(),
     }
-    Path(output).parent.mkdir(parents=True, exist_ok=True)
-    Path(output).write_text(json.dumps(result, indent=1))
+    write_text(output, json.dumps(result, indent=1))
     return result

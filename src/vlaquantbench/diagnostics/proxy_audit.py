@@ -9,6 +9,7 @@ from pathlib import Path
 import pandas as pd
 from scipy.stats import spearmanr
 
+from vlaquantbench.atomic import atomic_write, write_text
 from vlaquantbench.diagnostics.files import DIAGNOSTICS, Diagnostics
 from vlaquantbench.errors import UserError
 from vlaquantbench.replay.study import load_definition, success_rates
@@ -99,8 +100,7 @@ def write_proxy_audit(
     rhos = correlations(scopes)
     sources = {m: Diagnostics.read(Path(diagnostics_dir) / f"{s['diagnostics']}.json").header["provenance"]
                for m, s in spec["models"].items()}
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    output.write_text(render_proxy_audit(rhos, spec, sources))
-    scopes.to_csv(output.with_suffix(".scopes.csv"), index=False)
+    output = write_text(output, render_proxy_audit(rhos, spec, sources))
+    with atomic_write(output.with_suffix(".scopes.csv")) as handle:
+        scopes.to_csv(handle, index=False)
     return rhos

@@ -12,6 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import yaml  # noqa: E402
 
+from vlaquantbench.atomic import atomic_write  # noqa: E402
 from vlaquantbench.errors import UserError  # noqa: E402
 from vlaquantbench.records import Cell, read_cell  # noqa: E402
 from vlaquantbench.stats import wilson_interval  # noqa: E402
@@ -81,8 +82,7 @@ def plot_scope_recovery(figure: ScopeRecoveryFigure, cell_paths: Mapping[str, st
         axis.axhline(baseline, ls="--", color="gray", lw=1)
         axis.set_ylim(-5, 105)
         axis.set_ylabel("success rate (%)")
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(output, metadata={"CreationDate": None})
+    with atomic_write(output, "wb") as handle:
+        fig.savefig(handle, format="pdf", metadata={"CreationDate": None})
     plt.close(fig)
     return output

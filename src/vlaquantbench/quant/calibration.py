@@ -46,6 +46,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from vlaquantbench.atomic import atomic_write
 from vlaquantbench.errors import UserError
 
 FLOOR = 1e-5
@@ -226,17 +227,14 @@ def smoothing_factors(act_absmax: torch.Tensor, weight: torch.Tensor, alpha: flo
 
 def save_stats(stats: CalibrationStats, path: str | Path) -> Path:
     """Write statistics atomically (temp file + rename) so a killed run leaves no partial cache."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "key": stats.key,
         "keyed_fields": stats.keyed_fields,
         "layers": {n: _layer_payload(s) for n, s in stats.layers.items()},
     }
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)
-    return path
+    with atomic_write(path, "wb") as handle:
+        torch.save(payload, handle)
+    return Path(path)
 
 
 def _layer_payload(stats: ChannelStats) -> dict:

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
+from vlaquantbench.atomic import atomic_write, write_text
 from vlaquantbench.errors import UserError
 
 HEADER_FILE = "header.json"
@@ -111,18 +111,14 @@ def read_cell(path: str | Path) -> Cell:
 def write_cell(folder: str | Path, header: dict[str, Any], episodes: pd.DataFrame | list[dict[str, Any]]) -> Cell:
     """Write a cell folder atomically: each file goes to a temporary name first, then is renamed.
 
-    The episodes file is renamed last, so its presence (the file the workflow waits for) implies a
+    The episodes file is written last, so its presence (the file the workflow waits for) implies a
     complete header next to it.
     """
     folder = Path(folder)
     frame = normalize_episodes(episodes, folder / EPISODES_FILE)
-    folder.mkdir(parents=True, exist_ok=True)
-    header_tmp = folder / f".{HEADER_FILE}.tmp"
-    episodes_tmp = folder / f".{EPISODES_FILE}.tmp"
-    header_tmp.write_text(json.dumps(header, indent=2, sort_keys=True) + "\n")
-    frame.to_parquet(episodes_tmp, index=False)
-    os.replace(header_tmp, folder / HEADER_FILE)
-    os.replace(episodes_tmp, folder / EPISODES_FILE)
+    write_text(folder / HEADER_FILE, json.dumps(header, indent=2, sort_keys=True) + "\n")
+    with atomic_write(folder / EPISODES_FILE, "wb") as handle:
+        frame.to_parquet(handle, index=False)
     return Cell(header=header, episodes=frame, path=folder)
 
 

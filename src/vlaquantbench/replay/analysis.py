@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vlaquantbench.atomic import write_text
 from vlaquantbench.errors import UserError
 from vlaquantbench.replay import composition as C
 from vlaquantbench.replay.run import ReplayRun
@@ -118,6 +119,5 @@ def analyze_files(summaries: list[str | Path], output: str | Path, study: dict |
     """Snakemake entry: replay summaries (`<config>.json` beside `<config>.npz`) -> analysis.json."""
     roles = Roles.from_study(study) if study else Roles()
     result = analyze([ReplayRun.load(p) for p in summaries], roles)
-    Path(output).parent.mkdir(parents=True, exist_ok=True)
-    Path(output).write_text(json.dumps(result, indent=1))
+    write_text(output, json.dumps(result, indent=1))
     return result

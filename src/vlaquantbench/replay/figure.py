@@ -12,6 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from vlaquantbench.atomic import atomic_write  # noqa: E402
 from vlaquantbench.replay.study import StudyResults, load_study, with_formats  # noqa: E402
 
 
@@ -43,9 +44,8 @@ def plot_formats(results: StudyResults, output: str | Path) -> Path:
     ax_b.set_title("(b) norm ratio, median and IQR", fontsize=9)
 
     fig.tight_layout()
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(output)
+    with atomic_write(output, "wb") as handle:
+        fig.savefig(handle, format="pdf")
     plt.close(fig)
     return output
 

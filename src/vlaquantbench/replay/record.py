@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from vlaquantbench.atomic import write_text
 from vlaquantbench.envs.libero import EpisodeSpec, LiberoSuite, LiberoVectorEnv, episode_seed, simulator_versions
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
@@ -139,7 +140,7 @@ def record(settings: RecordSettings, out_dir: str | Path) -> dict:
         "torch_threads": torch.get_num_threads(), "code_revision": code_revision(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "records": records,
     }
-    (out_dir / "records.json").write_text(json.dumps(meta, indent=1))
+    write_text(out_dir / "records.json", json.dumps(meta, indent=1))
     return meta
 
 

@@ -11,13 +11,12 @@ Arrays per trajectory (record):
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from vlaquantbench.atomic import atomic_write, write_text
 from vlaquantbench.errors import UserError
 
 ARRAYS = ("chunks", "actions", "flow_states", "downproj")
@@ -43,8 +42,9 @@ class ReplayRun:
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         flat = {f"{rec}/{k}": v for rec, arrays in self.arrays.items() for k, v in arrays.items()}
-        _atomic(directory / f"{self.name}.npz", lambda f: np.savez_compressed(f, **flat))
-        _atomic(directory / f"{self.name}.json", lambda f: f.write(json.dumps(self.summary, indent=1).encode()))
+        with atomic_write(directory / f"{self.name}.npz", "wb") as handle:
+            np.savez_compressed(handle, **flat)
+        write_text(directory / f"{self.name}.json", json.dumps(self.summary, indent=1))
         return directory / f"{self.name}.json"
 
     @classmethod
@@ -65,12 +65,3 @@ class ReplayRun:
         return cls(summary, arrays)
 
 
-def _atomic(path: Path, write) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from vlaquantbench.atomic import write_text
 from vlaquantbench.replay.study import StudyResults, load_study, success_rates, with_formats
 
 
@@ -114,6 +115,5 @@ def write_replay_table(
         "bias": lambda: bias_table(results),
     }
     text = renderers[table]()
-    Path(output).parent.mkdir(parents=True, exist_ok=True)
-    Path(output).write_text(text)
+    write_text(output, text)
     return text

@@ -11,6 +11,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from vlaquantbench.atomic import write_text
 from vlaquantbench.errors import UserError
 
 
@@ -42,8 +43,5 @@ def download_checkpoint(model: str, variant: str, checkpoint: str | None, revisi
                 "download it elsewhere and copy it to " + str(local_dir) + ")"
             ) from None
         info["path"] = str(Path(path).resolve())
-    stamp.parent.mkdir(parents=True, exist_ok=True)
-    tmp = stamp.with_suffix(".tmp")
-    tmp.write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
-    tmp.replace(stamp)
+    write_text(stamp, json.dumps(info, indent=2, sort_keys=True) + "\n")
     return info

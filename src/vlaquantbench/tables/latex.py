@@ -8,6 +8,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
+from vlaquantbench.atomic import write_text
 from vlaquantbench.records import Cell, read_cell
 from vlaquantbench.stats import task_clustered_bootstrap, wilson_interval
 from vlaquantbench.tables.definition import BootstrapSpec, ColumnSpec, TableDefinition
@@ -94,7 +95,4 @@ def render_latex(definition: TableDefinition, cells: Mapping[str, Cell]) -> str:
 def write_table(definition: TableDefinition, cell_paths: Mapping[str, str | Path], output: str | Path) -> Path:
     """Read the table's cells (reference -> record path), render, and write `output`."""
     cells = {ref: read_cell(path) for ref, path in cell_paths.items()}
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    output.write_text(render_latex(definition, cells))
-    return output
+    return write_text(output, render_latex(definition, cells))

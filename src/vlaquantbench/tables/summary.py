@@ -7,6 +7,7 @@ from typing import Mapping
 
 import pandas as pd
 
+from vlaquantbench.atomic import atomic_write
 from vlaquantbench.records import Cell, read_cell
 from vlaquantbench.stats import wilson_interval
 
@@ -50,7 +51,6 @@ def summarize(cells: Mapping[str, Cell]) -> pd.DataFrame:
 def write_summary(cell_paths: Mapping[str, str | Path], output: str | Path) -> Path:
     """Read every cell (reference -> record path) and write the summary CSV with CRLF line ends, as the authors do."""
     frame = summarize({ref: read_cell(path) for ref, path in cell_paths.items()})
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    frame.to_csv(output, index=False, lineterminator="\r\n")
-    return output
+    with atomic_write(output, newline="") as handle:
+        frame.to_csv(handle, index=False, lineterminator="\r\n")
+    return Path(output)

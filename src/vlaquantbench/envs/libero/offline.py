@@ -23,6 +23,7 @@ from types import ModuleType
 
 import yaml
 
+from vlaquantbench.atomic import write_text
 from vlaquantbench.errors import UserError
 
 ASSETS_ENV = "VQB_LIBERO_ASSETS"
@@ -104,10 +105,7 @@ def _libero_package_root() -> Path:
 def _write_if_changed(path: Path, text: str) -> None:
     if path.exists() and path.read_text() == text:
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, delete=False, suffix=".tmp") as tmp:
-        tmp.write(text)
-    os.replace(tmp.name, path)
+    write_text(path, text)
 
 
 @functools.cache
