@@ -4,7 +4,7 @@ W4A8 / W4A4 end-to-end fake quantization, measured side by side in one process.
 Model: lerobot 0.6.1 `PI05Pytorch` at full size, random weights, bf16 (lerobot keeps the SigLIP
 tower, projector and norms in float32), 3 cameras at 224 px, 200 prompt tokens, 10 flow steps.
 Quantization: `vlaquantbench.quant.quantize_` with scope e2e (all 456 selectable linears); the
-captured form swaps its hooks' transforms for the fused kernel (`accel.fused_quant`).
+captured form swaps its hooks' transforms for the fused kernel (`quant.fused_kernel`).
 Timing: CUDA-synchronized wall clock per chunk, warm-up discarded, median of the repeats.
 
     python benchmarks/gpu_policy_inference.py --out benchmarks/results/gpu_policy_inference.json
@@ -20,8 +20,8 @@ import time
 
 import torch
 
-from vlaquantbench.accel import CapturedSampler
-from vlaquantbench.accel.fused_quant import fuse_activation_hooks
+from vlaquantbench.models.pi05.fast import CapturedSampler
+from vlaquantbench.quant.fused_kernel import fuse_activation_hooks
 from vlaquantbench.models import get_model_spec
 from vlaquantbench.quant import QuantConfig, quantize_, select_layers
 
@@ -70,7 +70,7 @@ def kernel_profile(fn, top_n: int = 25) -> dict:
 
 def fused_kernel_check(device) -> dict:
     """Fraction of elements where the fused kernel equals the reference transform (expected: all)."""
-    from vlaquantbench.accel.fused_quant import fused_fake_quant
+    from vlaquantbench.quant.fused_kernel import fused_fake_quant
     from vlaquantbench.quant.hooks import InputTransform
 
     out = {}
@@ -89,12 +89,12 @@ def fused_kernel_check(device) -> dict:
 
 
 def fused_norm_quant_check(device) -> dict:
-    """Fraction of elements where inductor's quantization fused into a norm (`pi05_static`, the
+    """Fraction of elements where inductor's quantization fused into a norm (`models.pi05.fast.static_sampling`, the
     captured form's producers) equals `quant.grid` applied eagerly to the same input: the bare
     quantization compiled with the same options; the AdaRMS norm with its quantization fused against
     the compiled norm alone followed by eager quantization (the hooks' order) and against the eager
     norm (whose float32 reduction order differs, which moves row scales)."""
-    from vlaquantbench.accel import pi05_static
+    from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
     from vlaquantbench.quant.grid import fake_quant_activation
 
     ops = pi05_static.compiled_ops()
@@ -222,7 +222,7 @@ def main() -> None:
             rel = ((captured.float() - eager.float()).norm() / eager.float().norm()).item()
             cell["captured_vs_eager_rel_l2_b1"] = rel
             print(f"[{preset}] captured vs eager actions, relative L2: {rel:.2e}", flush=True)
-            from vlaquantbench.accel import pi05_static
+            from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
 
             with sampler._kernel_choices():
                 results["profiles"][preset]["captured_form_without_graph"] = kernel_profile(

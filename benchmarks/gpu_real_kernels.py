@@ -5,7 +5,7 @@ Backbones (random weights, bf16, CUDA, batch 1):
   MLP), one parallel forward over 600 tokens (two 256-patch vision streams, prompt and the action
   chunk's placeholder tokens), the OFT way of decoding a chunk; all 224 linears quantized.
 * pi0.5 (`PI05Pytorch`, lerobot 0.6.1): a whole chunk through the captured sampler
-  (`vlaquantbench.accel`), LLM scope (126 linears) quantized.
+  (`vlaquantbench.models.pi05.fast`), LLM scope (126 linears) quantized.
 
 Per method, in its own process, a fresh model is built, quantized through `quantize_` (methods of
 `vlaquantbench.quant.kernels`), the CUDA allocator's peak is reset, and each form of the forward
@@ -58,7 +58,7 @@ from gpu_policy_inference import chunk_inputs, kernel_profile  # sibling script
 from torch import nn
 from torch._dynamo.utils import counters
 
-from vlaquantbench.accel.captured import capture_graph
+from vlaquantbench.models.pi05.fast.captured import capture_graph
 from vlaquantbench.models.registry import Component
 from vlaquantbench.quant import QuantConfig, quantize_
 from vlaquantbench.quant.calibration import observe
@@ -115,7 +115,7 @@ def llama7b(device: torch.device, tiny: bool) -> Backbone:
 
 
 def pi05(device: torch.device, tiny: bool) -> Backbone:
-    from vlaquantbench.accel import CapturedSampler
+    from vlaquantbench.models.pi05.fast import CapturedSampler
     from vlaquantbench.models import get_model_spec
 
     spec = get_model_spec("pi05")

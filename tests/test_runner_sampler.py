@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 import torch
-from test_accel_pi05 import REL_TOL
+from test_pi05_fast import REL_TOL
 from test_runner_adapter import observations
 
 from vlaquantbench.cells import cell_config, config_hash

@@ -107,13 +107,13 @@ def resolve_sampler(cfg: dict[str, Any]) -> str:
     """A cell's `runner.sampler` made concrete: "captured" or "eager".
 
     `auto` is the fastest path that computes the cell: the captured sampler (one CUDA graph per
-    chunk, `accel.CapturedSampler`; benchmarks/README.md) on CUDA where the model and method allow
+    chunk, `models.pi05.fast.CapturedSampler`; benchmarks/README.md) on CUDA where the model and method allow
     it, else eager. On the CPU `auto` stays eager: there the eager path with `BatchInvariantLinears`
     is what makes an episode's actions bit-identical at batch 1 and batch 4 (the captured code
     computes per-chunk constants for all batch rows and steps in one product). UserError naming
     `study.runner.sampler` for an unknown or impossible choice, before the policy loads.
     """
-    from vlaquantbench.accel.captured import UNCAPTURABLE_METHODS
+    from vlaquantbench.models.pi05.fast.captured import UNCAPTURABLE_METHODS
 
     choice = cfg["runner"]["sampler"]
     if choice not in SAMPLERS:

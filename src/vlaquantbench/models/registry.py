@@ -17,8 +17,9 @@ import torch
 from torch import nn
 
 from vlaquantbench.errors import UserError
+from vlaquantbench.quant.scope import COMPONENT_NAMES
 
-COMPONENT_NAMES = ("ve", "mp", "llm", "ah")
+__all__ = ["COMPONENT_NAMES", "Component", "ModelSpec", "get_model_spec", "model_names", "seeded_build"]
 
 _SPEC_MODULES = {
     "pi05": "vlaquantbench.models.pi05.components",

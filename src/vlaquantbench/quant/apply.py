@@ -21,12 +21,11 @@ import torch
 from torch import nn
 
 from vlaquantbench.errors import UserError
-from vlaquantbench.models.registry import Component
 from vlaquantbench.quant.calibration import FLOOR, CalibrationSettings, CalibrationStats, smoothing_factors
 from vlaquantbench.quant.grid import fake_quant_weight
 from vlaquantbench.quant.hooks import CountingHook, InputTransform
 from vlaquantbench.quant.presets import Preset, parse_preset
-from vlaquantbench.quant.scope import Selection, select_layers
+from vlaquantbench.quant.scope import LayerOwner, Selection, select_layers
 
 
 @dataclass(frozen=True)
@@ -147,7 +146,7 @@ class QuantReport:
         }
 
 
-def quantize_(model: nn.Module, config: QuantConfig, components: Mapping[str, Component]) -> QuantReport:
+def quantize_(model: nn.Module, config: QuantConfig, components: Mapping[str, LayerOwner]) -> QuantReport:
     """Quantize the layers of `model` that `config` selects and return the report."""
     if config.method not in _METHODS:
         raise UserError(f"unknown quantization method {config.method!r}; registered: {', '.join(registered_methods())}")

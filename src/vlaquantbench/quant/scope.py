@@ -11,11 +11,22 @@ from __future__ import annotations
 import fnmatch
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 from torch import nn
 
 from vlaquantbench.errors import UserError
-from vlaquantbench.models.registry import COMPONENT_NAMES, Component
+
+# The scope grammar's components, in canonical order: vision encoder, multimodal projector,
+# language model, action head.
+COMPONENT_NAMES = ("ve", "mp", "llm", "ah")
+
+
+class LayerOwner(Protocol):
+    """What quantization needs of a component scope: which qualified layer names it owns (each
+    model declares its own, `vlaquantbench.models.registry.Component`)."""
+
+    def owns(self, qualified_name: str) -> bool: ...
 
 
 @dataclass(frozen=True)
@@ -37,7 +48,7 @@ class Selection:
         }
 
 
-def scope_components(scope: str, components: Mapping[str, Component]) -> list[str]:
+def scope_components(scope: str, components: Mapping[str, LayerOwner]) -> list[str]:
     """Components named by a scope: one of `ve|mp|llm|ah`, `e2e` (all), or an underscore join
     such as `ve_mp_llm`. Components the model lacks (X-VLA has no MP) are dropped from `e2e`."""
     if scope == "e2e":
@@ -49,7 +60,7 @@ def scope_components(scope: str, components: Mapping[str, Component]) -> list[st
     return [c for c in COMPONENT_NAMES if c in names]
 
 
-def eligible_linears(model: nn.Module, components: Mapping[str, Component]) -> dict[str, dict[str, nn.Linear]]:
+def eligible_linears(model: nn.Module, components: Mapping[str, LayerOwner]) -> dict[str, dict[str, nn.Linear]]:
     """Every quantizable linear layer of `model`, grouped by the component that owns it."""
     grouped: dict[str, dict[str, nn.Linear]] = {c: {} for c in components}
     for name, module in model.named_modules():
@@ -65,7 +76,7 @@ def eligible_linears(model: nn.Module, components: Mapping[str, Component]) -> d
 
 def select_layers(
     model: nn.Module,
-    components: Mapping[str, Component],
+    components: Mapping[str, LayerOwner],
     scope: str,
     only: Sequence[str] | None = None,
     exclude: Sequence[str] | None = None,

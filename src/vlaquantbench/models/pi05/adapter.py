@@ -23,11 +23,13 @@ class Pi05Adapter(PiFamilyAdapter):
     def prepare_inference(self, report) -> dict:
         if self.config.sampler != "captured":
             return super().prepare_inference(report)
-        from vlaquantbench.accel import CapturedSampler, fuse_activation_hooks, fused_quant
+        from vlaquantbench.models.pi05.fast import CapturedSampler
+        from vlaquantbench.quant import fused_kernel
+        from vlaquantbench.quant.fused_kernel import fuse_activation_hooks
 
         # Fused per-token quantization is bit-identical to the hooks' own on CUDA; elsewhere it
         # would fall back to them, so it is only swapped in there.
-        fused = (report is not None and self._device.type == "cuda" and fused_quant.triton is not None
+        fused = (report is not None and self._device.type == "cuda" and fused_kernel.triton is not None
                  and fuse_activation_hooks(report) > 0)
         # Graphs are captured on first use, so after the hooks are in place.
         self._captured = CapturedSampler(self.model, num_steps=self.config.flow_steps)

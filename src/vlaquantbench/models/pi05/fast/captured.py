@@ -1,12 +1,12 @@
 """Captured pi0.5 inference: the whole chunk (prefix pass + every denoising step) as one CUDA graph.
 
 `CapturedSampler(model, num_steps)` is called like `PI05Pytorch.sample_actions` with explicit
-noise. On CUDA it captures, per batch size, one graph of `pi05_static.sample_actions` into static
+noise. On CUDA it captures, per batch size, one graph of `static_sampling.sample_actions` into static
 input buffers on first use and afterwards only copies inputs in and replays it, so a chunk costs
 one launch instead of thousands. On other devices it runs the same static code eagerly.
 
 Make the sampler after quantization, or call `reset()` after installing, removing or changing
-hooks or weights: on first use it groups each SigLIP and Gemma layer's linears (`accel.linear_groups`,
+hooks or weights: on first use it groups each SigLIP and Gemma layer's linears (`linear_groups`,
 which copy the q/k/v and gate/up weights into one matrix each and read the hooks' transforms), and hooks
 are Python, so whatever they launch is recorded at capture. Capture is one warm-up chunk plus one
 recorded chunk, seconds at full size; the compiled elementwise kernels are kept across `reset()`.
@@ -19,7 +19,7 @@ for) every batch size a closed-loop runner meets as its episodes finish at diffe
 do not interact, so the padding changes nothing in the real rows of that graph.
 
 Attention: the VLM prefix's 8 query heads share one KV head and are folded into one batched
-product by default (`pi05_static._attention`); `prefix_sdpa=True` runs SDPA there instead, with
+product by default (`static_sampling._attention`); `prefix_sdpa=True` runs SDPA there instead, with
 `attention_backends` (a list of `torch.nn.attention.SDPBackend`) ordering the kernels tried, which
 also applies to the vision tower's SDPA. The defaults are the fastest in the benchmark on an H100
 (`kernel_choice_sweep_b1_ms`), with the other kernels kept as fallbacks.
@@ -39,8 +39,9 @@ import torch
 from torch import nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from vlaquantbench.accel import fused_quant, pi05_static
-from vlaquantbench.accel.fused_quant import fused_fake_quant
+from vlaquantbench.models.pi05.fast import static_sampling
+from vlaquantbench.quant import fused_kernel
+from vlaquantbench.quant.fused_kernel import fused_fake_quant
 
 # Quantization methods whose layers cannot run inside a CUDA graph, with the reason.
 UNCAPTURABLE_METHODS = {"int8": "bitsandbytes LLM.int8() synchronizes with the host on its outlier columns"}
@@ -68,30 +69,30 @@ class CapturedSampler:
         self.tf32 = tf32
         self.attention_backends = list(attention_backends) if attention_backends else None
         self.prefix_sdpa = prefix_sdpa
-        self.times = pi05_static.flow_times(num_steps, device)
+        self.times = static_sampling.flow_times(num_steps, device)
         # Inductor fuses the elementwise work between the matrix products, op by op (compiling the
         # whole loop took over three minutes on an H100); the graph is then captured around the
         # compiled kernels as around eager ones.
         fuse = self.use_graphs if fuse_elementwise is None else fuse_elementwise
-        self.ops = pi05_static.compiled_ops() if fuse else pi05_static.EAGER_OPS
+        self.ops = static_sampling.compiled_ops() if fuse else static_sampling.EAGER_OPS
         self._graphs: dict[tuple, dict[int, _Graph]] = {}  # input shapes past the batch -> batch -> graph
-        self._groups: pi05_static.ModelGroups | None = None
+        self._groups: static_sampling.ModelGroups | None = None
 
     def reset(self) -> None:
         """Drop every captured graph and the linear groups (after changing hooks or weights)."""
         self._graphs.clear()
         self._groups = None
 
-    def _model_groups(self) -> pi05_static.ModelGroups:
+    def _model_groups(self) -> static_sampling.ModelGroups:
         if self._groups is None:
-            quantize = fused_fake_quant if self.use_graphs and fused_quant.triton is not None else None
-            self._groups = pi05_static.ModelGroups.of(self.model, quantize)
+            quantize = fused_fake_quant if self.use_graphs and fused_kernel.triton is not None else None
+            self._groups = static_sampling.ModelGroups.of(self.model, quantize)
         return self._groups
 
     def __call__(self, images: Sequence[torch.Tensor], img_masks: Sequence[torch.Tensor], tokens, masks, noise):
         groups = self._model_groups()
         if not self.use_graphs:
-            return pi05_static.sample_actions(self.model, images, img_masks, tokens, masks, noise, self.times, self.ops,
+            return static_sampling.sample_actions(self.model, images, img_masks, tokens, masks, noise, self.times, self.ops,
                                               groups, self.prefix_sdpa)
         batch = noise.shape[0]
         by_batch = self._graphs.setdefault(tuple(tuple(t.shape[1:]) for t in (*images, tokens, noise)), {})
@@ -130,7 +131,7 @@ class CapturedSampler:
 
         with self._kernel_choices():
             graph, output = capture_graph(
-                lambda: pi05_static.sample_actions(self.model, *inputs, self.times, self.ops, groups,
+                lambda: static_sampling.sample_actions(self.model, *inputs, self.times, self.ops, groups,
                                                    self.prefix_sdpa))
         return _Graph(graph, inputs, output)
 

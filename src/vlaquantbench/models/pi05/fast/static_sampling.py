@@ -18,7 +18,7 @@ Mirrors lerobot 0.6.1 `PI05Pytorch.sample_actions` (prefix pass that fills the K
   lerobot's `PiGemmaRMSNorm`), so a compiler can fuse it;
 * all cameras pass the vision tower as one batch, its encoder layers written out like the Gemma
   ones (LayerNorm and residual arithmetic as ops, q/k/v as one group);
-* each SigLIP and Gemma layer's linears run as `accel.linear_groups` groups (q/k/v as one
+* each SigLIP and Gemma layer's linears run as `linear_groups` groups (q/k/v as one
   product, gate/up as one), and where a group's hooks only quantize per token, that quantization
   is done by the op that produces the group's input (the norm, the GELU, the head merge), so it
   fuses into that kernel.
@@ -26,7 +26,7 @@ Mirrors lerobot 0.6.1 `PI05Pytorch.sample_actions` (prefix pass that fills the K
 Layers a group cannot fuse (calibrated or wrapped transforms, packed real-kernel layers) and the
 layers outside the groups (projector, action and time projections, AdaRMS modulations) are called
 as modules, so their hooks run as installed (and a captured graph records what they launch);
-every hook counts its calls either way. `tests/test_accel_pi05.py` checks the result against
+every hook counts its calls either way. `tests/test_pi05_fast.py` checks the result against
 lerobot's own `sample_actions` on the demo model, with and without quantization.
 """
 
@@ -42,7 +42,7 @@ from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 from torch import nn
 from transformers.models.gemma.modeling_gemma import apply_rotary_pos_emb
 
-from vlaquantbench.accel.linear_groups import LinearGroup
+from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
 from vlaquantbench.quant.grid import fake_quant_activation
 
 
@@ -191,7 +191,7 @@ def compiled_ops() -> ElementwiseOps:
 
 @dataclass
 class LayerGroups:
-    """A transformer layer's linears grouped by shared input (see `accel.linear_groups`): q/k/v,
+    """A transformer layer's linears grouped by shared input (see `linear_groups`): q/k/v,
     the attention output, the MLP's input projections (Gemma gate/up, SigLIP fc1) and its output."""
 
     qkv: LinearGroup

@@ -34,7 +34,7 @@ _UNSET = object()
 
 def _plain_act_bits(transform) -> int | None | object:
     """The bit width of a transform that only quantizes per token (None: identity); `_UNSET` for
-    anything else. `FusedInputTransform` (accel.fused_quant) exposes its reference's fields."""
+    anything else. `FusedInputTransform` (quant.fused_kernel) exposes its reference's fields."""
     reference = getattr(transform, "reference", transform)
     if not isinstance(reference, InputTransform) or reference.smooth is not None or reference.clip is not None:
         return _UNSET

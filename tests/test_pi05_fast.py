@@ -4,7 +4,7 @@
 import pytest
 import torch
 
-from vlaquantbench.accel import CapturedSampler
+from vlaquantbench.models.pi05.fast import CapturedSampler
 from vlaquantbench.models import get_model_spec
 
 # float32 end to end; the differences from lerobot are operation order only (SDPA / batched
@@ -97,7 +97,7 @@ def test_a_calibrated_transform_keeps_its_layers_apart():
     """Smoothing vectors are per layer: such layers are never merged into one product."""
     from torch import nn
 
-    from vlaquantbench.accel.linear_groups import LinearGroup
+    from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
     from vlaquantbench.quant.hooks import CountingHook, InputTransform
 
     torch.manual_seed(0)

@@ -4,7 +4,7 @@ is checked by benchmarks/gpu_policy_inference.py, `checks.fused_equal_fraction`)
 
 import torch
 
-from vlaquantbench.accel.fused_quant import FusedInputTransform, fuse_activation_hooks
+from vlaquantbench.quant.fused_kernel import FusedInputTransform, fuse_activation_hooks
 from vlaquantbench.models import get_model_spec
 from vlaquantbench.quant import QuantConfig, quantize_
 
