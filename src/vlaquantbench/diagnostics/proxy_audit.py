@@ -9,10 +9,11 @@ from pathlib import Path
 import pandas as pd
 from scipy.stats import spearmanr
 
-from vlaquantbench.atomic import atomic_write, write_text
+from vlaquantbench.atomic import atomic_write
 from vlaquantbench.diagnostics.files import DIAGNOSTICS, Diagnostics
 from vlaquantbench.errors import UserError
 from vlaquantbench.replay.study import load_definition, success_rates
+from vlaquantbench.tables.booktabs import Booktabs
 
 COHORTS = Path(__file__).with_name("cohorts")
 COLUMNS = {"act_kurtosis": "Kurtosis", "out_rel_err": "Output error", "act_rel_err": "Activation error",
@@ -64,10 +65,10 @@ def _signed(x: float) -> str:
     return "--" if math.isnan(x) else f"{x:+.2f}"
 
 
-def render_proxy_audit(rhos: pd.DataFrame, cohort: dict, sources: dict[str, dict]) -> str:
-    header = "Model & Scopes & " + " & ".join(COLUMNS.values()) + r" \\"
+def render_proxy_audit(rhos: pd.DataFrame, cohort: dict, sources: dict[str, dict]) -> Booktabs:
+    header = ["Model", "Scopes", *COLUMNS.values()]
     rows = [
-        f"{cohort['models'][r.model]['label']} & {r.scopes} & " + " & ".join(_signed(getattr(r, d)) for d in DIAGNOSTICS) + r" \\"
+        [cohort["models"][r.model]["label"], str(r.scopes), *(_signed(getattr(r, d)) for d in DIAGNOSTICS)]
         for r in rhos.itertuples()
     ]
     provenance = "; ".join(
@@ -81,17 +82,17 @@ def render_proxy_audit(rhos: pd.DataFrame, cohort: dict, sources: dict[str, dict
         "Average ranks handle ties; repeated seeds are excluded. Scope sets overlap and per-model samples are "
         f"small, limiting interpretation. Diagnostics: {provenance}."
     ).replace("_", r"\_")
-    return "\n".join([
-        r"\begin{table}[htbp]", r"\centering\small", r"\begin{tabular}{lrrrrr}", r"\toprule", header, r"\midrule",
-        *rows, r"\bottomrule", r"\end{tabular}", rf"\caption{{{caption}}}", r"\label{tab:proxy_audit}",
-        r"\end{table}", "",
-    ])
+    return Booktabs("lrrrrr", [header], rows, caption, "tab:proxy_audit", size="small")
 
 
 def write_proxy_audit(
-    diagnostics_dir: str | Path, success_summary: str | Path, output: str | Path, cohort: str | Path = "proxy_audit"
+    diagnostics_dir: str | Path,
+    success_summary: str | Path,
+    output: str | Path,
+    cohort: str | Path = "proxy_audit",
+    html_output: str | Path | None = None,
 ) -> pd.DataFrame:
-    """Snakemake entry: `tables/proxy_audit.tex` (+ the per-scope values beside it as CSV)."""
+    """Snakemake entry: `tables/proxy_audit.tex` (+ the per-scope values beside it as CSV, and the browser page)."""
     spec = load_cohort(cohort)
     rates = success_rates(success_summary)
     if not rates:
@@ -100,7 +101,7 @@ def write_proxy_audit(
     rhos = correlations(scopes)
     sources = {m: Diagnostics.read(Path(diagnostics_dir) / f"{s['diagnostics']}.json").header["provenance"]
                for m, s in spec["models"].items()}
-    output = write_text(output, render_proxy_audit(rhos, spec, sources))
+    output = render_proxy_audit(rhos, spec, sources).write(output, html_output)
     with atomic_write(output.with_suffix(".scopes.csv")) as handle:
         scopes.to_csv(handle, index=False)
     return rhos

@@ -7,10 +7,10 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import pandas as pd
 import yaml
 
 from vlaquantbench.errors import UserError
+from vlaquantbench.records.summary import read_summary
 
 STUDIES = Path(__file__).with_name("studies")
 
@@ -80,12 +80,4 @@ def success_rates(summary_csv: str | Path | None) -> dict[str, float]:
     columns (this project's `tables/summary.csv` or the authors' own)."""
     if not summary_csv:
         return {}
-    path = Path(summary_csv)
-    if not path.exists():
-        raise UserError(f"success summary {path} does not exist")
-    df = pd.read_csv(path)
-    needed = {"benchmark", "suite", "model", "cell", "episodes", "successes"}
-    if not needed <= set(df.columns):
-        raise UserError(f"success summary {path} lacks columns {sorted(needed - set(df.columns))}")
-    refs = df["benchmark"] + "/" + df["suite"] + "/" + df["model"] + "/" + df["cell"]
-    return dict(zip(refs, 100.0 * df["successes"] / df["episodes"]))
+    return {ref: 100.0 * cell.n_successes / cell.n_episodes for ref, cell in read_summary(summary_csv).items()}

@@ -1,19 +1,25 @@
 """Table definitions (`config/tables/<name>.yaml`): rows by cell reference, columns by statistic.
 
 ```yaml
-caption: Action-head subsets under W4A4 ...   # \\label{tab:<name>} is added
+caption: Action-head subsets under W4A4 ({episodes}) ...   # \\label{tab:<name>} is added
 align: lrrr                       # LaTeX column alignment
+size: small                       # optional: \\small inside the float; tabcolsep: 4pt likewise
 header: [[Quantized subset, "\\#L", "SR \\% [CI]", "$\\Delta$"]]   # one list per header line
 cells: {baseline: libero/libero_spatial/pi05/rtn-BASELINE-e2e}    # names shared by every row
-values:                           # the columns after the row label
+values:                           # the columns after the row label(s)
   - {stat: layers, cell: cell}
-  - {stat: rate_ci, cell: cell}
+  - {stat: rate_ci, cell: cell, bold_below: 50}   # \\textbf when the rate is below 50 %
   - {stat: delta, cell: cell, minus: baseline}
 rows:
   - {label: attention, cell: libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn}
+  - {label: [Model, Suite], cell: ...}           # several label columns
+  - {section: '\\emph{OpenVLA-OFT}'}            # a full-width line
+  - {midrule: true}
+  - {label: SIMPLER-VM, unavailable: 'needs per-episode records that are not published'}
 bootstrap: {draws: 5000, seed: 0, stream: shared}   # optional; for `bootstrap` columns
 ```
 A row names its cells under its own keys (they override `cells`); a null cell prints `--`.
+`{episodes}` in the caption is replaced by the episode counts of the table's cells, from the data.
 `bootstrap.stream`: `per_contrast` (default) gives every contrast its own `default_rng(seed)`;
 `shared` draws all contrasts from one `default_rng(seed)` in row order, as the paper's tab:clustered
 does, so there a row's interval depends on the rows above it.
@@ -36,7 +42,10 @@ STATS = {
     "layers": ("cell",),  # quantized layers from the header's quant_report
     "delta": ("cell", "minus"),  # A - B in pp
     "bootstrap": ("cell", "minus"),  # task-clustered bootstrap interval of A - B
+    "mean_subtasks": ("cell",),  # CALVIN: mean completed subtasks per chain, two decimals
+    "mean_progress": ("cell",),  # VLABench: mean progress score in percent, one decimal
 }
+ROW_KINDS = ("label", "section", "midrule")
 ENVIRONMENTS = ("tabular", "longtable")
 STREAMS = ("per_contrast", "shared")
 
@@ -66,6 +75,7 @@ class ColumnSpec:
     stat: str
     cell: str
     minus: str | None = None
+    bold_below: float | None = None  # \\textbf{} when the cell's success rate is below this (%)
 
 
 @dataclass(frozen=True)
@@ -78,6 +88,8 @@ class TableDefinition:
     caption: str
     environment: str = "tabular"
     bootstrap: BootstrapSpec = BootstrapSpec()
+    size: str = ""
+    tabcolsep: str = ""
 
     @classmethod
     def from_dict(cls, name: str, raw: dict[str, Any]) -> "TableDefinition":
@@ -96,12 +108,18 @@ class TableDefinition:
             missing = [key for key in STATS[stat] if not spec.get(key)]
             if missing:
                 raise UserError(f"{where}: values[{index}] ({stat}) needs {', '.join(missing)}")
-            values.append(ColumnSpec(stat=stat, cell=spec["cell"], minus=spec.get("minus")))
+            values.append(
+                ColumnSpec(stat=stat, cell=spec["cell"], minus=spec.get("minus"), bold_below=spec.get("bold_below"))
+            )
         shared = raw.get("cells") or {}
         rows = []
         for index, row in enumerate(raw["rows"]):
-            if "label" not in row:
-                raise UserError(f"{where}: rows[{index}] has no label")
+            kinds = [kind for kind in ROW_KINDS if kind in row]
+            if len(kinds) != 1:
+                raise UserError(f"{where}: rows[{index}] needs exactly one of {', '.join(ROW_KINDS)}, got {sorted(row)}")
+            if kinds[0] != "label" or "unavailable" in row:
+                rows.append(dict(row))
+                continue
             merged = {**shared, **row}
             for spec in values:
                 for key in filter(None, (spec.cell, spec.minus)):
@@ -109,12 +127,17 @@ class TableDefinition:
                         raise UserError(f"{where}: rows[{index}] ({row['label']}) names no cell {key!r}")
             rows.append(merged)
         bootstrap = BootstrapSpec.from_dict(where, raw.get("bootstrap"))
-        return cls(name, raw["align"], raw["header"], values, rows, raw["caption"], environment, bootstrap)
+        layout = {key: str(raw.get(key, "")) for key in ("size", "tabcolsep")}
+        return cls(name, raw["align"], raw["header"], values, rows, raw["caption"], environment, bootstrap, **layout)
+
+    def cell_rows(self) -> list[dict[str, Any]]:
+        """The rows that print numbers of cells (not sections, rules or unavailable rows)."""
+        return [row for row in self.rows if "label" in row and "unavailable" not in row]
 
     def refs(self) -> list[str]:
         """Every cell reference the table reads, sorted: the workflow's inputs for this table."""
         keys = {key for spec in self.values for key in (spec.cell, spec.minus) if key}
-        return sorted({row[key] for row in self.rows for key in keys if row[key]})
+        return sorted({row[key] for row in self.cell_rows() for key in keys if row[key]})
 
 
 def load_table(path: str | Path) -> TableDefinition:

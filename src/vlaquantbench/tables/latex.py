@@ -1,19 +1,24 @@
-"""Render a table definition to booktabs LaTeX from cell records."""
+"""Render a table definition from its cells (episode records or summary rows) through the one writer."""
 
 from __future__ import annotations
 
+from collections import Counter
 from functools import partial
 from pathlib import Path
 from typing import Callable, Mapping
 
 import numpy as np
 
-from vlaquantbench.atomic import write_text
+from vlaquantbench.errors import UserError
 from vlaquantbench.records import Cell, read_cell
+from vlaquantbench.records.summary import SummaryCell, read_summary
 from vlaquantbench.stats import task_clustered_bootstrap, wilson_interval
+from vlaquantbench.tables.booktabs import MIDRULE, Booktabs
 from vlaquantbench.tables.definition import BootstrapSpec, ColumnSpec, TableDefinition
 
 MISSING = "--"
+UNAVAILABLE = "n/a"
+AnyCell = Cell | SummaryCell
 
 
 def _signed(value: float) -> str:
@@ -21,24 +26,51 @@ def _signed(value: float) -> str:
     return f"{round(value, 1) + 0.0:+.1f}"
 
 
-def _rate(cell: Cell) -> float:
+def _rate(cell: AnyCell) -> float:
     return 100.0 * cell.n_successes / cell.n_episodes
 
 
-def format_value(spec: ColumnSpec, cell: Cell | None, minus: Cell | None, bootstrap: Callable) -> str:
+def _mean(cell: AnyCell, column: str, field: str, ref: str) -> float:
+    if isinstance(cell, SummaryCell):
+        if column not in cell.means:
+            raise UserError(f"cell {ref}: the summary {cell.path} has no {column}")
+        return cell.means[column]
+    values = cell.episodes[field].dropna() if field in cell.episodes else ()
+    if not len(values):
+        raise UserError(f"cell {ref}: its episodes record no {field} ({cell.path})")
+    return float(values.mean())
+
+
+def _episodes(cell: AnyCell, ref: str, stat: str):
+    if cell.episodes is None:
+        raise UserError(f"cell {ref}: {stat} needs per-episode records; only its summary row is available")
+    return cell.episodes
+
+
+def format_value(spec: ColumnSpec, refs: tuple[str, str | None], cells: Mapping[str, AnyCell], bootstrap: Callable) -> str:
+    ref, minus_ref = refs
+    cell, minus = cells.get(ref) if ref else None, cells.get(minus_ref) if minus_ref else None
     if cell is None or (spec.minus and minus is None):
         return MISSING
     if spec.stat == "rate":
-        return f"{_rate(cell):.1f}"
-    if spec.stat == "rate_ci":
+        text = f"{_rate(cell):.1f}"
+    elif spec.stat == "rate_ci":
         low, high = wilson_interval(cell.n_successes, cell.n_episodes)
-        return f"{_rate(cell):.1f} [{low:.0f},{high:.0f}]"
-    if spec.stat == "layers":
-        return str(cell.quantized_layers)
-    if spec.stat == "delta":
-        return _signed(_rate(cell) - _rate(minus))
-    contrast = bootstrap(cell.episodes, minus.episodes)
-    return f"[{_signed(contrast.low)}, {_signed(contrast.high)}]"
+        text = f"{_rate(cell):.1f} [{low:.0f},{high:.0f}]"
+    elif spec.stat == "layers":
+        text = str(cell.quantized_layers)
+    elif spec.stat == "delta":
+        text = _signed(_rate(cell) - _rate(minus))
+    elif spec.stat == "mean_subtasks":
+        text = f"{_mean(cell, 'mean_subtasks', 'subtasks_completed', ref):.2f}"
+    elif spec.stat == "mean_progress":
+        text = f"{100.0 * _mean(cell, 'mean_progress', 'progress_score', ref):.1f}"
+    else:
+        contrast = bootstrap(_episodes(cell, ref, "bootstrap"), _episodes(minus, minus_ref, "bootstrap"))
+        text = f"[{_signed(contrast.low)}, {_signed(contrast.high)}]"
+    if spec.bold_below is not None and _rate(cell) < spec.bold_below:
+        text = rf"\textbf{{{text}}}"
+    return text
 
 
 def bootstrapper(spec: BootstrapSpec) -> Callable:
@@ -47,22 +79,28 @@ def bootstrapper(spec: BootstrapSpec) -> Callable:
     return partial(task_clustered_bootstrap, draws=spec.draws, seed=spec.seed, rng=shared)
 
 
-def table_rows(definition: TableDefinition, cells: Mapping[str, Cell]) -> list[list[str]]:
-    """Each row as [label, value, ...]: the table's numbers before LaTeX layout (rows in order: a shared
-    bootstrap stream is consumed top to bottom)."""
+def _labels(row: dict) -> list[str]:
+    label = row["label"]
+    return list(label) if isinstance(label, list) else [label]
+
+
+def table_rows(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> list[list[str] | None]:
+    """Each line as [label(s), value, ...] or MIDRULE: the table's numbers before layout (rows in order:
+    a shared bootstrap stream is consumed top to bottom)."""
     bootstrap = bootstrapper(definition.bootstrap)
-    rows = []
+    width = len(definition.header[-1]) if definition.header else 1
+    rows: list[list[str] | None] = []
     for row in definition.rows:
-        values = [
-            format_value(spec, cells.get(row[spec.cell]), cells.get(row[spec.minus]) if spec.minus else None, bootstrap)
-            for spec in definition.values
-        ]
-        rows.append([row["label"], *values])
+        if "midrule" in row:
+            rows.append(MIDRULE)
+        elif "section" in row:
+            rows.append([rf"\multicolumn{{{width}}}{{l}}{{{row['section']}}}"])
+        elif "unavailable" in row:
+            rows.append([*_labels(row), *[UNAVAILABLE] * len(definition.values)])
+        else:
+            refs = [(row[spec.cell], row[spec.minus] if spec.minus else None) for spec in definition.values]
+            rows.append([*_labels(row), *(format_value(s, r, cells, bootstrap) for s, r in zip(definition.values, refs))])
     return rows
-
-
-def _line(cells: list[str]) -> str:
-    return " & ".join(cells) + r" \\"
 
 
 # Cells of the demo study run a reduced-width policy with random weights (header `variant: demo`).
@@ -71,28 +109,86 @@ DEMO_NOTE = (
 )
 
 
-def caption(definition: TableDefinition, cells: Mapping[str, Cell]) -> str:
-    demo = any(cells[ref].header.get("variant") == "demo" for ref in definition.refs() if ref in cells)
-    return f"\\caption{{{DEMO_NOTE if demo else ''}{definition.caption}}}\\label{{tab:{definition.name}}}"
+def _escape(text: str) -> str:
+    return text.replace("_", r"\_")
 
 
-def render_latex(definition: TableDefinition, cells: Mapping[str, Cell]) -> str:
-    header = "\n".join(_line(line) for line in definition.header)
-    body = "\n".join(_line(row) for row in table_rows(definition, cells))
-    if definition.environment == "longtable":
-        return (
-            f"\\begin{{longtable}}{{{definition.align}}}\n{caption(definition, cells)}\\\\\n"
-            f"\\toprule\n{header}\n\\midrule\\endfirsthead\n"
-            f"\\toprule\n{header}\n\\midrule\\endhead\n"
-            f"\\bottomrule\\endfoot\n{body}\n\\end{{longtable}}\n"
+def episode_counts(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
+    """The cells' episode counts as a caption phrase, from the data: the common count and the exceptions."""
+    counts = {ref: cells[ref].n_episodes for ref in refs if ref in cells}
+    if not counts:
+        return "no episodes"
+    common, _ = Counter(counts.values()).most_common(1)[0]
+    phrase = f"{common} episodes per cell"
+    others = sorted({n for n in counts.values() if n != common})
+    exceptions = []
+    for n in others:
+        names = sorted(ref.split("/", 2)[2] for ref, count in counts.items() if count == n)
+        if len(names) > 3:  # many cells: name their models
+            names = sorted({name.split("/")[0] + " cells" for name in names})
+        exceptions.append(f"{n} for {', '.join(_escape(name) for name in names)}")
+    return phrase + (f" ({'; '.join(exceptions)})" if exceptions else "")
+
+
+def caption(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> str:
+    refs = definition.refs()
+    demo = any(getattr(cells.get(ref), "header", {}).get("variant") == "demo" for ref in refs)
+    text = definition.caption.replace("{episodes}", episode_counts(refs, cells))
+    summary = sorted({cells[ref].path.name for ref in refs if isinstance(cells.get(ref), SummaryCell)})
+    if summary:
+        from_summary = [ref for ref in refs if isinstance(cells.get(ref), SummaryCell)]
+        which = "All cells" if len(from_summary) == len([r for r in refs if r in cells]) else (
+            f"{len(from_summary)} of {len([r for r in refs if r in cells])} cells ("
+            + ", ".join(_escape(ref.split("/", 2)[2]) for ref in from_summary) + ")"
         )
-    return (
-        f"\\begin{{table}}[htbp]\n\\centering\n\\begin{{tabular}}{{{definition.align}}}\n\\toprule\n{header}\n\\midrule\n"
-        f"{body}\n\\bottomrule\n\\end{{tabular}}\n{caption(definition, cells)}\n\\end{{table}}\n"
+        text += f" {which} come from the authors' per-cell summary ({_escape(', '.join(summary))}), not from episode records."
+    unavailable = [row for row in definition.rows if "unavailable" in row]
+    for row in unavailable:
+        text += f" {_labels(row)[0]}: {UNAVAILABLE}, {row['unavailable']}."
+    return f"{DEMO_NOTE if demo else ''}{text}"
+
+
+def booktabs(definition: TableDefinition, cells: Mapping[str, AnyCell], notes: list[str] | None = None) -> Booktabs:
+    return Booktabs(
+        align=definition.align,
+        header=definition.header,
+        rows=table_rows(definition, cells),
+        caption=caption(definition, cells),
+        label=f"tab:{definition.name}",
+        environment=definition.environment,
+        size=definition.size,
+        tabcolsep=definition.tabcolsep,
+        notes=notes or [],
     )
 
 
-def write_table(definition: TableDefinition, cell_paths: Mapping[str, str | Path], output: str | Path) -> Path:
-    """Read the table's cells (reference -> record path), render, and write `output`."""
-    cells = {ref: read_cell(path) for ref, path in cell_paths.items()}
-    return write_text(output, render_latex(definition, cells))
+def render_latex(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> str:
+    return booktabs(definition, cells).latex()
+
+
+def read_cells(
+    definition: TableDefinition, cell_paths: Mapping[str, str | Path], summary: str | Path | None = None
+) -> dict[str, AnyCell]:
+    """The table's cells: records where `cell_paths` has them, else the summary's row; a cell in neither is an error."""
+    cells: dict[str, AnyCell] = {ref: read_cell(path) for ref, path in cell_paths.items()}
+    rows = read_summary(summary) if summary else {}
+    for ref in definition.refs():
+        if ref not in cells:
+            if ref not in rows:
+                where = f" nor in the summary {summary}" if summary else " and no summary is configured (success_summary)"
+                raise UserError(f"table {definition.name}: cell {ref} is neither in the records{where}")
+            cells[ref] = rows[ref]
+    return cells
+
+
+def write_table(
+    definition: TableDefinition,
+    cell_paths: Mapping[str, str | Path],
+    output: str | Path,
+    summary: str | Path | None = None,
+    html_output: str | Path | None = None,
+    notes: list[str] | None = None,
+) -> Path:
+    """Read the table's cells (reference -> record path, the rest from `summary`), render, and write `output`
+    (and its browser page `html_output`)."""
+    return booktabs(definition, read_cells(definition, cell_paths, summary), notes).write(output, html_output)
