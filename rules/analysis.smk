@@ -44,17 +44,28 @@ rule summary:
         "../workflow/scripts/summary.py"
 
 
+def report_params(target):
+    """What the report's caption of `target` names: its data source and the manifest its records were checked against."""
+    return {"target": target, "source": WF.data_source(), "manifest": WF.manifest_digest()}
+
+
 rule paper_table:
     input:
         verified=rules.verify_records.output[0],
-        cells=lambda wc: records_of(WF.checked_refs(WF.table(wc.table).refs(), f"tables/{wc.table}.tex")),
+        cells=lambda wc: records_of(WF.checked_refs(WF.table_record_refs(wc.table), f"tables/{wc.table}.tex")),
+        summary=lambda wc: WF.table_summary(wc.table),
     output:
-        "tables/{table}.tex",
+        tex="tables/{table}.tex",
+        html=report("tables/{table}.html", caption="../workflow/report/table.rst", category="Tables",
+                    labels={"table": "{table}"}),
+    log:
+        "logs/tables/{table}.log",
     wildcard_constraints:
         table="|".join(PAPER_TABLES),
     params:
         definition=lambda wc: WF.table(wc.table),
-        refs=lambda wc: WF.table(wc.table).refs(),
+        refs=lambda wc: WF.table_record_refs(wc.table),
+        report=lambda wc: report_params(f"tables/{wc.table}.tex"),
     script:
         "../workflow/scripts/paper_table.py"
 
@@ -64,9 +75,20 @@ rule scope_recovery_figure:
         verified=rules.verify_records.output[0],
         cells=lambda wc: records_of(WF.checked_refs(WF.figure("scope_recovery").refs(), "figures/scope_recovery.pdf")),
     output:
-        "figures/scope_recovery.pdf",
+        report("figures/scope_recovery.pdf", caption="../workflow/report/figure.rst", category="Figures"),
+    log:
+        "logs/figures/scope_recovery.log",
     params:
         figure=lambda wc: WF.figure("scope_recovery"),
         refs=lambda wc: WF.figure("scope_recovery").refs(),
+        report=lambda wc: report_params("figures/scope_recovery.pdf"),
     script:
         "../workflow/scripts/scope_recovery_figure.py"
+
+
+# Every table and figure the published data supports, in one target (and in `--report report.html`).
+rule paper:
+    input:
+        expand("tables/{table}.tex", table=PAPER_TABLES),
+        "tables/summary.csv",
+        "figures/scope_recovery.pdf",

@@ -84,11 +84,54 @@ class WorkflowConfig:
 
         return load_figure(self.basedir / "config" / "figures" / f"{name}.yaml")
 
+    @property
+    def success_summary(self) -> Path | None:
+        """The authors' per-cell summary: the source of cells whose episodes are not in `records_dir`."""
+        value = self.raw.get("success_summary")
+        return Path(value) if value else None
+
+    def table_record_refs(self, name: str) -> list[str]:
+        """Cells of table `name` read from episode records. With `records_dir` set, a cell without records
+        comes from `success_summary`; a cell in neither is an error naming it (at DAG build, before any job)."""
+        refs = self.table(name).refs()
+        if self.records_dir is None:
+            return refs
+        recorded = self._recorded_cells()
+        absent = [ref for ref in refs if ref not in recorded]
+        if absent:
+            from vlaquantbench.records.summary import read_summary
+
+            summarized = read_summary(self.success_summary) if self.success_summary else {}
+            for ref in absent:
+                if ref not in summarized:
+                    where = f"nor in success_summary {self.success_summary}" if self.success_summary else "and no success_summary is set"
+                    raise UserError(f"tables/{name}.tex: cell {ref} is neither in records_dir {self.records_dir} {where}")
+        return [ref for ref in refs if ref in recorded]
+
+    def table_summary(self, name: str) -> list[str]:
+        """`[success_summary]` when table `name` reads cells from it, else `[]` (a rule input)."""
+        if self.records_dir is None or len(self.table_record_refs(name)) == len(self.table(name).refs()):
+            return []
+        return [str(self.success_summary)]
+
+    def data_source(self) -> str:
+        """Where a table's numbers come from, in words (report captions)."""
+        records = f"episode records in {self.records_dir}" if self.records_dir else f"cells run by this DAG ({CELLS_DIR})"
+        summary = f"; cells without records from the summary {self.success_summary}" if self.records_dir and self.success_summary else ""
+        return records + summary
+
+    def manifest_digest(self) -> str:
+        """The manifest the records are checked against and its SHA-256 (the built one when `manifest` is empty)."""
+        from vlaquantbench.manifest import sha256_file
+
+        path = self.manifest or Path(BUILT_MANIFEST)
+        return f"{path} (SHA-256 {sha256_file(path)})" if path.is_file() else f"{path} (built from the records)"
+
     def cell_refs(self) -> list[str]:
         """Cells the summary lists and the manifest check covers: every recorded cell in
         `records_dir`, plus every cell a table listed in `tables` reads."""
         defined = set(self.table_names())
-        used = {ref for name in self.raw.get("tables", []) if name in defined for ref in self.table(name).refs()}
+        used = {ref for name in self.raw.get("tables", []) if name in defined for ref in self.table_record_refs(name)}
         if self.records_dir is not None:
             used |= set(self._recorded_cells())
         return sorted(used)
@@ -109,6 +152,7 @@ class WorkflowConfig:
 
 
 CELLS_DIR = "results/cells"
+BUILT_MANIFEST = "results/records/manifest.tsv"
 
 
 @lru_cache(maxsize=None)

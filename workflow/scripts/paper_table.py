@@ -1,5 +1,13 @@
-"""Rule paper_table: one booktabs table from its definition and its cells' records."""
+"""Rule paper_table: one table (.tex and its browser page) from its definition, its cells' records and the summary."""
+
+from pathlib import Path
 
 from vlaquantbench.tables import write_table
 
-write_table(snakemake.params.definition, dict(zip(snakemake.params.refs, snakemake.input.cells)), snakemake.output[0])  # noqa: F821
+sm = snakemake  # noqa: F821 (injected by Snakemake)
+summary = sm.input.summary[0] if sm.input.summary else None
+write_table(sm.params.definition, dict(zip(sm.params.refs, sm.input.cells)), sm.output.tex, summary=summary,
+            html_output=sm.output.html,
+            notes=[f"Data source: {sm.params.report['source']}.",
+                   f"Records checked against manifest {sm.params.report['manifest']}."])
+Path(sm.log[0]).write_text(f"{sm.output.tex}: {len(sm.params.refs)} cells from records, the rest from {summary}\n")
