@@ -9,8 +9,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from scipy.stats import norm, spearmanr
-from statsmodels.stats.proportion import proportion_confint
 
 from vlaquantbench.errors import UserError
 
@@ -25,6 +23,10 @@ WILSON_Z = 1.96
 
 def wilson_interval(successes, episodes, z: float = WILSON_Z) -> tuple[np.ndarray, np.ndarray]:
     """Wilson score interval (95% at z = 1.96) in percent; accepts scalars or arrays."""
+    # imported here: scipy.stats and statsmodels take seconds to import, and most table jobs need neither
+    from scipy.stats import norm
+    from statsmodels.stats.proportion import proportion_confint
+
     alpha = 2.0 * norm.sf(z)
     low, high = proportion_confint(np.asarray(successes), np.asarray(episodes), alpha=alpha, method="wilson")
     return 100.0 * np.asarray(low), 100.0 * np.asarray(high)
@@ -116,4 +118,6 @@ def task_clustered_bootstrap(
 
 def spearman(x, y) -> float:
     """Spearman rank correlation; ties get average ranks."""
+    from scipy.stats import spearmanr
+
     return float(spearmanr(x, y).statistic)

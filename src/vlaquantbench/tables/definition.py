@@ -10,6 +10,8 @@ values:                           # the columns after the row label(s)
   - {stat: layers, cell: cell}
   - {stat: rate_ci, cell: cell, bold_below: 50}   # \\textbf when the rate is below 50 %
   - {stat: delta, cell: cell, minus: baseline}
+  - {stat: rates, cells: [seed0, seed1, seed2]}    # "98.0 / 98.5 / 97.5"; null cells are left out
+  - {stat: lowest_within, cells: [A4, A6, A8, none], labels: [A4, A6, A8, none], minus: baseline, within_pp: 5, bold: true}
 rows:
   - {label: attention, cell: libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn}
   - {label: [Model, Suite], cell: ...}           # several label columns
@@ -44,6 +46,9 @@ STATS = {
     "bootstrap": ("cell", "minus"),  # task-clustered bootstrap interval of A - B
     "mean_subtasks": ("cell",),  # CALVIN: mean completed subtasks per chain, two decimals
     "mean_progress": ("cell",),  # VLABench: mean progress score in percent, one decimal
+    "episodes": ("cell",),  # the cell's episode count, from its data
+    "rates": ("cells",),  # several cells' rates joined by " / " (e.g. seeds 0/1/2)
+    "lowest_within": ("cells", "labels", "minus", "within_pp"),  # label of the first cell within N pp of `minus`
 }
 ROW_KINDS = ("label", "section", "midrule")
 ENVIRONMENTS = ("tabular", "longtable")
@@ -76,6 +81,14 @@ class ColumnSpec:
     cell: str
     minus: str | None = None
     bold_below: float | None = None  # \\textbf{} when the cell's success rate is below this (%)
+    bold: bool = False  # always \\textbf{}
+    cells: tuple[str, ...] = ()  # row keys of the cells a multi-cell stat reads, in order
+    labels: tuple[str, ...] = ()  # what lowest_within prints for each of `cells`
+    within_pp: float | None = None
+
+    def keys(self) -> list[str]:
+        """The row keys naming this column's cells."""
+        return [key for key in (self.cell, self.minus, *self.cells) if key]
 
 
 @dataclass(frozen=True)
@@ -108,8 +121,15 @@ class TableDefinition:
             missing = [key for key in STATS[stat] if not spec.get(key)]
             if missing:
                 raise UserError(f"{where}: values[{index}] ({stat}) needs {', '.join(missing)}")
+            unknown = sorted(set(spec) - {"stat", "cell", "minus", "bold_below", "bold", "cells", "labels", "within_pp"})
+            if unknown:
+                raise UserError(f"{where}: values[{index}] has unknown key(s) {unknown}")
+            if len(spec.get("labels") or ()) not in (0, len(spec.get("cells") or ())):
+                raise UserError(f"{where}: values[{index}] needs one label per cell")
             values.append(
-                ColumnSpec(stat=stat, cell=spec["cell"], minus=spec.get("minus"), bold_below=spec.get("bold_below"))
+                ColumnSpec(stat=stat, cell=spec.get("cell", ""), minus=spec.get("minus"), bold_below=spec.get("bold_below"),
+                           bold=bool(spec.get("bold")), cells=tuple(spec.get("cells") or ()),
+                           labels=tuple(str(label) for label in spec.get("labels") or ()), within_pp=spec.get("within_pp"))
             )
         shared = raw.get("cells") or {}
         rows = []
@@ -122,7 +142,7 @@ class TableDefinition:
                 continue
             merged = {**shared, **row}
             for spec in values:
-                for key in filter(None, (spec.cell, spec.minus)):
+                for key in spec.keys():
                     if key not in merged:
                         raise UserError(f"{where}: rows[{index}] ({row['label']}) names no cell {key!r}")
             rows.append(merged)
@@ -136,7 +156,7 @@ class TableDefinition:
 
     def refs(self) -> list[str]:
         """Every cell reference the table reads, sorted: the workflow's inputs for this table."""
-        keys = {key for spec in self.values for key in (spec.cell, spec.minus) if key}
+        keys = {key for spec in self.values for key in spec.keys()}
         return sorted({row[key] for row in self.cell_rows() for key in keys if row[key]})
 
 

@@ -47,12 +47,35 @@ def _episodes(cell: AnyCell, ref: str, stat: str):
     return cell.episodes
 
 
-def format_value(spec: ColumnSpec, refs: tuple[str, str | None], cells: Mapping[str, AnyCell], bootstrap: Callable) -> str:
-    ref, minus_ref = refs
+def _multi_cell(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell]) -> str:
+    listed = [cells.get(row[key]) if row[key] else None for key in spec.cells]
+    if spec.stat == "rates":
+        return " / ".join(f"{_rate(cell):.1f}" for cell in listed if cell is not None) or MISSING
+    reference = cells.get(row[spec.minus]) if row[spec.minus] else None
+    if reference is None:
+        return MISSING
+    # Candidates in the listed order (ascending width): the first within `within_pp` of the reference.
+    for label, cell in zip(spec.labels, listed):
+        if cell is not None and _rate(cell) >= _rate(reference) - spec.within_pp:
+            return label
+    return MISSING
+
+
+def format_value(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell], bootstrap: Callable) -> str:
+    text = _format(spec, row, cells, bootstrap)
+    return rf"\textbf{{{text}}}" if spec.bold else text
+
+
+def _format(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell], bootstrap: Callable) -> str:
+    if spec.cells:
+        return _multi_cell(spec, row, cells)
+    ref, minus_ref = row[spec.cell], row[spec.minus] if spec.minus else None
     cell, minus = cells.get(ref) if ref else None, cells.get(minus_ref) if minus_ref else None
     if cell is None or (spec.minus and minus is None):
         return MISSING
-    if spec.stat == "rate":
+    if spec.stat == "episodes":
+        text = str(cell.n_episodes)
+    elif spec.stat == "rate":
         text = f"{_rate(cell):.1f}"
     elif spec.stat == "rate_ci":
         low, high = wilson_interval(cell.n_successes, cell.n_episodes)
@@ -98,8 +121,7 @@ def table_rows(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> lis
         elif "unavailable" in row:
             rows.append([*_labels(row), *[UNAVAILABLE] * len(definition.values)])
         else:
-            refs = [(row[spec.cell], row[spec.minus] if spec.minus else None) for spec in definition.values]
-            rows.append([*_labels(row), *(format_value(s, r, cells, bootstrap) for s, r in zip(definition.values, refs))])
+            rows.append([*_labels(row), *(format_value(spec, row, cells, bootstrap) for spec in definition.values)])
     return rows
 
 
@@ -127,7 +149,7 @@ def episode_counts(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
         if len(names) > 3:  # many cells: name their models
             names = sorted({name.split("/")[0] + " cells" for name in names})
         exceptions.append(f"{n} for {', '.join(_escape(name) for name in names)}")
-    return phrase + (f" ({'; '.join(exceptions)})" if exceptions else "")
+    return ", ".join([phrase, *exceptions])
 
 
 def caption(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> str:
