@@ -21,6 +21,7 @@ from vlaquantbench.quant import (
 )
 from vlaquantbench.quant import calibration as calib
 from vlaquantbench.quant.grid import fake_quant_weight
+from vlaquantbench.quant.presets import FORMATS
 
 SPEC = get_model_spec("pi05")
 
@@ -115,6 +116,30 @@ def test_activation_quantization_changes_actions_and_baseline_does_not(demo, pol
     assert base_report.to_header()["quant_report"]["ah"] == {"layers": 0, "params": 0}
     quantize_(policy, QuantConfig.from_preset("W4A4", scope="ah"), SPEC.components)
     assert not torch.allclose(sample(policy), reference, atol=1e-3)
+
+
+@pytest.mark.parametrize("preset", ["MXFP4", "NVFP4", "FP8E4M3"])
+def test_float_format_presets_quantize_weights_and_inputs_through_counted_hooks(policy, preset):
+    fmt = FORMATS[preset]
+    name = "paligemma_with_expert.gemma_expert.model.layers.2.mlp.down_proj"
+    layer = dict(policy.named_modules())[name]
+    before = layer.weight.clone()
+    report = quantize_(policy, QuantConfig.from_preset(preset, scope="ah"), SPEC.components)
+    assert torch.equal(layer.weight, fmt.quantize_weight(before)) and not torch.equal(layer.weight, before)
+    seen = {}
+
+    def record(module, args):  # runs after the counting hook: sees the input the layer multiplies
+        seen["x"] = args[0]
+
+    raw = {}
+    layer.register_forward_pre_hook(lambda module, args: raw.setdefault("x", args[0].clone()), prepend=True)
+    layer.register_forward_pre_hook(record)
+    sample(policy)
+    report.check_hooks_fired()
+    assert torch.equal(seen["x"], fmt.quantize_activation(raw["x"])) and not torch.equal(seen["x"], raw["x"])
+    header = report.to_header()
+    assert header["hooks"] == {"selected": 167, "fired": 167, "unfired": []}
+    assert header["quant_format"].startswith(f"RTN weights {preset}:") and f"activations {preset}:" in header["quant_format"]
 
 
 def test_bad_scope_and_patterns_fail_before_any_change(policy):

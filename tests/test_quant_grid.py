@@ -8,7 +8,7 @@ import torch
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.grid import fake_quant_activation, fake_quant_asym, fake_quant_sym, fake_quant_weight
-from vlaquantbench.quant.presets import parse_preset
+from vlaquantbench.quant.presets import FORMATS, WeightGrid, parse_preset
 
 
 def round_half_even(v: float) -> float:
@@ -122,6 +122,37 @@ def test_presets(name, bits, group, sym, act):
     preset = parse_preset(name)
     assert (preset.weight.bits, preset.weight.group_size, preset.weight.symmetric, preset.act_bits) == (
         bits, group, sym, act)
+
+
+@pytest.mark.parametrize(
+    "name,weight,acts",
+    [
+        ("MXFP4", "MXFP4", "MXFP4"),
+        ("NVFP4", "NVFP4", "NVFP4"),
+        ("FP8E4M3", "FP8E4M3", "FP8E4M3"),
+        ("FP8E5M2PT", "FP8E5M2PT", "FP8E5M2PT"),
+        ("MXFP6E2M3", "MXFP6E2M3", "MXFP6E2M3"),
+        ("W4AMXFP4", WeightGrid(4, 128, False), "MXFP4"),
+        ("W8AMXFP8E4M3", WeightGrid(8, None, True), "MXFP8E4M3"),
+        ("WMXFP4", "MXFP4", None),
+        ("WNVFP4A8", "NVFP4", 8),
+    ],
+)
+def test_float_format_presets(name, weight, acts):
+    preset = parse_preset(name)
+    assert preset.weight == (FORMATS[weight] if isinstance(weight, str) else weight)
+    if isinstance(acts, str):
+        assert preset.act_format == FORMATS[acts] and preset.act_bits is None
+    else:
+        assert preset.act_format is None and preset.act_bits == acts
+    assert preset.quantizes_activations == (acts is not None) and not preset.is_baseline
+
+
+@pytest.mark.parametrize("bad", ["MXFP8", "MXFP6", "FP8", "WMXFP4G64", "WMXFP4SYM", "MXFP4A4", "FP4", "W4AFP8"])
+def test_malformed_float_presets_name_the_formats(bad):
+    with pytest.raises(UserError, match="MXFP4, NVFP4") as err:
+        parse_preset(bad)
+    assert repr(bad) in str(err.value)
 
 
 def test_baseline_preset_quantizes_nothing():

@@ -12,7 +12,7 @@ from transformers import LlamaConfig, LlamaModel
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.registry import Component
-from vlaquantbench.quant import QuantConfig, kernels, quantize_, registered_methods
+from vlaquantbench.quant import CalibrationSettings, QuantConfig, kernels, quantize_, registered_methods
 from vlaquantbench.quant.calibration import observe
 
 COMPONENTS = {"llm": Component(roots=("layers",))}
@@ -29,6 +29,14 @@ def _rel(a, b):
     return ((a - b).norm() / b.norm()).item()
 
 
+def _w8a8(method, model, x):
+    """The W8A8 config of `method`; SmoothQuant's with its default migration from statistics on `x`."""
+    if method != "smoothquant":
+        return QuantConfig.from_preset("W8A8", scope="llm", method=method)
+    settings = CalibrationSettings(alpha=0.85, quantile=None, components=("llm",))
+    return QuantConfig.from_preset("W8A8", scope="llm", method=method, calibration=settings, stats=_observed(model, x))
+
+
 def test_methods_are_registered():
     assert {"nf4", "int8", "int4wo", "smoothquant", "fp8", "fp8_tensor", "fp8_static"} <= set(registered_methods())
 
@@ -39,7 +47,7 @@ def test_kernel_method_replaces_layers_and_stays_close(method, fmt, tolerance):
     x = torch.randn(1, 20, 64, generator=torch.Generator().manual_seed(1))
     with torch.no_grad():
         reference = model(inputs_embeds=x).last_hidden_state
-        report = quantize_(model, QuantConfig.from_preset("W8A8", scope="llm", method=method), components=COMPONENTS)
+        report = quantize_(model, _w8a8(method, model, x), components=COMPONENTS)
         out = model(inputs_embeds=x).last_hidden_state
     assert report.components == {"llm": {"layers": 14, "params": 2 * (4 * 64 * 64 + 3 * 64 * 128)}}
     assert not any(isinstance(m, torch.nn.Linear) for m in model.layers.modules())
@@ -63,6 +71,22 @@ def test_int8_w8a8_matches_its_definition():
         assert torch.allclose(layer(x).reshape(-1, 40), expected, rtol=1e-5, atol=1e-5)
 
 
+def test_smoothquant_smooths_by_default_and_refuses_to_run_without_statistics():
+    model = _llama()
+    x = torch.randn(1, 20, 64, generator=torch.Generator().manual_seed(1)) * torch.logspace(-1, 1, 64)  # outlier channels
+    config = _w8a8("smoothquant", model, x)
+    q_proj = model.layers[0].self_attn.q_proj
+    stats = config.stats.layers["layers.0.self_attn.q_proj"]
+    expected = kernels.smoothing_factors(stats.absmax, q_proj.weight, 0.85)
+    report = quantize_(model, config, components=COMPONENTS)
+    packed = model.layers[0].self_attn.q_proj
+    assert torch.equal(packed.smooth, expected.float()) and report.result.calibrated == set(report.selected)
+    assert "SmoothQuant migration alpha=0.85 from rollout calibration statistics" in report.result.format
+    assert report.to_header()["quant_report"]["act_calib"]["alpha"] == 0.85
+    with pytest.raises(UserError, match="'smoothquant' smooths by definition"):
+        quantize_(_llama(), QuantConfig.from_preset("W8A8", scope="llm", method="smoothquant"), components=COMPONENTS)
+
+
 def test_preset_must_match_the_method():
     with pytest.raises(UserError, match="implements W8A8"):
         quantize_(_llama(), QuantConfig.from_preset("W4", scope="llm", method="smoothquant"), components=COMPONENTS)
@@ -83,7 +107,7 @@ def test_compiled_layers_share_one_graph_and_match_eager(method):
     x = torch.randn(1, 32, 256, generator=torch.Generator().manual_seed(1))
     with torch.no_grad():
         unquantized = model(inputs_embeds=x, use_cache=False).last_hidden_state
-        report = quantize_(model, QuantConfig.from_preset("W8A8", scope="llm", method=method), components=COMPONENTS)
+        report = quantize_(model, _w8a8(method, model, x), components=COMPONENTS)
         eager = model(inputs_embeds=x, use_cache=False).last_hidden_state
         assert report.unfired() == []
         for hook in report.result.hooks.values():  # dynamo would guard on their call counters

@@ -136,3 +136,25 @@ def test_awq_cells_calibrate_every_scope_component_with_sampled_rows():
     e2e = cell_config(ref("awq-W4-e2e"), STUDY)["calibration"]
     assert e2e["components"] == ["ve", "mp", "llm", "ah"] and e2e["sample_rows"] == 128
     assert config_hash(cfg) != config_hash(cell_config(ref("rtn-W4-llm"), STUDY))
+
+
+def test_smoothquant_cells_smooth_by_default_with_the_papers_alpha():
+    cfg = cell_config(ref("smoothquant-W8A8-llm"), STUDY)
+    assert cfg["calibration"] == {
+        "components": ["llm"],
+        "alpha": 0.85,
+        "quantile": None,
+        "tasks": [0],
+        "init_states": [20, 21],
+        "seed": 0,
+    }
+    assert calibration_config(cfg)["calibration"] == cfg["calibration"]
+
+
+def test_float_format_presets_are_reachable_from_cell_names():
+    cfg = cell_config(ref("rtn-MXFP4-ah"), STUDY)
+    assert cfg["preset"] == "MXFP4" and cfg["calibration"] is None
+    assert config_hash(cfg) != config_hash(cell_config(ref("rtn-NVFP4-ah"), STUDY))
+    assert cell_config(ref("rtn-W4AMXFP4-e2e"), STUDY)["preset"] == "W4AMXFP4"
+    with pytest.raises(UserError, match="MXFP8E4M3"):
+        cell_config(ref("rtn-MXFP8-ah"), STUDY)

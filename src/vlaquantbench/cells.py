@@ -14,7 +14,10 @@ A cell reference is `<benchmark>/<suite>/<model>/<cell>`; the cell name follows 
 integration steps. `calib_set<k>` collects calibration statistics on init states
 `first + 2k, first + 2k + 1` (the paper's disjoint calibration sets). `awq` cells collect their
 statistics in the same calibration episodes: mean |x| and `AWQ_SAMPLE_ROWS` sampled input rows of
-every layer of the scope, without rollout smoothing or clipping. The canonical cell config
+every layer of the scope, without rollout smoothing or clipping. `smoothquant` cells always smooth
+(SmoothQuant's per-channel migration is the method): alpha = `SMOOTHQUANT_ALPHA`, the paper's LLM
+deployment setting, from the input absmax of the same rollout calibration episodes, no clipping (the
+paper's 512 text calibration samples cannot be drawn offline; the header's format says which). The canonical cell config
 (`cell_config`) holds everything that changes an episode's outcome; `config_hash` names the cell's
 output folder, so two cells share a folder exactly when they would produce the same records.
 """
@@ -73,6 +76,7 @@ DEFAULT_RUNNER = {
 }
 RUNNER_OPTIONS = tuple(DEFAULT_RUNNER)
 AWQ_SAMPLE_ROWS = 128  # input rows per layer for AWQ's scale search (the paper: 128 calibration samples)
+SMOOTHQUANT_ALPHA = 0.85  # the paper's SmoothQuant deployment migration strength (app. real-kernel settings)
 DEFAULT_CALIBRATION = {
     "episodes": 2,
     "first_init_state": 20,
@@ -203,7 +207,7 @@ def _tasks(ref: str, study: dict[str, Any]) -> list[int]:
 
 def _calibration(ref: str, fields: dict[str, Any], study: dict[str, Any], seed: int) -> dict[str, Any] | None:
     parsed = fields["calibration"]
-    if parsed is None and fields["method"] != "awq":
+    if parsed is None and fields["method"] not in ("awq", "smoothquant"):
         return None
     settings = {**DEFAULT_CALIBRATION, **study.get("calibration", {})}
     observed = _observed(ref, fields, settings)
@@ -222,6 +226,8 @@ def _observed(ref: str, fields: dict[str, Any], settings: dict[str, Any]) -> dic
     scope_components = SCOPE_COMPONENTS[fields["scope"]]
     if fields["method"] == "awq":  # AWQ's own scale search: no rollout smoothing or clipping
         return {"components": scope_components, "alpha": None, "quantile": None, "sample_rows": AWQ_SAMPLE_ROWS}
+    if fields["method"] == "smoothquant":  # SmoothQuant's migration, no clipping
+        return {"components": scope_components, "alpha": SMOOTHQUANT_ALPHA, "quantile": None}
     parsed = fields["calibration"]
     if parsed["components"] == "all":
         components = scope_components

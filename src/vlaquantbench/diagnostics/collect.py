@@ -21,7 +21,7 @@ from vlaquantbench.diagnostics.measures import MEASURES, layer_measures
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.quant import parse_preset, select_layers
-from vlaquantbench.quant.grid import fake_quant_activation, fake_quant_weight
+from vlaquantbench.quant.hooks import InputTransform
 from vlaquantbench.replay.record import load_records, progress_to, recorded_calls
 from vlaquantbench.runner.provenance import code_revision, versions
 
@@ -33,8 +33,9 @@ class DiagnosticsObserver:
         self.preset = parse_preset(preset)
         self.layers = layers
         grid = self.preset.weight
-        self._qweight = {n: fake_quant_weight(m.weight.detach(), grid.bits, grid.group_size, grid.symmetric)
-                         if grid else m.weight.detach() for n, m in layers.items()}
+        self._qweight = {n: grid.quantize_weight(m.weight.detach()) if grid else m.weight.detach()
+                         for n, m in layers.items()}
+        self._quantize_input = InputTransform(act_bits=self.preset.act_bits, act_format=self.preset.act_format)
         self.sums = {n: dict.fromkeys(MEASURES, 0.0) for n in layers}
         self.calls = dict.fromkeys(layers, 0)
         self._handles = []
@@ -50,7 +51,7 @@ class DiagnosticsObserver:
     def _hook(self, name: str):
         def hook(module: nn.Linear, args, output):
             x = args[0].detach()
-            qx = fake_quant_activation(x, self.preset.act_bits) if self.preset.act_bits else x
+            qx = self._quantize_input(x)
             for key, value in layer_measures(x, module.weight.detach(), module.bias, qx, self._qweight[name]).items():
                 self.sums[name][key] += value
             self.calls[name] += 1
@@ -89,7 +90,7 @@ def collect(recording: str | Path, model: str, scope: str, preset: str, output: 
         raise RuntimeError(f"diagnostic hooks never fired on {len(unfired)} layers: {', '.join(unfired)}")
     result = {
         "model": meta["model"], "suite": meta["suite"], "scope": scope, "preset": preset,
-        "spec": observer.preset.weight.describe() + (f" + A{observer.preset.act_bits} per token" if observer.preset.act_bits else ""),
+        "spec": observer.preset.describe(),
         "provenance": {
             "checkpoint": meta["checkpoint"], "checkpoint_revision": meta["revision"], "variant": meta["variant"],
             "seed": meta["run_seed"], "tasks": sorted({r["task_id"] for r in meta["records"]}),

@@ -22,7 +22,6 @@ from torch import nn
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.calibration import FLOOR, CalibrationSettings, CalibrationStats, smoothing_factors
-from vlaquantbench.quant.grid import fake_quant_weight
 from vlaquantbench.quant.hooks import CountingHook, InputTransform
 from vlaquantbench.quant.presets import Preset, parse_preset
 from vlaquantbench.quant.scope import LayerOwner, Selection, select_layers
@@ -163,7 +162,7 @@ def rtn(model: nn.Module, selection: Selection, config: QuantConfig) -> MethodRe
     preset = config.preset
     result = MethodResult(format=_rtn_format(preset, config.calibration))
     for name, layer in selection.flat().items():
-        transform = InputTransform(act_bits=preset.act_bits)
+        transform = InputTransform(act_bits=preset.act_bits, act_format=preset.act_format)
         layer_stats = _stats_for(name, selection, config)
         with torch.no_grad():
             if layer_stats is not None:
@@ -172,11 +171,10 @@ def rtn(model: nn.Module, selection: Selection, config: QuantConfig) -> MethodRe
                 if config.calibration.quantile is not None:
                     clip = (layer_stats.quantile.float().to(smooth.device) / smooth).clamp_min(FLOOR)
                 layer.weight.copy_((layer.weight.float() * smooth).to(layer.weight.dtype))
-                transform = InputTransform(smooth=smooth, clip=clip, act_bits=preset.act_bits)
+                transform = InputTransform(smooth=smooth, clip=clip, act_bits=preset.act_bits, act_format=preset.act_format)
                 result.calibrated.add(name)
             if preset.weight is not None:
-                grid = preset.weight
-                layer.weight.copy_(fake_quant_weight(layer.weight, grid.bits, grid.group_size, grid.symmetric))
+                layer.weight.copy_(preset.weight.quantize_weight(layer.weight))
         if not transform.is_identity:
             result.hooks[name] = CountingHook(layer, transform)
     return result
@@ -189,10 +187,8 @@ def _stats_for(name: str, selection: Selection, config: QuantConfig):
 
 
 def _rtn_format(preset: Preset, calibration: CalibrationSettings | None) -> str:
-    weights = f"weights {preset.weight.describe()}" if preset.weight else "weights released precision"
-    acts = f"activations {preset.act_bits}-bit symmetric per token" if preset.act_bits else "activations released precision"
     calib = f"; rollout smoothing alpha={calibration.alpha}, clip q={calibration.quantile}" if calibration else ""
-    return f"RTN {weights}; {acts}{calib}"
+    return f"RTN {preset.describe()}{calib}"
 
 
 register_method("rtn", rtn)

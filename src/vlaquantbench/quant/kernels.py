@@ -9,7 +9,8 @@ Registered in the method table of `quant.apply` when this module is imported:
     awq          activation-aware weight quantization (`quant.awq` scale search on calibration
                  rows): W4 on CUDA as int4wo with the scales, fake-quantized elsewhere (W<b>[G<g>])
     smoothquant  W8A8 int8: per-channel weights, dynamic per-token activations, `torch._int_mm`,
-                 with the rollout smoothing vector folded into the weights when calibrated  (W8A8)
+                 with SmoothQuant's per-channel migration vector (from calibration statistics,
+                 required) folded into the weights                                           (W8A8)
     fp8          W8A8 FP8 e4m3: per-channel weights, dynamic per-token activations,
                  `torch._scaled_mm` with row-wise scales (the H100's native format)          (W8A8)
     fp8_tensor   the same with one scale per weight tensor and one per activation tensor (W8A8)
@@ -34,6 +35,7 @@ from vlaquantbench.quant.awq import search_scales
 from vlaquantbench.quant.calibration import ChannelStats, smoothing_factors
 from vlaquantbench.quant.grid import fake_quant_weight
 from vlaquantbench.quant.hooks import CountingHook, InputTransform
+from vlaquantbench.quant.presets import WeightGrid
 from vlaquantbench.quant.scope import Selection
 
 try:  # one-pass activation quantization on CUDA; the torch expression below elsewhere
@@ -225,7 +227,8 @@ def _bnb_linear(linear: nn.Linear, kind: str) -> nn.Module:
 
 def _require(config: QuantConfig, method: str, bits: int, act_bits: int | None) -> None:
     preset = config.preset
-    if preset.weight is None or preset.weight.bits != bits or preset.act_bits != act_bits:
+    if (not isinstance(preset.weight, WeightGrid) or preset.weight.bits != bits or preset.act_bits != act_bits
+            or preset.act_format is not None):
         want = f"W{bits}" + (f"A{act_bits}" if act_bits else "")
         raise UserError(f"method {method!r} implements {want}; preset {preset.name!r} does not match")
 
@@ -287,7 +290,7 @@ def awq(model, selection, config):
     an input hook dividing by s. W4 asymmetric groups on CUDA use the int4wo tinygemm kernel
     (its grid spans [min, max] of each group, not the zero-including range of `quant.grid`)."""
     grid = config.preset.weight
-    if grid is None or config.preset.act_bits is not None:
+    if not isinstance(grid, WeightGrid) or config.preset.quantizes_activations:
         raise UserError(f"method 'awq' is weight-only (W<b>[G<g>]); preset {config.preset.name!r} does not match")
     stats = _layer_stats(selection, config, "awq", "AWQ calibration statistics (mean |x| and sampled input rows)",
                          "collect them on the unquantized policy with quant.calibration.observe(layers, "
@@ -331,16 +334,28 @@ def awq(model, selection, config):
 
 
 def smoothquant(model, selection, config):
+    """SmoothQuant W8A8: migrate activation outliers into the weights with d_j = a_j^alpha / w_j^(1-alpha)
+    (`quant.calibration.smoothing_factors`), then int8 per-channel weights and per-token inputs.
+    Layers of components the calibration does not cover (the pi models' projector) run unsmoothed."""
     _require(config, "smoothquant", 8, 8)
+    if config.calibration is None or config.calibration.alpha is None:
+        raise UserError("method 'smoothquant' smooths by definition: pass calibration=CalibrationSettings(alpha=...) "
+                        "and stats=... (the runner's calibrate step collects them for smoothquant cells)")
+    smoothed = set()
 
     def make(name, linear):
-        stats = config.stats.layers.get(name) if config.calibration is not None else None
-        smooth = None if stats is None else smoothing_factors(stats.absmax, linear.weight, config.calibration.alpha)
-        return Int8DynamicLinear(linear, smooth)
+        stats = config.stats.layers.get(name) if selection.component_of(name) in config.calibration.components else None
+        if stats is None:
+            return Int8DynamicLinear(linear)
+        smoothed.add(name)
+        return Int8DynamicLinear(linear, smoothing_factors(stats.absmax, linear.weight, config.calibration.alpha))
 
-    calib = f", smoothing alpha={config.calibration.alpha}" if config.calibration is not None else ", no smoothing"
-    return _replace_all(model, selection, make,
-                        f"W8A8 int8 (per-channel weights, dynamic per-token activations, torch._int_mm){calib}")
+    result = _replace_all(model, selection, make,
+                          "W8A8 int8 (per-channel weights, dynamic per-token activations, torch._int_mm), SmoothQuant "
+                          f"migration alpha={config.calibration.alpha} from rollout calibration statistics "
+                          f"(cache {config.stats.key}; not the paper's 512 text samples)")
+    result.calibrated = smoothed
+    return result
 
 
 def fp8(model, selection, config):

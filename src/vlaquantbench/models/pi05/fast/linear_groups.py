@@ -36,7 +36,8 @@ def _plain_act_bits(transform) -> int | None | object:
     """The bit width of a transform that only quantizes per token (None: identity); `_UNSET` for
     anything else. `FusedInputTransform` (quant.fused_kernel) exposes its reference's fields."""
     reference = getattr(transform, "reference", transform)
-    if not isinstance(reference, InputTransform) or reference.smooth is not None or reference.clip is not None:
+    if (not isinstance(reference, InputTransform) or reference.smooth is not None or reference.clip is not None
+            or reference.act_format is not None):  # float formats quantize through the members' hooks
         return _UNSET
     return reference.act_bits
 
