@@ -96,8 +96,8 @@ def fused_norm_quant_check(device) -> dict:
     norm (whose float32 reduction order differs, which moves row scales)."""
     from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
     from vlaquantbench.quant.grid import fake_quant_activation
+    from vlaquantbench.quant.hooks import quantizing_op
 
-    ops = pi05_static.compiled_ops()
     g = torch.Generator(device="cpu").manual_seed(1)
     out = {}
     for bits in (4, 8):
@@ -106,8 +106,8 @@ def fused_norm_quant_check(device) -> dict:
         bare = torch.compile(fake_quant_activation, dynamic=False, options=pi05_static._EAGER_NUMERICS)
         out[f"quant_a{bits}"] = (bare(x, bits) == fake_quant_activation(x, bits)).float().mean().item()
         scale, shift = modulation[:, None, :1024], modulation[:, None, 1024:2048]
-        fused = ops.ada_rms_norm(x, scale, shift, 1e-6, bits)
-        compiled_norm = ops.ada_rms_norm(x, scale, shift, 1e-6, None)
+        fused = quantizing_op(pi05_static.ada_rms_norm, bits, pi05_static.inductor)(x, scale, shift, 1e-6)
+        compiled_norm = pi05_static.COMPILED_OPS(pi05_static.ada_rms_norm, x, scale, shift, 1e-6)
         out[f"ada_rms_norm_quant_a{bits}_vs_compiled_norm"] = (fused == fake_quant_activation(compiled_norm, bits)).float().mean().item()
         eager = fake_quant_activation(pi05_static.ada_rms_norm(x, scale, shift, 1e-6), bits)
         out[f"ada_rms_norm_quant_a{bits}_vs_eager_norm"] = (fused == eager).float().mean().item()

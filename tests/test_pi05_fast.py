@@ -84,7 +84,8 @@ def test_grouped_linears_with_fused_quantization_equal_the_hooks_exactly():
     grouped_calls = report.hook_calls()
 
     for hook in report.result.hooks.values():
-        hook.transform, hook.calls = _Wrapped(hook.transform), 0
+        hook.transform = _Wrapped(hook.transform)
+    report.reset_hook_calls()
     sampler.reset()
     per_module = sampler(images, img_masks, tokens, masks, noise)
     assert not any(g.fused for layer in sampler._groups.expert for g in (layer.qkv, layer.mlp_in))
@@ -109,4 +110,7 @@ def test_a_calibrated_transform_keeps_its_layers_apart():
     group = LinearGroup(layers)
     assert not group.fused and group.act_bits is None
     x = torch.randn(4, 16)
-    assert all(torch.equal(a, layer(x)) for a, layer in zip(group(x), layers))
+    expected = [layer(x) for layer in layers]
+    assert all(torch.equal(a, b) for a, b in zip(group(group.input_from(torch.clone, (x,))), expected))
+    with pytest.raises(ValueError, match="must come from its input_from"):
+        group(x)

@@ -119,7 +119,7 @@ class QuantReport:
 
     def reset_hook_calls(self) -> None:
         for hook in self.result.hooks.values():
-            hook.calls = 0
+            hook.quantizer.reset_calls()
 
     def remove_hooks(self) -> None:
         for hook in self.result.hooks.values():

@@ -1,12 +1,18 @@
-"""Activation pre-hooks on linear layers that count their own calls.
+"""Activation quantizers that count their own runs, and the pre-hooks that install them on linears.
 
 The count is the evidence that a layer's input was really transformed during a run (paper
 `sec:pitfalls`, "Activation coverage"): a hook installed on a module that the forward path never
-calls leaves the run silently weight-only for that layer.
+calls leaves the run silently weight-only for that layer. Only `ActivationQuantizer` advances a
+count, and only when it computes (or, for an input it has just seen quantized the same way,
+returns) its layer's transformed input: through its hook, or through `fused`, the form a fast
+path uses to quantize inside the op that produces the input.
 """
 
 from __future__ import annotations
 
+import functools
+import types
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -43,17 +49,137 @@ class InputTransform:
         return self.smooth is None and self.clip is None and self.act_bits is None and self.act_format is None
 
 
-class CountingHook:
-    """A forward pre-hook applying `transform` to a linear layer's input and counting calls."""
+class ActivationQuantizer:
+    """One layer's input transform and the number of times it ran."""
 
-    def __init__(self, layer: nn.Linear, transform: InputTransform):
+    def __init__(self, transform: Callable[[torch.Tensor], torch.Tensor]):
         self.transform = transform
         self.calls = 0
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        self.calls += 1
+        return self.transform(x)
+
+    def reset_calls(self) -> None:
+        self.calls = 0
+
+    @property
+    def per_token_bits(self) -> int | None:
+        """The bit width of a transform that only quantizes per token (None: one that changes
+        nothing). `fused` needs such a transform; ValueError for any other (smoothing or clipping
+        vectors, a float format, a wrapped transform). The Triton form (`quant.fused_kernel`) exposes the
+        transform it computes as `reference`."""
+        transform = getattr(self.transform, "reference", self.transform)
+        if (not isinstance(transform, InputTransform) or transform.smooth is not None or transform.clip is not None
+                or transform.act_format is not None):
+            raise ValueError(f"{type(self.transform).__name__} is not plain per-token quantization")
+        return transform.act_bits
+
+    @property
+    def is_per_token(self) -> bool:
+        try:
+            self.per_token_bits
+        except ValueError:
+            return False
+        return True
+
+    def fused(self, op: Callable, *args, compiler: Callable | None = None):
+        """`op(*args)` with its output (the last one, if it returns several) quantized as this
+        quantizer quantizes its layer's input -- in the same compiled function when `compiler`
+        (e.g. `torch.compile` with options) is given, so the compiler fuses the quantization into
+        the producing op. Counts one run. Quantizers of layers that read the same input (q/k/v)
+        each call this with the same `op` and arguments; the second and later calls return the
+        first one's result instead of computing it again (`_LastFused`)."""
+        bits = self.per_token_bits
+        self.calls += 1
+        return _LAST_FUSED.lookup_or_run(quantizing_op(op, bits, compiler), args)
+
+
+class _LastFused:
+    """The last `fused` result with its inputs (held, so identities stay valid): an equal
+    quantizer (same op, bit width and compiler, hence the same function) on the same argument
+    objects, none modified since (tensor `_version`), gets the same result."""
+
+    def __init__(self):
+        self.key: tuple | None = None
+        self.result = None
+
+    def lookup_or_run(self, fn: Callable, args: tuple):
+        key = (fn, args, tuple(a._version if isinstance(a, torch.Tensor) else None for a in args))
+        if self.key is not None and _same(self.key, key):
+            return self.result
+        self.key, self.result = key, fn(*args)
+        return self.result
+
+
+def _same(a: tuple, b: tuple) -> bool:
+    (fn_a, args_a, versions_a), (fn_b, args_b, versions_b) = a, b
+    return (fn_a is fn_b and len(args_a) == len(args_b) and versions_a == versions_b
+            and all(x is y if isinstance(x, torch.Tensor) else x == y for x, y in zip(args_a, args_b)))
+
+
+_LAST_FUSED = _LastFused()
+
+
+@functools.cache
+def quantizing_op(op: Callable, bits: int | None, compiler: Callable | None = None) -> Callable:
+    """`op` followed by per-token `bits`-bit quantization of its (last) output, as one function
+    (None bits: `op` alone), compiled once by `compiler` when given."""
+    if bits is None:
+        return compiler(op) if compiler is not None else op
+
+    def fn(*args):
+        out = op(*args)
+        if isinstance(out, tuple):
+            return (*out[:-1], _per_token(out[-1], bits))
+        return _per_token(out, bits)
+
+    if compiler is None:
+        return fn
+    # A code object of its own per op and bit width: dynamo keeps its compilations (and their
+    # recompile limit) per code object, and every `fn` closure would otherwise share one.
+    name = f"{op.__name__}_then_int{bits}"
+    return compiler(types.FunctionType(fn.__code__.replace(co_name=name, co_qualname=name), fn.__globals__, name,
+                                       None, fn.__closure__))
+
+
+def _per_token(x: torch.Tensor, bits: int) -> torch.Tensor:
+    """`fake_quant_activation(x, bits)`, written so that a compiler fusing it into the op that made
+    `x` still quantizes the rounded `x` a hook would see."""
+    return fake_quant_activation(_as_float32(x), bits).to(x.dtype)
+
+
+def _as_float32(x: torch.Tensor) -> torch.Tensor:
+    """`x.float()` for a bf16 tensor, written as the bit-level widening it is. Inside one fused
+    kernel a compiler may drop a float32 -> bf16 -> float32 round trip and quantize the unrounded
+    value; a hook sees the rounded bf16 tensor, and this form keeps that rounding."""
+    if x.dtype != torch.bfloat16:
+        return x.float()
+    return (x.view(torch.int16).to(torch.int32) << 16).view(torch.float32)
+
+
+class CountingHook:
+    """A forward pre-hook that passes a linear layer's input through its `ActivationQuantizer`."""
+
+    def __init__(self, layer: nn.Linear, transform: Callable[[torch.Tensor], torch.Tensor]):
+        self.quantizer = ActivationQuantizer(transform)
         self.handle = layer.register_forward_pre_hook(self)
 
     def __call__(self, module: nn.Module, args: tuple) -> tuple:
-        self.calls += 1
-        return (self.transform(args[0]), *args[1:])
+        return (self.quantizer(args[0]), *args[1:])
+
+    @property
+    def transform(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        return self.quantizer.transform
+
+    @transform.setter
+    def transform(self, transform: Callable[[torch.Tensor], torch.Tensor]) -> None:
+        """Swap how the input is computed (e.g. the fused kernel); the count stays."""
+        self.quantizer.transform = transform
+
+    @property
+    def calls(self) -> int:
+        return self.quantizer.calls
 
     def remove(self) -> None:
         self.handle.remove()

@@ -7,11 +7,11 @@ one launch instead of thousands. On other devices it runs the same static code e
 
 Make the sampler after quantization, or call `reset()` after installing, removing or changing
 hooks or weights: on first use it groups each SigLIP and Gemma layer's linears (`linear_groups`,
-which copy the q/k/v and gate/up weights into one matrix each and read the hooks' transforms), and hooks
-are Python, so whatever they launch is recorded at capture. Capture is one warm-up chunk plus one
+which copy the q/k/v and gate/up weights into one matrix each and read the layers' quantizers), and
+quantizers are Python, so whatever they launch is recorded at capture. Capture is one warm-up chunk plus one
 recorded chunk, seconds at full size; the compiled elementwise kernels are kept across `reset()`.
-Hook call counters advance only during the warm-up and recorded chunks, which is enough to prove
-that every hook fired.
+Quantizers count their runs only during the warm-up and recorded chunks (a replay runs no
+Python), which is enough to prove that every layer's quantizer ran.
 
 A batch smaller than one already captured (same image, prompt and chunk sizes) is padded to it
 with copies of its last observation and replays that graph, instead of capturing (and compiling
@@ -40,8 +40,6 @@ from torch import nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from vlaquantbench.models.pi05.fast import static_sampling
-from vlaquantbench.quant import fused_kernel
-from vlaquantbench.quant.fused_kernel import fused_fake_quant
 
 # Quantization methods whose layers cannot run inside a CUDA graph, with the reason.
 UNCAPTURABLE_METHODS = {"int8": "bitsandbytes LLM.int8() synchronizes with the host on its outlier columns"}
@@ -74,7 +72,7 @@ class CapturedSampler:
         # whole loop took over three minutes on an H100); the graph is then captured around the
         # compiled kernels as around eager ones.
         fuse = self.use_graphs if fuse_elementwise is None else fuse_elementwise
-        self.ops = static_sampling.compiled_ops() if fuse else static_sampling.EAGER_OPS
+        self.ops = static_sampling.COMPILED_OPS if fuse else static_sampling.EAGER_OPS
         self._graphs: dict[tuple, dict[int, _Graph]] = {}  # input shapes past the batch -> batch -> graph
         self._groups: static_sampling.ModelGroups | None = None
 
@@ -85,8 +83,7 @@ class CapturedSampler:
 
     def _model_groups(self) -> static_sampling.ModelGroups:
         if self._groups is None:
-            quantize = fused_fake_quant if self.use_graphs and fused_kernel.triton is not None else None
-            self._groups = static_sampling.ModelGroups.of(self.model, quantize)
+            self._groups = static_sampling.ModelGroups.of(self.model)
         return self._groups
 
     def __call__(self, images: Sequence[torch.Tensor], img_masks: Sequence[torch.Tensor], tokens, masks, noise):

@@ -3,14 +3,16 @@
 At batch 1 the action expert's products are tiny (50 tokens), so a chunk's time goes to the number
 of kernels rather than to arithmetic. A `LinearGroup` computes its members as one product with the
 members' weights concatenated along the output dimension -- per output row the same dot products,
-so per-channel and per-group weight quantization (applied in place before) is unchanged -- and
-applies their activation quantization once, as the members' hooks would (they read the same
-input). Each member's hook still counts the call, so hook coverage is proven as before.
+so per-channel and per-group weight quantization (applied in place before) is unchanged. Its input
+comes from `input_from(op, args, compiler)`: the elementwise op that produces it (a norm, a GELU,
+a head merge) run through each member's own `ActivationQuantizer.fused`, which quantizes the op's
+output as the member's hook would, inside the same compiled function, and counts the member's run
+(quantizers of one input compute it once, `quant.hooks`). Nothing here touches a count.
 
 A group fuses only what it can prove equivalent: members that are plain `nn.Linear` layers with
 floating weights (not packed real-kernel modules), no forward hooks, and either no pre-hooks or
 exactly one `CountingHook` each whose transform is plain per-token quantization (no smoothing or
-clipping vectors, which are per layer) with the same bit width. Anything else -- a calibrated
+clipping vectors, which are per layer; no float format) with the same bit width. Anything else -- a calibrated
 transform, a wrapped transform, a packed layer -- runs member by member through the modules, hooks
 included.
 
@@ -26,61 +28,40 @@ import torch
 import torch.nn.functional as F  # noqa: N812
 from torch import nn
 
-from vlaquantbench.quant.grid import fake_quant_activation
-from vlaquantbench.quant.hooks import CountingHook, InputTransform
-
-_UNSET = object()
+from vlaquantbench.quant.hooks import ActivationQuantizer, CountingHook, quantizing_op
 
 
-def _plain_act_bits(transform) -> int | None | object:
-    """The bit width of a transform that only quantizes per token (None: identity); `_UNSET` for
-    anything else. `FusedInputTransform` (quant.fused_kernel) exposes its reference's fields."""
-    reference = getattr(transform, "reference", transform)
-    if (not isinstance(reference, InputTransform) or reference.smooth is not None or reference.clip is not None
-            or reference.act_format is not None):  # float formats quantize through the members' hooks
-        return _UNSET
-    return reference.act_bits
-
-
-def _fusable(layers: Sequence[nn.Module]) -> tuple[bool, int | None, list[CountingHook]]:
-    """(can fuse, common activation bits, the members' counting hooks)."""
-    hooks: list[CountingHook] = []
-    bits: set = set()
+def _fusable(layers: Sequence[nn.Module]) -> tuple[bool, list[ActivationQuantizer]]:
+    """(can fuse, the members' quantizers -- one per member, or none)."""
+    quantizers: list[ActivationQuantizer] = []
     first = layers[0]
     for layer in layers:
         if type(layer) is not nn.Linear or layer._forward_hooks or layer._backward_hooks:
-            return False, None, []
+            return False, []
         weight = layer.weight
         if not weight.is_floating_point() or weight.dtype != first.weight.dtype or weight.device != first.weight.device:
-            return False, None, []
+            return False, []
         if (layer.bias is None) != (first.bias is None) or layer.in_features != first.in_features:
-            return False, None, []
+            return False, []
         pre = list(layer._forward_pre_hooks.values())
         if len(pre) > 1 or (pre and not isinstance(pre[0], CountingHook)):
-            return False, None, []
+            return False, []
         if pre:
-            hooks.append(pre[0])
-            bits.add(_plain_act_bits(pre[0].transform))
-        else:
-            bits.add(None)
-    if len(bits) != 1 or _UNSET in bits or (hooks and len(hooks) != len(layers)):
-        return False, None, []
-    return True, bits.pop(), hooks
+            quantizers.append(pre[0].quantizer)
+    if quantizers and (len(quantizers) != len(layers) or not all(q.is_per_token for q in quantizers)
+                       or len({q.per_token_bits for q in quantizers}) != 1):
+        return False, []
+    return True, quantizers
 
 
 class LinearGroup:
-    """`group(x)` returns the members' outputs for input `x`, in member order.
+    """`group(group.input_from(op, args, compiler))` returns the members' outputs, in member order."""
 
-    `act_bits` is the per-token quantization the members apply to their input (None: none). A
-    producer that has already quantized `x` that way (a fused norm) passes `prequantized=True`.
-    """
-
-    def __init__(self, layers: Sequence[nn.Module], quantize: Callable[[torch.Tensor, int], torch.Tensor] | None = None):
+    def __init__(self, layers: Sequence[nn.Module]):
         self.layers = list(layers)
-        self.fused, self.act_bits, self.hooks = _fusable(self.layers)
-        self.quantize = quantize or fake_quant_activation
+        self.fused, self.quantizers = _fusable(self.layers)
+        self._input: torch.Tensor | None = None
         if not self.fused:
-            self.act_bits = None
             return
         self.sizes = [layer.out_features for layer in self.layers]
         with torch.no_grad():
@@ -91,14 +72,27 @@ class LinearGroup:
                 biases = [layer.bias for layer in self.layers]
                 self.bias = None if biases[0] is None else torch.cat(biases)
 
-    def __call__(self, x: torch.Tensor, prequantized: bool = False) -> list[torch.Tensor]:
+    @property
+    def act_bits(self) -> int | None:
+        """The per-token quantization the members apply to their input inside the producer (None: none)."""
+        return self.quantizers[0].per_token_bits if self.quantizers else None
+
+    def input_from(self, op: Callable, args: tuple, compiler: Callable | None = None):
+        """`op(*args)`, whose output (the last, if several) is this group's input: quantized by
+        every member's quantizer when the group is fused, as is otherwise (an unfused group's
+        members quantize through their hooks when called). `compiler` as in
+        `ActivationQuantizer.fused`."""
+        if self.quantizers:
+            out = [quantizer.fused(op, *args, compiler=compiler) for quantizer in self.quantizers][0]
+        else:
+            out = quantizing_op(op, None, compiler)(*args)
+        self._input = out[-1] if isinstance(out, tuple) else out
+        return out
+
+    def __call__(self, x: torch.Tensor) -> list[torch.Tensor]:
+        if x is not self._input:
+            raise ValueError("a linear group's input must come from its input_from(), which quantizes it")
         if not self.fused:
-            if prequantized:
-                raise ValueError("an unfused group quantizes through its hooks; do not pass a prequantized input")
             return [layer(x) for layer in self.layers]
-        for hook in self.hooks:
-            hook.calls += 1
-        if self.act_bits is not None and not prequantized:
-            x = self.quantize(x, self.act_bits)
         y = F.linear(x, self.weight, self.bias)
         return [y] if len(self.layers) == 1 else list(y.split(self.sizes, dim=-1))

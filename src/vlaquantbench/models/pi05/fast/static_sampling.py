@@ -19,21 +19,21 @@ Mirrors lerobot 0.6.1 `PI05Pytorch.sample_actions` (prefix pass that fills the K
 * all cameras pass the vision tower as one batch, its encoder layers written out like the Gemma
   ones (LayerNorm and residual arithmetic as ops, q/k/v as one group);
 * each SigLIP and Gemma layer's linears run as `linear_groups` groups (q/k/v as one
-  product, gate/up as one), and where a group's hooks only quantize per token, that quantization
-  is done by the op that produces the group's input (the norm, the GELU, the head merge), so it
-  fuses into that kernel.
+  product, gate/up as one), and where a group's quantizers only quantize per token, each
+  member's quantizer quantizes inside the op that produces the group's input (the norm, the
+  GELU, the head merge: `Ops.feed`, `ActivationQuantizer.fused`), so it fuses into that kernel.
 
 Layers a group cannot fuse (calibrated or wrapped transforms, packed real-kernel layers) and the
 layers outside the groups (projector, action and time projections, AdaRMS modulations) are called
-as modules, so their hooks run as installed (and a captured graph records what they launch);
-every hook counts its calls either way. `tests/test_pi05_fast.py` checks the result against
+as modules, so their hooks run as installed (and a captured graph records what they launch).
+Either way each layer's own quantizer runs and counts itself; this module counts nothing. `tests/test_pi05_fast.py` checks the result against
 lerobot's own `sample_actions` on the demo model, with and without quantization.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F  # noqa: N812
@@ -43,7 +43,7 @@ from torch import nn
 from transformers.models.gemma.modeling_gemma import apply_rotary_pos_emb
 
 from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
-from vlaquantbench.quant.grid import fake_quant_activation
+from vlaquantbench.quant.hooks import quantizing_op
 
 
 def flow_times(num_steps: int, device: torch.device) -> torch.Tensor:
@@ -64,30 +64,15 @@ def _rms(x: torch.Tensor, eps: float) -> torch.Tensor:
     return x * torch.rsqrt(torch.mean(torch.square(x.float()), dim=-1, keepdim=True) + eps)
 
 
-def _as_float32(x: torch.Tensor) -> torch.Tensor:
-    """`x.float()` for a bf16 tensor, written as the bit-level widening it is. Inside one fused
-    kernel a compiler may drop a float32 -> bf16 -> float32 round trip and quantize the unrounded
-    value; a hook sees the rounded bf16 tensor, and this form keeps that rounding."""
-    if x.dtype != torch.bfloat16:
-        return x.float()
-    return (x.view(torch.int16).to(torch.int32) << 16).view(torch.float32)
-
-
-def _quantized(x: torch.Tensor, bits: int | None) -> torch.Tensor:
-    """The per-token fake quantization the consuming layers' hooks apply (`quant.grid`), done by
-    the producing op so that a compiler fuses it into the same kernel (None: none)."""
-    return x if bits is None else fake_quant_activation(_as_float32(x), bits).to(x.dtype)
-
-
-def rms_norm(x: torch.Tensor, weight: torch.Tensor, eps: float, bits: int | None = None) -> torch.Tensor:
+def rms_norm(x: torch.Tensor, weight: torch.Tensor, eps: float) -> torch.Tensor:
     """`PiGemmaRMSNorm(x)` without a condition."""
-    return _quantized((_rms(x, eps) * (1.0 + weight.float())).type_as(x), bits)
+    return (_rms(x, eps) * (1.0 + weight.float())).type_as(x)
 
 
-def add_rms_norm(hidden, update, weight, eps: float, bits: int | None = None):
+def add_rms_norm(hidden, update, weight, eps: float):
     """Residual add, then the next RMSNorm: returns (new hidden, its normalized copy)."""
     hidden = hidden + update
-    return hidden, rms_norm(hidden, weight, eps, bits)
+    return hidden, rms_norm(hidden, weight, eps)
 
 
 def modulation(dense_out: torch.Tensor, steps: int, batch: int, dtype: torch.dtype):
@@ -98,37 +83,37 @@ def modulation(dense_out: torch.Tensor, steps: int, batch: int, dtype: torch.dty
     return scale, shift, gate.to(dtype)
 
 
-def ada_rms_norm(x: torch.Tensor, scale: torch.Tensor, shift: torch.Tensor, eps: float, bits: int | None = None):
+def ada_rms_norm(x: torch.Tensor, scale: torch.Tensor, shift: torch.Tensor, eps: float):
     """`PiGemmaRMSNorm(x, cond)`'s normalized output, given the scale and shift of `modulation`."""
     normed = _rms(x, eps) * (1 + scale.float()) + shift.float()
-    return _quantized(normed.to(x.dtype), bits)
+    return normed.to(x.dtype)
 
 
-def gated_add_ada_rms_norm(hidden, update, gate, scale, shift, eps: float, bits: int | None = None):
+def gated_add_ada_rms_norm(hidden, update, gate, scale, shift, eps: float):
     """Gated residual `hidden + update * gate`, then the next AdaRMSNorm: (new hidden, normed)."""
     hidden = hidden + update * gate
-    return hidden, ada_rms_norm(hidden, scale, shift, eps, bits)
+    return hidden, ada_rms_norm(hidden, scale, shift, eps)
 
 
-def gelu_tanh_mul(gate: torch.Tensor, up: torch.Tensor, bits: int | None = None) -> torch.Tensor:
+def gelu_tanh_mul(gate: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     """GemmaMLP's `act_fn(gate_proj(x)) * up_proj(x)` with Gemma's `gelu_pytorch_tanh`."""
-    return _quantized(F.gelu(gate, approximate="tanh") * up, bits)
+    return F.gelu(gate, approximate="tanh") * up
 
 
-def layer_norm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, eps: float, bits: int | None = None):
-    """`nn.LayerNorm` (the vision tower's), with the consuming layers' input quantization."""
-    return _quantized(F.layer_norm(x, x.shape[-1:], weight, bias, eps), bits)
+def layer_norm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, eps: float):
+    """`nn.LayerNorm` (the vision tower's)."""
+    return F.layer_norm(x, x.shape[-1:], weight, bias, eps)
 
 
-def add_layer_norm(hidden, update, weight, bias, eps: float, bits: int | None = None):
+def add_layer_norm(hidden, update, weight, bias, eps: float):
     """Residual add, then the next LayerNorm: returns (new hidden, its normalized copy)."""
     hidden = hidden + update
-    return hidden, layer_norm(hidden, weight, bias, eps, bits)
+    return hidden, layer_norm(hidden, weight, bias, eps)
 
 
-def gelu_tanh(x: torch.Tensor, bits: int | None = None) -> torch.Tensor:
-    """SigLIP's MLP activation (`gelu_pytorch_tanh`), with fc2's input quantization."""
-    return _quantized(F.gelu(x, approximate="tanh"), bits)
+def gelu_tanh(x: torch.Tensor) -> torch.Tensor:
+    """SigLIP's MLP activation (`gelu_pytorch_tanh`)."""
+    return F.gelu(x, approximate="tanh")
 
 
 def rotary_into_cache(query, key, value, cos, sin, cache_keys, cache_values, start: int):
@@ -142,10 +127,10 @@ def rotary_into_cache(query, key, value, cos, sin, cache_keys, cache_values, sta
     return query.contiguous()
 
 
-def merge_heads(out: torch.Tensor, bits: int | None = None) -> torch.Tensor:
-    """Attention output B x heads x L x D -> B x L x (heads * D), with o_proj's input quantization."""
+def merge_heads(out: torch.Tensor) -> torch.Tensor:
+    """Attention output B x heads x L x D -> B x L x (heads * D)."""
     batch, heads, length, dim = out.shape
-    return _quantized(out.transpose(1, 2).reshape(batch, length, heads * dim), bits)
+    return out.transpose(1, 2).reshape(batch, length, heads * dim)
 
 
 def attention_probs(scores: torch.Tensor, scaling: float, bias: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -153,40 +138,41 @@ def attention_probs(scores: torch.Tensor, scaling: float, bias: torch.Tensor, dt
     return torch.softmax(scores * scaling + bias, dim=-1, dtype=torch.float32).to(dtype)
 
 
-@dataclass(frozen=True)
-class ElementwiseOps:
-    """The arithmetic between matrix products, swappable for compiled (fused) versions."""
-
-    rms_norm: Callable = rms_norm
-    add_rms_norm: Callable = add_rms_norm
-    ada_rms_norm: Callable = ada_rms_norm
-    gated_add_ada_rms_norm: Callable = gated_add_ada_rms_norm
-    rotary_into_cache: Callable = rotary_into_cache
-    gelu_tanh_mul: Callable = gelu_tanh_mul
-    attention_probs: Callable = attention_probs
-    merge_heads: Callable = merge_heads
-    layer_norm: Callable = layer_norm
-    add_layer_norm: Callable = add_layer_norm
-    gelu_tanh: Callable = gelu_tanh
-
-
-EAGER_OPS = ElementwiseOps()
-
 # Inductor keeps eager's arithmetic where quantization decisions hang on it: the bf16 rounding of
 # a norm's output before it is quantized (`emulate_precision_casts`) and IEEE division in x / scale
 # (`division_rounding`; Triton's `/` is approximate), so a fused quantization rounds as the hook.
 _EAGER_NUMERICS = {"emulate_precision_casts": True, "eager_numerics.division_rounding": True}
 
 
-def compiled_ops() -> ElementwiseOps:
-    """Each elementwise op compiled on its own by inductor (seconds per op and shape, not minutes
-    like the whole loop), so a norm with its quantization, a residual or a rotary becomes one or
-    two kernels."""
+def inductor(fn: Callable) -> Callable:
+    """One elementwise op (with the quantization of its output, if any) compiled on its own:
+    seconds per op and shape, not minutes like the whole loop."""
     # One compilation per op, input shape (VLM or expert, batch size) and bit width: more than
     # dynamo's default limit of 8, past which it would silently run the op uncompiled.
     torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
-    return ElementwiseOps(**{f.name: torch.compile(getattr(EAGER_OPS, f.name), dynamic=False, options=_EAGER_NUMERICS)
-                             for f in fields(ElementwiseOps)})
+    return torch.compile(fn, dynamic=False, options=_EAGER_NUMERICS)
+
+
+@dataclass(frozen=True)
+class Ops:
+    """How the elementwise arithmetic between matrix products runs: eagerly (`compiler` None) or
+    each op compiled by `compiler` (`inductor`), so a norm with its quantization, a residual or a
+    rotary becomes one or two kernels."""
+
+    compiler: Callable | None = None
+
+    def __call__(self, op: Callable, *args):
+        """An op whose output no linear group reads."""
+        return quantizing_op(op, None, self.compiler)(*args)
+
+    def feed(self, group: LinearGroup | None, op: Callable, *args):
+        """An op whose output (the last, if several) is `group`'s input, quantized by the group's
+        members' quantizers inside it (None: a module reads it, through its own hook)."""
+        return self(op, *args) if group is None else group.input_from(op, args, self.compiler)
+
+
+EAGER_OPS = Ops()
+COMPILED_OPS = Ops(inductor)
 
 
 @dataclass
@@ -200,14 +186,14 @@ class LayerGroups:
     mlp_out: LinearGroup
 
     @classmethod
-    def of(cls, layer: nn.Module, quantize=None) -> "LayerGroups":
+    def of(cls, layer: nn.Module) -> "LayerGroups":
         attn, mlp = layer.self_attn, layer.mlp
         if hasattr(mlp, "gate_proj"):  # Gemma
             out, mlp_in, mlp_out = attn.o_proj, [mlp.gate_proj, mlp.up_proj], mlp.down_proj
         else:  # SigLIP
             out, mlp_in, mlp_out = attn.out_proj, [mlp.fc1], mlp.fc2
-        return cls(LinearGroup([attn.q_proj, attn.k_proj, attn.v_proj], quantize), LinearGroup([out], quantize),
-                   LinearGroup(mlp_in, quantize), LinearGroup([mlp_out], quantize))
+        return cls(LinearGroup([attn.q_proj, attn.k_proj, attn.v_proj]), LinearGroup([out]), LinearGroup(mlp_in),
+                   LinearGroup([mlp_out]))
 
 
 @dataclass
@@ -220,25 +206,24 @@ class ModelGroups:
     expert: list[LayerGroups]
 
     @classmethod
-    def of(cls, model: nn.Module, quantize=None) -> "ModelGroups":
+    def of(cls, model: nn.Module) -> "ModelGroups":
         pwe = model.paligemma_with_expert
         vision = pwe.paligemma.model.vision_tower.vision_model
-        return cls([LayerGroups.of(layer, quantize) for layer in vision.encoder.layers],
-                   [LayerGroups.of(layer, quantize) for layer in pwe.paligemma.model.language_model.layers],
-                   [LayerGroups.of(layer, quantize) for layer in pwe.gemma_expert.model.layers])
+        return cls([LayerGroups.of(layer) for layer in vision.encoder.layers],
+                   [LayerGroups.of(layer) for layer in pwe.paligemma.model.language_model.layers],
+                   [LayerGroups.of(layer) for layer in pwe.gemma_expert.model.layers])
 
 
-def _project_qkv(attn: nn.Module, qkv: LinearGroup, hidden, cos, sin, kv, start: int, ops: ElementwiseOps,
-                 prequantized: bool):
+def _project_qkv(attn: nn.Module, qkv: LinearGroup, hidden, cos, sin, kv, start: int, ops: Ops):
     """q/k/v projections and rotary; this call's keys/values go into the `kv` buffers at `start`."""
     batch, length, _ = hidden.shape
     shape = (batch, length, -1, attn.head_dim)
-    query, key, value = (y.view(shape).transpose(1, 2) for y in qkv(hidden, prequantized))
-    return ops.rotary_into_cache(query, key, value, cos, sin, kv[0], kv[1], start)
+    query, key, value = (y.view(shape).transpose(1, 2) for y in qkv(hidden))
+    return ops(rotary_into_cache, query, key, value, cos, sin, kv[0], kv[1], start)
 
 
-def _attention(attn: nn.Module, groups: LayerGroups, hidden, cos, sin, bias, kv, start: int, ops: ElementwiseOps,
-               prequantized: bool, sdpa: bool = False):
+def _attention(attn: nn.Module, groups: LayerGroups, hidden, cos, sin, bias, kv, start: int, ops: Ops,
+               sdpa: bool = False):
     """Self-attention of `hidden` (at cache positions `start`...) over the cache up to its end.
 
     Folded (default): the 8 query heads share one KV head, so they fold into one batched matrix
@@ -248,7 +233,7 @@ def _attention(attn: nn.Module, groups: LayerGroups, hidden, cos, sin, bias, kv,
     the GPU idle on 50 action queries. `sdpa=True` runs `scaled_dot_product_attention` instead
     (prefix only)."""
     batch, length, _ = hidden.shape
-    query = _project_qkv(attn, groups.qkv, hidden, cos, sin, kv, start, ops, prequantized)
+    query = _project_qkv(attn, groups.qkv, hidden, cos, sin, kv, start, ops)
     heads, end = query.shape[1], start + length
     if sdpa:
         keys = kv[0][:, :, :end].expand(batch, heads, end, attn.head_dim)
@@ -257,15 +242,15 @@ def _attention(attn: nn.Module, groups: LayerGroups, hidden, cos, sin, bias, kv,
     else:
         keys, values = kv[0][:, 0, :end], kv[1][:, 0, :end]  # B x end x head_dim
         scores = torch.bmm(query.reshape(batch, heads * length, -1), keys.transpose(1, 2))
-        probs = ops.attention_probs(scores.view(batch, heads, length, end), attn.scaling, bias, values.dtype)
+        probs = ops(attention_probs, scores.view(batch, heads, length, end), attn.scaling, bias, values.dtype)
         out = torch.bmm(probs.view(batch, heads * length, end), values).view(batch, heads, length, -1)
-    return groups.out(ops.merge_heads(out, groups.out.act_bits), prequantized=groups.out.fused)[0]
+    return groups.out(ops.feed(groups.out, merge_heads, out))[0]
 
 
-def _mlp(groups: LayerGroups, x: torch.Tensor, ops: ElementwiseOps, prequantized: bool) -> torch.Tensor:
+def _mlp(groups: LayerGroups, x: torch.Tensor, ops: Ops) -> torch.Tensor:
     """GemmaMLP: gate/up (one group), the activation (with down_proj's input quantization), down."""
-    gate, up = groups.mlp_in(x, prequantized)
-    return groups.mlp_out(ops.gelu_tanh_mul(gate, up, groups.mlp_out.act_bits), prequantized=groups.mlp_out.fused)[0]
+    gate, up = groups.mlp_in(x)
+    return groups.mlp_out(ops.feed(groups.mlp_out, gelu_tanh_mul, gate, up))[0]
 
 
 def _layers_dtype(gemma_model: nn.Module) -> torch.dtype:
@@ -286,7 +271,7 @@ def _new_cache(gemma_model: nn.Module, batch: int, length: int, device, dtype) -
             for _ in gemma_model.layers]
 
 
-def embed_images(model: nn.Module, images, ops: ElementwiseOps = EAGER_OPS,
+def embed_images(model: nn.Module, images, ops: Ops = EAGER_OPS,
                  groups: list[LayerGroups] | None = None) -> list[torch.Tensor]:
     """lerobot's `embed_image` (SigLIP tower in float32, projector) for every camera in one batch
     (lerobot embeds one camera per call: three times the kernels for the same rows), with the
@@ -301,28 +286,28 @@ def embed_images(model: nn.Module, images, ops: ElementwiseOps = EAGER_OPS,
     groups = groups or [LayerGroups.of(layer) for layer in layers]
     hidden = vision.embeddings(torch.cat(list(images)).to(torch.float32))
     first = layers[0].layer_norm1
-    normed = ops.layer_norm(hidden, first.weight, first.bias, first.eps, groups[0].qkv.act_bits)
+    normed = ops.feed(groups[0].qkv, layer_norm, hidden, first.weight, first.bias, first.eps)
     for index, (layer, group) in enumerate(zip(layers, groups, strict=True)):
         attn = layer.self_attn
         rows, length, _ = normed.shape
         query, key, value = (y.view(rows, length, -1, attn.head_dim).transpose(1, 2)
-                             for y in group.qkv(normed, group.qkv.fused))
+                             for y in group.qkv(normed))
         out = F.scaled_dot_product_attention(query, key, value, scale=attn.scale)
-        attn_out = group.out(ops.merge_heads(out, group.out.act_bits), prequantized=group.out.fused)[0]
+        attn_out = group.out(ops.feed(group.out, merge_heads, out))[0]
         norm2 = layer.layer_norm2
-        hidden, normed = ops.add_layer_norm(hidden, attn_out, norm2.weight, norm2.bias, norm2.eps, group.mlp_in.act_bits)
-        activated = ops.gelu_tanh(group.mlp_in(normed, group.mlp_in.fused)[0], group.mlp_out.act_bits)
-        mlp_out = group.mlp_out(activated, prequantized=group.mlp_out.fused)[0]
+        hidden, normed = ops.feed(group.mlp_in, add_layer_norm, hidden, attn_out, norm2.weight, norm2.bias, norm2.eps)
+        activated = ops.feed(group.mlp_out, gelu_tanh, group.mlp_in(normed)[0])
+        mlp_out = group.mlp_out(activated)[0]
         if index + 1 < len(layers):  # the residual, then the next layer's first LayerNorm
-            nxt, bits = layers[index + 1].layer_norm1, groups[index + 1].qkv.act_bits
+            nxt, reader = layers[index + 1].layer_norm1, groups[index + 1].qkv
         else:  # the tower's final LayerNorm feeds the projector, a module call with its own hook
-            nxt, bits = vision.post_layernorm, None
-        hidden, normed = ops.add_layer_norm(hidden, mlp_out, nxt.weight, nxt.bias, nxt.eps, bits)
+            nxt, reader = vision.post_layernorm, None
+        hidden, normed = ops.feed(reader, add_layer_norm, hidden, mlp_out, nxt.weight, nxt.bias, nxt.eps)
     return list(paligemma.multi_modal_projector(normed).split(batch))
 
 
 @torch.no_grad()
-def prefix_cache(model: nn.Module, images, img_masks, tokens, masks, suffix_len: int, ops: ElementwiseOps = EAGER_OPS,
+def prefix_cache(model: nn.Module, images, img_masks, tokens, masks, suffix_len: int, ops: Ops = EAGER_OPS,
                  groups: ModelGroups | None = None, prefix_sdpa: bool = False):
     """Run the VLM over images and prompt; return per-layer KV buffers (prefix filled, `suffix_len`
     free slots after it) and the prefix pad mask."""
@@ -345,20 +330,20 @@ def prefix_cache(model: nn.Module, images, img_masks, tokens, masks, suffix_len:
     cos, sin = lm.rotary_emb(hidden, torch.cumsum(pad, dim=1) - 1)
     cache = _new_cache(lm, batch, length + suffix_len, hidden.device, dtype)
     first, layer_groups = layers[0].input_layernorm, groups.prefix
-    normed = ops.rms_norm(hidden, first.weight, first.eps, layer_groups[0].qkv.act_bits)
+    normed = ops.feed(layer_groups[0].qkv, rms_norm, hidden, first.weight, first.eps)
     for index, (layer, group, kv) in enumerate(zip(layers, layer_groups, cache, strict=True)):
-        attn_out = _attention(layer.self_attn, group, normed, cos, sin, bias, kv, 0, ops, group.qkv.fused, prefix_sdpa)
+        attn_out = _attention(layer.self_attn, group, normed, cos, sin, bias, kv, 0, ops, prefix_sdpa)
         post = layer.post_attention_layernorm
-        hidden, normed = ops.add_rms_norm(hidden, attn_out, post.weight, post.eps, group.mlp_in.act_bits)
-        mlp_out = _mlp(group, normed, ops, group.mlp_in.fused)
+        hidden, normed = ops.feed(group.mlp_in, add_rms_norm, hidden, attn_out, post.weight, post.eps)
+        mlp_out = _mlp(group, normed, ops)
         if index + 1 < len(layers):
-            nxt, nxt_bits = layers[index + 1].input_layernorm, layer_groups[index + 1].qkv.act_bits
-            hidden, normed = ops.add_rms_norm(hidden, mlp_out, nxt.weight, nxt.eps, nxt_bits)
+            nxt = layers[index + 1].input_layernorm
+            hidden, normed = ops.feed(layer_groups[index + 1].qkv, add_rms_norm, hidden, mlp_out, nxt.weight, nxt.eps)
     return cache, pad
 
 
 @torch.no_grad()
-def sample_actions(model: nn.Module, images, img_masks, tokens, masks, noise, times, ops: ElementwiseOps = EAGER_OPS,
+def sample_actions(model: nn.Module, images, img_masks, tokens, masks, noise, times, ops: Ops = EAGER_OPS,
                    groups: ModelGroups | None = None, prefix_sdpa: bool = False):
     """A whole chunk: prefix pass, then one Euler step per row of `times` (see `flow_times`).
     `groups` (made after quantization) defaults to groups made now; `prefix_sdpa` as `sdpa` in
@@ -397,20 +382,20 @@ def sample_actions(model: nn.Module, images, img_masks, tokens, masks, noise, ti
     for step in range(steps):
         hidden = model.action_in_proj(x_t).to(dtype)
         scale, shift, gate = (m[step] for m in modulations[0][0])
-        normed = ops.ada_rms_norm(hidden, scale, shift, layers[0].input_layernorm.eps, layer_groups[0].qkv.act_bits)
+        normed = ops.feed(layer_groups[0].qkv, ada_rms_norm, hidden, scale, shift, layers[0].input_layernorm.eps)
         for index, (layer, group, kv) in enumerate(zip(layers, layer_groups, cache, strict=True)):
-            attn_out = _attention(layer.self_attn, group, normed, cos, sin, bias, kv, prefix_len, ops, group.qkv.fused)
+            attn_out = _attention(layer.self_attn, group, normed, cos, sin, bias, kv, prefix_len, ops)
             scale, shift, post_gate = (m[step] for m in modulations[index][1])
-            hidden, normed = ops.gated_add_ada_rms_norm(hidden, attn_out, gate, scale, shift,
-                                                        layer.post_attention_layernorm.eps, group.mlp_in.act_bits)
-            mlp_out = _mlp(group, normed, ops, group.mlp_in.fused)
+            hidden, normed = ops.feed(group.mlp_in, gated_add_ada_rms_norm, hidden, attn_out, gate, scale, shift,
+                                      layer.post_attention_layernorm.eps)
+            mlp_out = _mlp(group, normed, ops)
             if index + 1 < len(layers):
                 nxt, nxt_eps = modulations[index + 1][0], layers[index + 1].input_layernorm.eps
-                nxt_bits = layer_groups[index + 1].qkv.act_bits
+                reader = layer_groups[index + 1].qkv
             else:  # the final norm feeds action_out_proj (float32), a module call with its own hook
-                nxt, nxt_eps, nxt_bits = final_modulation, expert.norm.eps, None
+                nxt, nxt_eps, reader = final_modulation, expert.norm.eps, None
             scale, shift, gate = (m[step] for m in nxt)
-            hidden, normed = ops.gated_add_ada_rms_norm(hidden, mlp_out, post_gate, scale, shift, nxt_eps, nxt_bits)
+            hidden, normed = ops.feed(reader, gated_add_ada_rms_norm, hidden, mlp_out, post_gate, scale, shift, nxt_eps)
         velocity = model.action_out_proj(normed[:, -config.chunk_size :].to(torch.float32))
         x_t = x_t + dt * velocity
     return x_t
