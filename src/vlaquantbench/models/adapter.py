@@ -76,6 +76,11 @@ class PolicyAdapter(Protocol):
         returns the cell header's `inference` record."""
         ...
 
+    def fast_path_probe(self) -> dict | None:
+        """When the configured sampler is a fast path, its first chunk against the eager policy's
+        on the same input (`fast_path_probe`); None for the eager sampler."""
+        ...
+
     def reset(self, seed: int) -> torch.Generator: ...
 
     def act(self, observations: Sequence[dict], generators: Sequence[torch.Generator]) -> np.ndarray:
@@ -130,6 +135,29 @@ def resolve_sampler(cfg: dict[str, Any]) -> str:
             raise UserError(f"cell {cfg['ref']}: study.runner.sampler is 'captured' but {obstacle}; use 'auto' or 'eager'")
         return choice
     return "captured" if obstacle is None and torch.device(cfg["runner"]["device"]).type == "cuda" else "eager"
+
+
+# What a fast path's first chunk may differ from the eager policy's (`fast_path_probe`).
+# CPU: the fast path's code runs eagerly in float32 there and must equal the eager policy bit for bit.
+# CUDA: bf16 operation order, TF32 products in lerobot's float32 vision tower and fused kernels move
+# the last bits, and a 4-bit activation rounding that flips on such a difference moves a value by a
+# whole grid step, which later layers amplify. Measured for pi0.5's captured sampler at full size on
+# an H100 (benchmarks/results/gpu_policy_inference.json, `captured_vs_eager_rel_l2_b1`): relative L2
+# 3.3e-4 (BASELINE), 1.6e-3 (W4A8), 2.3e-2 (W4A4 e2e). The bound, 0.05, leaves 2x headroom over the
+# worst of them and still catches a fast path computing with stale weights (`tests/test_pi05_probe.py`:
+# stale action-expert q/k/v copies are off by more than twice the bound). Random weights, not a
+# checkpoint: benchmarks/gpu_compile_vs_captured.py re-measures it.
+PROBE_BOUNDS = {"cpu": ("max_abs_diff", 0.0), "cuda": ("rel_l2", 0.05)}
+
+
+def fast_path_probe(path: str, fast: torch.Tensor, eager: torch.Tensor) -> dict:
+    """The header record of a fast path's first chunk `fast` against the eager policy's `eager`."""
+    metric, bound = PROBE_BOUNDS["cuda" if eager.is_cuda else "cpu"]
+    fast, eager = fast.double(), eager.double()
+    diffs = {"max_abs_diff": (fast - eager).abs().max().item(),
+             "rel_l2": ((fast - eager).norm() / eager.norm().clamp_min(1e-30)).item()}
+    return {"path": path, "device": eager.device.type, **diffs, "bound": {metric: bound},
+            "passed": bool(torch.isfinite(fast).all()) and diffs[metric] <= bound}
 
 
 def episode_generator(seed: int, device: str | torch.device = "cpu") -> torch.Generator:

@@ -187,6 +187,9 @@ class PiFamilyAdapter:
     def prepare_inference(self, report) -> dict:
         return {"sampler": "eager"}
 
+    def fast_path_probe(self) -> dict | None:
+        return None
+
     # -- episodes --------------------------------------------------------------------------
     def reset(self, seed: int) -> torch.Generator:
         return episode_generator(seed)

@@ -114,6 +114,12 @@ class CellRun:
         self.report = quantize_(self.adapter.model, quant, components=self.adapter.components)
         quantized = self.report.to_header()
         inference = self.adapter.prepare_inference(self.report)
+        if (probe := self.adapter.fast_path_probe()) is not None:
+            self.report.reset_hook_calls()  # the probe's chunk is no evidence that the episodes quantized
+            inference = {**inference, "fast_path_probe": probe}
+            if not probe["passed"]:
+                raise CellFailed(f"cell {cfg['ref']}: the fast path's first chunk differs from the eager policy's "
+                                 f"beyond its bound (fast_path_probe: {probe}); run it with study.runner.sampler: eager")
         # JSON round trip: the header compares equal to the journal's copy of it on a rerun.
         self.header = canonical({
             "config_hash": config_hash(cfg),

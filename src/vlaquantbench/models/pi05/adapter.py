@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-from vlaquantbench.models.pi_family_adapter import PiFamilyAdapter
+import numpy as np
+import torch
+
+from vlaquantbench.models.adapter import episode_generator, fast_path_probe
+from vlaquantbench.models.pi_family_adapter import CAMERA_KEYS, STATE_DIM, PiFamilyAdapter
 
 
 class Pi05Adapter(PiFamilyAdapter):
@@ -35,6 +39,29 @@ class Pi05Adapter(PiFamilyAdapter):
         self._captured = CapturedSampler(self.model, num_steps=self.config.flow_steps)
         graphs = self._captured.use_graphs
         return {"sampler": "captured", "cuda_graph": graphs, "fused_quant": fused, "tf32": graphs and self._captured.tf32}
+
+    @torch.no_grad()
+    def fast_path_probe(self) -> dict | None:
+        """The captured sampler's first chunk against lerobot's eager `sample_actions` on one fixed
+        observation (seeded random camera images and state, a LIBERO instruction, seed-0 noise),
+        before any episode; the graphs it captured are dropped, so the episodes capture (and count
+        their quantizers' runs) afresh."""
+        if self.config.sampler != "captured":
+            return None
+        rng = np.random.default_rng(0)
+        observation = {view: rng.integers(0, 256, (224, 224, 3), dtype=np.uint8) for view in CAMERA_KEYS}
+        observation |= {"state": rng.uniform(-0.05, 0.05, STATE_DIM).astype(np.float32),
+                        "instruction": "pick up the black bowl and place it on the plate"}
+        batch = self.preprocessor(self._lerobot_batch([observation]))
+        images, image_masks = self._images(batch)
+        shape = (1, self.predicted_chunk, int(self.policy_config.max_action_dim))
+        noise = torch.randn(shape, generator=episode_generator(0)).to(self._device)
+        fast = self._sample(batch, images, image_masks, noise)
+        tokens, masks = batch["observation.language.tokens"], batch["observation.language.attention_mask"]
+        eager = self.model.sample_actions(images, image_masks, tokens, masks, noise=noise.clone(),
+                                          num_steps=self.config.flow_steps)
+        self._captured.reset()
+        return fast_path_probe("captured", fast, eager)
 
     def _sample(self, batch, images, image_masks, noise):
         tokens, masks = batch["observation.language.tokens"], batch["observation.language.attention_mask"]
