@@ -1,20 +1,27 @@
-"""Closed-loop episodes per hour for one LIBERO cell: the batched runner vs one environment at a time.
+"""Closed-loop episodes per hour for one LIBERO cell on one GPU node, against the simulator-only bound.
 
-One process, one policy (pi0.5 at full size with seeded random weights, bf16, the captured sampler),
-the real runner pieces (`LiberoVectorEnv` workers, `runner.loop.run_episodes`), no quantization
-unless `--preset`. First S episodes with num_envs=1, then M episodes with num_envs=N for each N.
-Episodes go task by task within each init state (tasks 0-9 of init state 0, then of init state 1,
-...), so both runs meet every task (and a worker rebuilds its environment at nearly every
-episode; a real cell runs a task's episodes one after another). Random weights never succeed:
-every episode runs to the step limit (the suite's, or `--max-steps`). Worker start-up, the first
-capture of each batch size and one short simulator warm-up episode (numba compiles) are timed
-apart and excluded from episodes per hour.
+One process, one policy (pi0.5 at full size with seeded random weights, bf16, the captured sampler,
+no quantization unless `--preset`), the real runner (`LiberoVectorEnv` workers executing whole
+chunks, `runner.loop.run_episodes` overlapping the policy with stepping). For each N of
+`--num-envs`, on one set of N workers:
 
-    python benchmarks/gpu_closed_loop.py                         # GPU: cuda, random, bf16
-    python benchmarks/gpu_closed_loop.py --num-envs 16 32 --batched-episodes 64
-    .venv/bin/python benchmarks/gpu_closed_loop.py --device cpu --variant demo --dtype float32 \\
-        --sequential-episodes 1 --batched-episodes 2 --num-envs 2 --max-steps 20 --camera-size 64 \\
-        --out /tmp/closed_loop_cpu.json                          # CPU smoke run
+  - `policy`: N x `--rounds` episodes (at least `--min-episodes`) driven by the policy;
+  - `lockstep` (N in `--lockstep`): the same episodes, every slot's chunk collected before the next
+    policy call (`overlap=False`): the policy's time is not hidden;
+  - `simulator_bound`: the same episodes driven by a zero-cost policy (random actions drawn from each
+    episode's stream in microseconds): what the simulator alone allows on this machine.
+
+Episodes go task-major as in a cell (task 0's init states 0, 1, ..., then task 1's); each slot's
+first task environment is built before timing, so every run meets the same builds. Random weights
+never succeed: every episode runs to the step limit (the suite's, or `--max-steps`). Worker
+start-up, the first capture of each batch size (powers of two up to the largest N: the captured
+sampler pads a batch to the smallest captured size at least as large) and one short simulator
+warm-up episode are timed apart and excluded. Writes after every N, so a run cut short keeps what
+it measured.
+
+    MUJOCO_GL=egl python benchmarks/gpu_closed_loop.py --num-envs 1 16 32 --out benchmarks/results/closed_loop_gpu.json
+    .venv/bin/python benchmarks/gpu_closed_loop.py --device cpu --variant demo --dtype float32 --num-envs 1 2 \\
+        --lockstep 2 --max-steps 20 --camera-size 64 --out /tmp/closed_loop_cpu.json   # CPU smoke run
 """
 
 from __future__ import annotations
@@ -32,9 +39,12 @@ import torch
 import transformers
 
 from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv
-from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+from vlaquantbench.models.adapter import AdapterConfig, episode_generator, make_adapter
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.runner.provenance import versions
+
+# The paper's corpus (sec. 3): 409 evaluation runs, 94,574 simulation episodes.
+GRID_RUNS, GRID_EPISODES = 409, 94_574
 
 
 class Meter:
@@ -43,13 +53,13 @@ class Meter:
     def __init__(self):
         self.calls, self.items, self.seconds = 0, 0, 0.0
 
-    def wrap(self, fn, items=lambda *args: 1):
-        def timed(*args):
+    def wrap(self, fn, items=lambda *args, **kwargs: 1):
+        def timed(*args, **kwargs):
             began = time.perf_counter()
-            result = fn(*args)
+            result = fn(*args, **kwargs)
             self.seconds += time.perf_counter() - began
             self.calls += 1
-            self.items += items(*args)
+            self.items += items(*args, **kwargs)
             return result
 
         return timed
@@ -63,9 +73,23 @@ class Meter:
         }
 
 
-def episode_order(suite: LiberoSuite, count: int) -> list:
-    per_task = -(-count // suite.n_tasks)
-    return [suite.episode_spec(t, e) for e in range(per_task) for t in range(suite.n_tasks)][:count]
+class ZeroCostPolicy:
+    """The adapter interface at no cost: small random arm motions, gripper open, from each episode's stream."""
+
+    def __init__(self, executed_chunk: int, predicted_chunk: int):
+        self.executed_chunk, self.predicted_chunk = executed_chunk, predicted_chunk
+
+    def reset(self, seed: int) -> torch.Generator:
+        return episode_generator(seed)
+
+    def act(self, observations, generators) -> np.ndarray:
+        chunks = np.stack([(torch.rand(self.predicted_chunk, 7, generator=g) - 0.5).numpy() * 0.4 for g in generators])
+        chunks[:, :, 6] = -1.0
+        return chunks
+
+
+def episode_order(suite: LiberoSuite, count: int, per_task: int = 50) -> list:
+    return [suite.episode_spec(t, e) for t in range(suite.n_tasks) for e in range(per_task)][:count]
 
 
 def warm_up(adapter, suite: LiberoSuite, camera_size: int, batch: int) -> float:
@@ -78,40 +102,36 @@ def warm_up(adapter, suite: LiberoSuite, camera_size: int, batch: int) -> float:
     return time.perf_counter() - began
 
 
-def measure(adapter, suite, num_envs: int, episodes: int, max_steps: int, camera_size: int) -> dict:
-    specs = episode_order(suite, episodes)
-    began = time.perf_counter()
-    env = LiberoVectorEnv(suite, num_envs, camera_size=camera_size)
-    startup = time.perf_counter() - began
-    policy, steps, resets = Meter(), Meter(), Meter()
-    real_act = adapter.act
-    adapter.act = policy.wrap(real_act, items=lambda observations, generators: len(observations))
-    env.step = steps.wrap(env.step, items=lambda actions: sum(env.live))
-    env.reset = resets.wrap(env.reset, items=lambda slots: sum(s is not None for s in slots))
+def build_first_tasks(env: LiberoVectorEnv, specs: list) -> None:
+    """Reset each slot once with the episode it starts with, so no timed run pays the task build."""
+    env.reset([specs[i] if i < len(specs) else None for i in range(env.num_envs)])
+    for slot in range(env.num_envs):
+        env.release(slot)
+
+
+def measure(policy, env: LiberoVectorEnv, specs: list, max_steps: int, overlap: bool) -> dict:
+    calls, waits = Meter(), Meter()
+    real_act, real_collect = policy.act, env.collect
+    policy.act = calls.wrap(real_act, items=lambda observations, generators: len(observations))
+    env.collect = waits.wrap(real_collect)
     records: list[dict] = []
     try:
         began = time.perf_counter()
-        run_episodes(adapter, env, specs, max_steps, on_finished=records.extend)
+        run_episodes(policy, env, specs, max_steps, on_finished=records.extend, overlap=overlap)
         wall = time.perf_counter() - began
     finally:
-        adapter.act = real_act
-        env.close()
-    run = {
-        "num_envs": num_envs,
+        policy.act, env.collect = real_act, real_collect
+    steps = int(sum(r["steps"] for r in records))
+    return {
         "episodes": len(records),
-        "policy_steps": int(sum(r["steps"] for r in records)),
+        "policy_steps": steps,
         "successes": int(sum(r["success"] for r in records)),
-        "worker_startup_s": round(startup, 2),
         "wall_s": round(wall, 2),
         "episodes_per_hour": round(3600 * len(records) / wall, 1),
-        "policy_chunk": policy.summary(),  # mean_items = mean batch of a chunk call
-        "env_step": steps.summary(),  # one call steps every live slot in parallel
-        "env_reset": resets.summary(),
+        "env_steps_per_s": round(steps / wall, 1),
+        "policy_call": calls.summary(),  # mean_items = mean batch of one policy call
+        "collect_wait": waits.summary(),  # the main process waiting for the simulator
     }
-    print(f"num_envs={num_envs}: {run['episodes']} episodes in {wall:.1f} s -> {run['episodes_per_hour']} episodes/h "
-          f"(policy {run['policy_chunk']['mean_ms']} ms/chunk call, env step {run['env_step']['mean_ms']} ms)",
-          flush=True)
-    return run
 
 
 def main() -> None:
@@ -122,9 +142,10 @@ def main() -> None:
     parser.add_argument("--dtype", default="bfloat16")
     parser.add_argument("--sampler", default="captured", choices=["captured", "eager"])
     parser.add_argument("--preset", default=None, help="e.g. W4A4: end-to-end fake quantization via quantize_")
-    parser.add_argument("--sequential-episodes", type=int, default=4, help="S, run with num_envs=1")
-    parser.add_argument("--batched-episodes", type=int, default=None, help="M per batched run (default 2 x num_envs)")
-    parser.add_argument("--num-envs", type=int, nargs="+", default=[16])
+    parser.add_argument("--num-envs", type=int, nargs="+", default=[1, 16, 32, 64])
+    parser.add_argument("--lockstep", type=int, nargs="*", default=[], help="N also measured without overlap")
+    parser.add_argument("--rounds", type=int, default=1, help="episodes per slot")
+    parser.add_argument("--min-episodes", type=int, default=2)
     parser.add_argument("--max-steps", type=int, default=None, help="default: the suite's limit for pi0.5")
     parser.add_argument("--camera-size", type=int, default=256)
     parser.add_argument("--out", default="benchmarks/results/closed_loop_gpu.json")
@@ -145,58 +166,69 @@ def main() -> None:
                            components=adapter.components)
         quant_header = report.to_header()["quant_report"]
     inference = adapter.prepare_inference(report)
-    warmups = {b: round(warm_up(adapter, suite, args.camera_size, b), 2) for b in sorted({1, *args.num_envs})}
+    largest = max(args.num_envs)
+    sizes = sorted({*(1 << k for k in range(largest.bit_length()) if 1 << k <= largest), *args.num_envs})
+    warmups = {b: round(warm_up(adapter, suite, args.camera_size, b), 2) for b in sizes}
     print(f"policy load {load_s:.1f} s, first chunk per batch size (capture) {warmups}", flush=True)
+    zero_cost = ZeroCostPolicy(adapter.executed_chunk, adapter.predicted_chunk)
 
-    # One short untimed episode first: robosuite's numba kernels compile (and cache) on first use,
-    # which would otherwise fall on the first timed run only.
-    simulator_warmup = measure(adapter, suite, 1, 1, 2 * adapter.executed_chunk, args.camera_size)
-    sequential = measure(adapter, suite, 1, args.sequential_episodes, max_steps, args.camera_size)
-    batched = [measure(adapter, suite, n, args.batched_episodes or 2 * n, max_steps, args.camera_size)
-               for n in args.num_envs]
-    for run in batched:
-        run["episodes_per_hour_vs_sequential"] = round(run["episodes_per_hour"] / sequential["episodes_per_hour"], 2)
-
-    hooks = None
-    if report is not None:
-        hooks = {key: report.to_header()["hooks"][key] for key in ("selected", "fired")}
     gpu = torch.cuda.get_device_name() if torch.device(args.device).type == "cuda" else None
     result = {
-        "suite": args.suite,
-        "model": "pi05",
-        "variant": args.variant,
-        "dtype": args.dtype,
-        "preset": args.preset or "BASELINE",
-        "quant_report": quant_header,
-        "hooks": hooks,  # fused into the captured graph on CUDA, where Python hooks no longer fire
-        "inference": inference,
-        "max_steps": max_steps,
-        "executed_chunk": adapter.executed_chunk,
-        "camera_size": args.camera_size,
-        "policy_load_s": round(load_s, 2),
-        "first_chunk_s_by_batch": warmups,
-        "simulator_warmup_s": round(simulator_warmup["worker_startup_s"] + simulator_warmup["wall_s"], 2),
-        "batched_vs_sequential_episodes_per_hour": max(r["episodes_per_hour_vs_sequential"] for r in batched),
-        "sequential": sequential,
-        "batched": batched,
+        "suite": args.suite, "model": "pi05", "variant": args.variant, "dtype": args.dtype,
+        "preset": args.preset or "BASELINE", "quant_report": quant_header, "inference": inference,
+        "max_steps": max_steps, "executed_chunk": adapter.executed_chunk, "camera_size": args.camera_size,
+        "policy_load_s": round(load_s, 2), "first_chunk_s_by_batch": warmups, "runs": [],
         "machine": {
-            "device": args.device,
-            "gpu": gpu,
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
+            "device": args.device, "gpu": gpu, "cpus": os.cpu_count(), "platform": platform.platform(),
             "versions": {**versions(), "transformers": transformers.__version__},
             "date_utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         },
     }
-    print(f"\n{'runner':<14}{'episodes':>9}{'wall s':>9}{'episodes/h':>12}{'ratio':>7}"
-          f"{'chunk ms':>10}{'batch':>7}{'step ms':>9}{'start s':>9}")
-    for name, run in [("sequential", sequential)] + [(f"batched x{r['num_envs']}", r) for r in batched]:
-        print(f"{name:<14}{run['episodes']:>9}{run['wall_s']:>9}{run['episodes_per_hour']:>12}"
-              f"{run.get('episodes_per_hour_vs_sequential', 1.0):>7}{run['policy_chunk']['mean_ms']:>10}"
-              f"{run['policy_chunk']['mean_items']:>7}{run['env_step']['mean_ms']:>9}{run['worker_startup_s']:>9}")
+    # robosuite's numba kernels compile (and cache) on first use: one short untimed episode first.
+    with LiberoVectorEnv(suite, 1, camera_size=args.camera_size) as env:
+        warm = measure(adapter, env, episode_order(suite, 1), 2 * adapter.executed_chunk, overlap=True)
+    result["simulator_warmup_s"] = warm["wall_s"]
+    for n in args.num_envs:
+        specs = episode_order(suite, max(n * args.rounds, args.min_episodes))
+        began = time.perf_counter()
+        with LiberoVectorEnv(suite, n, camera_size=args.camera_size) as env:
+            build_first_tasks(env, specs)
+            run = {"num_envs": n, "worker_startup_s": round(time.perf_counter() - began, 2)}
+            run["policy"] = measure(adapter, env, specs, max_steps, overlap=True)
+            if n in args.lockstep:
+                run["lockstep"] = measure(adapter, env, specs, max_steps, overlap=False)
+            run["simulator_bound"] = measure(zero_cost, env, specs, max_steps, overlap=True)
+        run["vs_simulator_bound"] = round(run["policy"]["episodes_per_hour"] /
+                                          run["simulator_bound"]["episodes_per_hour"], 3)
+        if "lockstep" in run:
+            run["overlap_vs_lockstep"] = round(run["policy"]["episodes_per_hour"] /
+                                               run["lockstep"]["episodes_per_hour"], 3)
+        result["runs"].append(run)
+        print(f"num_envs={n}: policy {run['policy']['episodes_per_hour']} episodes/h "
+              f"(batch {run['policy']['policy_call']['mean_items']}, {run['policy']['policy_call']['mean_ms']} ms/call), "
+              f"simulator bound {run['simulator_bound']['episodes_per_hour']} -> {run['vs_simulator_bound']}"
+              + (f"; lockstep {run['lockstep']['episodes_per_hour']}" if "lockstep" in run else ""), flush=True)
+        best = max(result["runs"], key=lambda r: r["policy"]["episodes_per_hour"])
+        result["best"] = {
+            "num_envs": best["num_envs"], "episodes_per_hour": best["policy"]["episodes_per_hour"],
+            "vs_simulator_bound": best["vs_simulator_bound"],
+            # Every episode here runs to the step limit; the grid's successful episodes end earlier.
+            "grid_gpu_hours_upper_bound": round(GRID_EPISODES / best["policy"]["episodes_per_hour"], 1),
+            "grid": f"{GRID_RUNS} runs, {GRID_EPISODES} episodes at {max_steps} steps each, one GPU node",
+        }
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
+
+    print(f"\n{'N':>4}{'episodes':>9}{'eps/h':>9}{'bound eps/h':>12}{'ratio':>7}{'lockstep':>10}"
+          f"{'batch':>7}{'call ms':>9}{'steps/s':>9}")
+    for run in result["runs"]:
+        policy = run["policy"]
+        print(f"{run['num_envs']:>4}{policy['episodes']:>9}{policy['episodes_per_hour']:>9}"
+              f"{run['simulator_bound']['episodes_per_hour']:>12}{run['vs_simulator_bound']:>7}"
+              f"{run.get('lockstep', {}).get('episodes_per_hour', '-'):>10}{policy['policy_call']['mean_items']:>7}"
+              f"{policy['policy_call']['mean_ms']:>9}{policy['env_steps_per_s']:>9}")
+    print(f"best: {result['best']}")
     print(f"camera {args.camera_size} px, {os.cpu_count()} cores, {gpu or args.device}, {result['machine']['versions']}")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
 
 
 if __name__ == "__main__":

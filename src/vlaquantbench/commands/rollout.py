@@ -5,13 +5,15 @@
     vqb rollout REF --show                                                         # config + hash only
 
 Fetches the checkpoint and collects calibration statistics first when the cell needs them; an
-interrupted run resumes from its journal.
+interrupted run resumes from its journal. Ctrl-C prints how many of the cell's episodes are recorded
+and exits 130; the same command resumes the cell.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import yaml
@@ -41,6 +43,20 @@ def run(args: argparse.Namespace) -> int:
     if args.show:
         print(json.dumps({"config_hash": config_hash(cfg), "folder": str(out), "config": cfg}, indent=2))
         return 0
+    try:
+        return _run(args, study, cfg, out)
+    except KeyboardInterrupt:
+        from vlaquantbench.runner.cell import JOURNAL
+        from vlaquantbench.runner.journal import recorded_episodes
+
+        total = len(cfg["tasks"]) * cfg["episodes_per_task"]
+        done = recorded_episodes(out / JOURNAL)
+        print(f"\nvqb rollout: interrupted: {args.ref} has {done} of {total} episodes recorded in {out}; "
+              "run the same command again to resume it", file=sys.stderr)
+        return 130
+
+
+def _run(args: argparse.Namespace, study: dict, cfg: dict, out: Path) -> int:
     from vlaquantbench.runner.calibration import calibrate
     from vlaquantbench.runner.cell import run_cell
     from vlaquantbench.runner.checkpoint import download_checkpoint

@@ -21,11 +21,13 @@ EPISODE_COLUMNS = ("suite", "task_id", "episode", "seed", "success", "steps", "i
 OPTIONAL_COLUMNS = (
     "task_name",
     "wall_time_s",
-    "policy_latency_mean_s",
+    "policy_latency_mean_s",  # the authors' records: one control call of one episode
+    "policy_batch_latency_mean_s",  # this runner: one batched policy call (every episode in its batch)
     "inference_latency_mean_s",
     "peak_vram_gb",
     "subtasks_completed",
     "progress_score",
+    "nonfinite_action",  # the policy output NaN/infinity; the episode ended before it (runner.loop)
 )
 # Nullable dtypes: benchmarks without LIBERO init states (CALVIN, SIMPLER) leave init_state_id empty.
 _DTYPES = {
@@ -39,10 +41,12 @@ _DTYPES = {
     "task_name": "string",
     "wall_time_s": "float64",
     "policy_latency_mean_s": "float64",
+    "policy_batch_latency_mean_s": "float64",
     "inference_latency_mean_s": "float64",
     "peak_vram_gb": "float64",
     "subtasks_completed": "float64",
     "progress_score": "float64",
+    "nonfinite_action": "bool",
 }
 
 
@@ -59,6 +63,13 @@ class Cell:
     @property
     def n_successes(self) -> int:
         return int(self.episodes["success"].sum())
+
+    @property
+    def n_nonfinite(self) -> int | None:
+        """Episodes ended by a non-finite action; None for records that do not say (the authors')."""
+        if "nonfinite_action" not in self.episodes.columns:
+            return None
+        return int(self.episodes["nonfinite_action"].sum())
 
     @property
     def quantized_layers(self) -> int:

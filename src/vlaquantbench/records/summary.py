@@ -32,6 +32,7 @@ class SummaryCell:
     header: dict[str, Any] = field(default_factory=dict)
     path: Path = Path()
     episodes = None  # no per-episode records
+    n_nonfinite = None  # not recorded
 
     @property
     def quantized_layers(self) -> int:

@@ -61,6 +61,7 @@ def calibrate(
         ) as env:
             with tqdm(total=len(specs), desc=f"calibrate {calib['model']} {calib['suite']}", unit="ep",
                       disable=not progress) as bar:
-                run_episodes(adapter, env, specs, max_steps, on_finished=lambda records: bar.update(len(records)))
+                run_episodes(adapter, env, specs, max_steps, on_finished=lambda records: bar.update(len(records)),
+                             overlap=False)  # per-call statistics: reproducible batches
     stats = observer.stats(calibration_key(**fields), keyed_fields(*fields.values()))
     return save_stats(stats, output)

@@ -13,6 +13,7 @@ until then they live in the journal, which survives any kill.
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -192,12 +193,19 @@ class CellRun:
                 f"cell {self.cfg['ref']}: {len(unfired)} of {len(selected)} selected layers' activation hooks never "
                 f"fired, so they ran unquantized: {', '.join(unfired)}"
             )
-        header = {**self.header, "hooks": {"selected": len(selected), "fired": len(selected & journal.fired)}}
+        header = {
+            **self.header,
+            "hooks": {"selected": len(selected), "fired": len(selected & journal.fired)},
+            "nonfinite_episodes": sum(bool(e.get("nonfinite_action")) for e in journal.episodes),
+        }
         order = {tuple(getattr(s, k) for k in EPISODE_KEY): n for n, s in enumerate(self.specs)}
         episodes = sorted(journal.episodes, key=lambda e: order[tuple(e[k] for k in EPISODE_KEY)])
         if len(episodes) != len(self.specs):
             raise CellFailed(f"cell {self.cfg['ref']}: {len(episodes)} episodes recorded, {len(self.specs)} configured")
         write_cell(self.out_dir, header, episodes)
+        if header["nonfinite_episodes"]:
+            print(f"cell {self.cfg['ref']}: {header['nonfinite_episodes']} of {len(episodes)} episodes ended on a "
+                  "non-finite action of the policy (recorded as failures, nonfinite_action: true)", file=sys.stderr)
         return self.out_dir / "episodes.parquet"
 
 

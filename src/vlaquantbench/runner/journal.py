@@ -28,6 +28,14 @@ def header_differences(recorded: dict[str, Any], current: dict[str, Any]) -> lis
     return lines
 
 
+def recorded_episodes(path: Path) -> int:
+    """Episodes a journal holds (0 if there is none); a torn last line does not count."""
+    if not Path(path).exists():
+        return 0
+    complete = Path(path).read_bytes().split(b"\n")[:-1]
+    return sum(json.loads(line).get("kind") == "episode" for line in complete if line.strip())
+
+
 class CellJournal:
     def __init__(self, path: Path, header: dict[str, Any]):
         """Open (or create) the journal at `path` for a cell whose header is `header`.

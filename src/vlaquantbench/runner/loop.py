@@ -1,9 +1,22 @@
 """Batched closed-loop evaluation: N LIBERO slots, the policy batched over the slots that need a
 new chunk, each episode with its own random stream.
 
-A slot observes, receives a predicted chunk, executes its first `executed_chunk` actions, then
-observes again. An episode ends on success (the environment's done flag) or at `max_steps`
-policy steps; its slot then starts the next pending episode while the others continue.
+A slot observes, receives a predicted chunk, executes its first `executed_chunk` actions inside its
+worker (one round trip per chunk), then observes again. An episode ends on success (the
+environment's done flag), at `max_steps` policy steps, or before a non-finite action; its slot then
+starts the next pending episode while the others continue.
+
+With `overlap` (the default) the policy computes the next chunks of the slots that have replied
+while the other slots still execute theirs, so the simulator need not wait for the policy. Which
+episodes share a policy call then depends on timing, but an episode's actions do not: its noise
+comes from its own stream, and on the CPU the adapter's linears are batch-invariant. Without
+`overlap` every slot's chunk is collected before the next policy call (lockstep), which makes the
+batches themselves reproducible (rollout calibration records per-call statistics).
+
+Non-finite actions (a collapsed quantized policy outputs NaN) never reach MuJoCo: the episode ends
+as a failure after the finite actions before the first non-finite one (an action the episode would
+execute; a success before it ends the episode as usual), and its record says
+`nonfinite_action: true`.
 """
 
 from __future__ import annotations
@@ -19,7 +32,6 @@ import numpy as np
 import torch
 
 from vlaquantbench.envs.libero import EpisodeSpec, LiberoVectorEnv
-from vlaquantbench.envs.libero.vector_env import ACTION_DIM
 from vlaquantbench.models.adapter import PolicyAdapter
 
 
@@ -28,7 +40,8 @@ class _Episode:
     spec: EpisodeSpec
     generator: torch.Generator
     started: float
-    actions: deque = field(default_factory=deque)
+    sent: np.ndarray | None = None  # the actions of the chunk in flight
+    nonfinite: bool = False  # the chunk in flight stops before a non-finite action
     latencies: list[float] = field(default_factory=list)
     # Digest of every executed action: reruns and batch sizes can be compared episode by episode.
     digest: Any = field(default_factory=hashlib.sha256)
@@ -47,70 +60,86 @@ def episode_record(suite: str, spec: EpisodeSpec, success: bool, steps: int, **e
     }
 
 
+def finite_prefix(actions: np.ndarray) -> int:
+    """How many leading actions (rows) are entirely finite."""
+    bad = ~np.isfinite(actions).all(axis=1)
+    return int(bad.argmax()) if bad.any() else len(actions)
+
+
 def run_episodes(
     adapter: PolicyAdapter,
     env: LiberoVectorEnv,
     specs: Sequence[EpisodeSpec],
     max_steps: int,
     on_finished: Callable[[list[dict]], None],
+    *,
+    overlap: bool = True,
 ) -> None:
-    """Run `specs` to completion; `on_finished(records)` gets each step's finished episodes."""
+    """Run `specs` to completion; `on_finished(records)` gets the episodes that finish together."""
     pending = deque(specs)
-    slots: list[_Episode | None] = [None] * env.num_envs
-    observations: list[dict | None] = [None] * env.num_envs
+    episodes: dict[int, _Episode] = {}
     task_names = {t.task_id: t.name for t in env.suite.tasks}
 
-    def start(free: list[int]) -> None:
-        starts: list[EpisodeSpec | None] = [None] * env.num_envs
-        for i in free:
-            if pending:
-                starts[i] = pending.popleft()
-                slots[i] = _Episode(starts[i], adapter.reset(starts[i].seed), time.perf_counter())
-            else:
-                slots[i] = None
-        if any(s is not None for s in starts):
-            for i, obs in enumerate(env.reset(starts)):
-                if obs is not None:
-                    observations[i] = obs
+    def start(slot: int) -> None:
+        if pending:
+            spec = pending.popleft()
+            episodes[slot] = _Episode(spec, adapter.reset(spec.seed), time.perf_counter())
+            env.submit_reset(slot, spec)
+        else:
+            episodes.pop(slot, None)
 
-    start(list(range(env.num_envs)))
-    while any(slot is not None for slot in slots):
-        need = [i for i, slot in enumerate(slots) if slot is not None and not slot.actions]
-        if need:
+    def record(slot: int, success: bool) -> dict:
+        episode = episodes[slot]
+        if not success:
+            env.release(slot)
+        return episode_record(
+            env.suite.name,
+            episode.spec,
+            success,
+            env.steps[slot],
+            task_name=task_names[episode.spec.task_id],
+            wall_time_s=time.perf_counter() - episode.started,
+            # One policy call computes the chunks of every slot in its batch: this is its duration.
+            policy_batch_latency_mean_s=float(np.mean(episode.latencies)) if episode.latencies else float("nan"),
+            nonfinite_action=episode.nonfinite and not success,
+            actions_sha256=episode.digest.hexdigest(),
+        )
+
+    def finish(records: list[tuple[int, dict]]) -> None:
+        if records:
+            on_finished([r for _, r in records])
+            for slot, _ in records:
+                start(slot)  # the new episode resets while the policy computes the others' chunks
+
+    for slot in range(env.num_envs):
+        start(slot)
+    while episodes:
+        ready: dict[int, dict] = {}
+        finished: list[tuple[int, dict]] = []
+        for reply in env.collect(every=not overlap):
+            episode = episodes[reply.slot]
+            if episode.sent is not None:
+                episode.digest.update(episode.sent[: reply.applied].tobytes())
+                episode.sent = None
+            if reply.success or episode.nonfinite or env.steps[reply.slot] >= max_steps:
+                finished.append((reply.slot, record(reply.slot, reply.success)))
+            else:
+                ready[reply.slot] = reply.observation
+        finish(finished)
+        if ready:
+            slots = list(ready)
             began = time.perf_counter()
-            chunks = adapter.act([observations[i] for i in need], [slots[i].generator for i in need])
+            chunks = adapter.act([ready[i] for i in slots], [episodes[i].generator for i in slots])
             latency = time.perf_counter() - began
-            for i, chunk in zip(need, chunks):
-                slots[i].actions.extend(chunk[: adapter.executed_chunk])
-                slots[i].latencies.append(latency)
-        actions = np.zeros((env.num_envs, ACTION_DIM))
-        for i, slot in enumerate(slots):
-            if slot is not None:
-                actions[i] = slot.actions.popleft()
-                slot.digest.update(actions[i].tobytes())
-        new_observations, successes = env.step(actions)
-        finished, free = [], []
-        for i, slot in enumerate(slots):
-            if slot is None:
-                continue
-            observations[i] = new_observations[i]
-            steps = env.steps[i]
-            if successes[i] or steps >= max_steps:
-                if not successes[i]:
-                    env.release(i)
-                finished.append(
-                    episode_record(
-                        env.suite.name,
-                        slot.spec,
-                        successes[i],
-                        steps,
-                        task_name=task_names[slot.spec.task_id],
-                        wall_time_s=time.perf_counter() - slot.started,
-                        policy_latency_mean_s=float(np.mean(slot.latencies)),
-                        actions_sha256=slot.digest.hexdigest(),
-                    )
-                )
-                free.append(i)
-        if finished:
-            on_finished(finished)
-            start(free)
+            for slot, chunk in zip(slots, chunks):
+                episode = episodes[slot]
+                episode.latencies.append(latency)
+                # float64, as MuJoCo receives them: the digest hashes exactly what is executed.
+                actions = np.asarray(chunk[: min(adapter.executed_chunk, max_steps - env.steps[slot])], np.float64)
+                finite = finite_prefix(actions)
+                episode.nonfinite = finite < len(actions)
+                if finite:
+                    episode.sent = actions[:finite]
+                    env.submit_chunk(slot, episode.sent)
+                else:  # the chunk's first action is already non-finite
+                    finish([(slot, record(slot, False))])

@@ -42,6 +42,7 @@ STATS = {
     "rate": ("cell",),  # success rate, one decimal
     "rate_ci": ("cell",),  # success rate with integer Wilson bounds
     "layers": ("cell",),  # quantized layers from the header's quant_report
+    "nonfinite": ("cell",),  # episodes ended by a non-finite (NaN) action of the policy
     "delta": ("cell", "minus"),  # A - B in pp
     "bootstrap": ("cell", "minus"),  # task-clustered bootstrap interval of A - B
     "mean_subtasks": ("cell",),  # CALVIN: mean completed subtasks per chain, two decimals

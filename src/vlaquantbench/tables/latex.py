@@ -82,6 +82,8 @@ def _format(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell], bootstrap
         text = f"{_rate(cell):.1f} [{low:.0f},{high:.0f}]"
     elif spec.stat == "layers":
         text = str(cell.quantized_layers)
+    elif spec.stat == "nonfinite":
+        text = MISSING if cell.n_nonfinite is None else str(cell.n_nonfinite)
     elif spec.stat == "delta":
         text = _signed(_rate(cell) - _rate(minus))
     elif spec.stat == "mean_subtasks":

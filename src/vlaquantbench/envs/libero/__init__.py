@@ -20,7 +20,13 @@ from vlaquantbench.envs.libero.suite import (
     LiberoTask,
     episode_seed,
 )
-from vlaquantbench.envs.libero.vector_env import CAMERA_SIZE, SETTLE_STEPS, LiberoVectorEnv, LiberoWorkerError
+from vlaquantbench.envs.libero.vector_env import (
+    CAMERA_SIZE,
+    SETTLE_STEPS,
+    LiberoVectorEnv,
+    LiberoWorkerError,
+    SlotReply,
+)
 from vlaquantbench.envs.libero.versions import PINNED_MUJOCO, simulator_versions
 
 __all__ = [
@@ -35,6 +41,7 @@ __all__ = [
     "LiberoTask",
     "LiberoVectorEnv",
     "LiberoWorkerError",
+    "SlotReply",
     "assets_dir",
     "cache_dir",
     "config_dir",

@@ -4,6 +4,11 @@ Each slot runs its episodes independently: the runner resets a finished slot wit
 while the others continue. An episode's observations depend only on its EpisodeSpec and its actions,
 never on the slot or the batch it ran in.
 
+Two ways to drive the slots: `reset(specs)` / `step(actions)` exchange with every slot at once and
+return when all have replied; `submit_reset(slot, spec)` / `submit_chunk(slot, actions)` send one
+slot its request and return at once, and `collect()` returns the replies that have arrived, so the
+caller can compute while the other slots still step (the closed-loop runner, `runner.loop`).
+
 Workers are fresh interpreters (`python -c ...worker.main(...)`) rather than
 multiprocessing children: a spawned child re-executes the parent's `__main__` file, and a Snakemake
 `script:` is exactly such a file. Each worker owns its own EGL context.
@@ -18,7 +23,7 @@ import sys
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
-from multiprocessing.connection import Connection
+from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +55,17 @@ class _Slot:
     episode: EpisodeSpec | None = None
     live: bool = False
     steps: int = 0
+    request: str | None = None  # the command sent and not yet answered
+
+
+@dataclass(frozen=True)
+class SlotReply:
+    """A slot's answer to `submit_reset` (`applied` 0) or `submit_chunk`."""
+
+    slot: int
+    observation: dict
+    applied: int  # actions applied by this request; fewer than sent only on success
+    success: bool
 
 
 def _worker_environment() -> dict[str, str]:
@@ -146,10 +162,8 @@ class LiberoVectorEnv:
         if len(slots) != self.num_envs:
             raise ValueError(f"reset() takes one entry per slot ({self.num_envs}), got {len(slots)}")
         starts = {i: self._episode_start(spec) for i, spec in enumerate(slots) if spec is not None}
-        for i in starts:
-            if self._slots[i].process.poll() is not None:  # died earlier: give the slot a new worker
-                self._replace_worker(i)
-            self._slots[i].episode, self._slots[i].live, self._slots[i].steps = starts[i].spec, False, 0
+        for i, start in starts.items():
+            self._begin(i, start.spec)
         observations = self._exchange({i: ("reset", start) for i, start in starts.items()})
         for i in observations:
             self._slots[i].live = True
@@ -166,14 +180,64 @@ class LiberoVectorEnv:
         if actions.shape != (self.num_envs, ACTION_DIM):
             raise ValueError(f"actions must have shape ({self.num_envs}, {ACTION_DIM}), got {actions.shape}")
         live = [i for i, slot in enumerate(self._slots) if slot.live]
+        for i in live:
+            self._check_idle(i)
+            self._check_finite(i, actions[i : i + 1])
         results = self._exchange({i: ("step", actions[i]) for i in live})
         observations: list[dict | None] = [None] * self.num_envs
         successes = [False] * self.num_envs
         for i, (observation, success) in results.items():
             observations[i], successes[i] = observation, success
-            self._slots[i].steps += 1
-            self._slots[i].live = not success
+            self._advance(i, 1, success)
         return observations, successes
+
+    def submit_reset(self, slot: int, spec: EpisodeSpec) -> None:
+        """Start `spec` in `slot` without waiting; its observation comes back through `collect()`."""
+        self._check_open()
+        start = self._episode_start(spec)
+        self._begin(slot, spec)
+        self._send(slot, "reset", start)
+
+    def submit_chunk(self, slot: int, actions: np.ndarray) -> None:
+        """Apply `actions` (`[k, 7]`) in the live `slot`, one after another inside its worker, without
+        waiting; the worker stops early on success and replies once, through `collect()`."""
+        self._check_open()
+        actions = np.asarray(actions, dtype=np.float64)
+        if actions.ndim != 2 or actions.shape[1] != ACTION_DIM or not len(actions):
+            raise ValueError(f"a chunk must have shape (k >= 1, {ACTION_DIM}), got {actions.shape}")
+        self._check_idle(slot)
+        if not self._slots[slot].live:
+            raise ValueError(f"slot {slot} has no live episode to step")
+        self._check_finite(slot, actions)
+        self._send(slot, "chunk", actions)
+
+    @property
+    def pending(self) -> list[int]:
+        """Slots whose submitted request has not been collected yet."""
+        return [i for i, slot in enumerate(self._slots) if slot.request is not None]
+
+    def collect(self, *, every: bool = False) -> list[SlotReply]:
+        """Wait until at least one pending slot has replied (`every`: all of them) and return the
+        replies that have arrived, in slot order. A slot that succeeds stops being live."""
+        self._check_open()
+        waiting = {self._slots[i].conn: i for i in self.pending}
+        if not waiting:
+            raise RuntimeError("collect() with no submitted request pending")
+        arrived = set()
+        while waiting and not (arrived and not every):
+            for conn in wait(list(waiting)):
+                arrived.add(waiting.pop(conn))
+        commands = {i: self._slots[i].request for i in arrived}
+        replies = []
+        for i, value in self._receive(sorted(arrived)).items():
+            if commands[i] == "chunk":
+                observation, applied, success = value
+                self._advance(i, applied, success)
+            else:
+                observation, applied, success = value, 0, False
+                self._slots[i].live = True
+            replies.append(SlotReply(i, observation, applied, success))
+        return replies
 
     def release(self, slot: int) -> None:
         """End a slot's episode without success (e.g. the step limit): it is no longer stepped."""
@@ -193,6 +257,25 @@ class LiberoVectorEnv:
     def _check_open(self) -> None:
         if not self._finalizer.alive:
             raise RuntimeError("this LiberoVectorEnv is closed")
+
+    def _check_idle(self, i: int) -> None:
+        if self._slots[i].request is not None:
+            raise RuntimeError(f"slot {i} still has a {self._slots[i].request!r} request pending; collect() it first")
+
+    def _check_finite(self, i: int, actions: np.ndarray) -> None:
+        # MuJoCo integrates NaN without complaint; the runner must have stopped such an episode.
+        if not np.isfinite(actions).all():
+            raise ValueError(f"slot {i}: refusing non-finite actions (NaN or infinity) before they reach MuJoCo")
+
+    def _begin(self, i: int, spec: EpisodeSpec) -> None:
+        self._check_idle(i)
+        if self._slots[i].process.poll() is not None:  # died earlier: give the slot a new worker
+            self._replace_worker(i)
+        self._slots[i].episode, self._slots[i].live, self._slots[i].steps = spec, False, 0
+
+    def _advance(self, i: int, applied: int, success: bool) -> None:
+        self._slots[i].steps += applied
+        self._slots[i].live = not success
 
     def _launch(self) -> _Slot:
         ours, theirs = socket.socketpair()
@@ -217,32 +300,42 @@ class LiberoVectorEnv:
 
         "start" sends nothing and only collects the worker's start-up reply.
         """
-        failures: dict[int, str] = {}
         for i, (command, payload) in requests.items():
             if command == "start":
-                continue
-            try:
-                self._slots[i].conn.send((command, payload))
-            except OSError as error:
-                failures[i] = f"could not reach the worker ({error}); {self._exit_status(i)}"
+                self._slots[i].request = command
+            else:
+                self._send(i, command, payload)
+        return self._receive(list(requests))
+
+    def _send(self, i: int, command: str, payload: Any) -> None:
+        try:
+            self._slots[i].conn.send((command, payload))
+        except OSError as error:
+            self._slots[i].live = False
+            raise LiberoWorkerError(self._describe(i, command, f"could not reach the worker ({error}); "
+                                                              f"{self._exit_status(i)}")) from None
+        self._slots[i].request = command
+
+    def _receive(self, slots: Sequence[int]) -> dict[int, Any]:
+        """The replies of `slots` to their pending requests; LiberoWorkerError naming every failure."""
+        failures: dict[int, tuple[str, str]] = {}
         results = {}
-        for i in requests:
-            if i in failures:
-                continue
+        for i in slots:
+            command, self._slots[i].request = self._slots[i].request, None
             try:
                 status, value = self._slots[i].conn.recv()
             except (EOFError, OSError):
-                failures[i] = f"the worker died; {self._exit_status(i)}"
+                failures[i] = command, f"the worker died; {self._exit_status(i)}"
                 continue
             if status == "ok":
                 results[i] = value
             else:
-                failures[i] = value
+                failures[i] = command, value
         if failures:
             for i in failures:
                 self._slots[i].live = False
             raise LiberoWorkerError(
-                "\n\n".join(self._describe(i, requests[i][0], detail) for i, detail in failures.items())
+                "\n\n".join(self._describe(i, command, detail) for i, (command, detail) in failures.items())
             )
         return results
 

@@ -2,6 +2,9 @@
 
 LiberoVectorEnv starts it as `main([FD, CAMERA_SIZE, SETTLE_STEPS])` in a fresh interpreter. Requests are
 `(command, payload)` pairs; every request gets one reply, `("ok", result)` or `("error", traceback)`.
+`reset` starts an episode, `step` applies one action, `chunk` applies a sequence of actions here, in
+the worker, and replies once with the observation after the last one: a chunk costs one round trip
+instead of one per action, and no intermediate observation crosses the socket.
 """
 
 from __future__ import annotations
@@ -86,6 +89,18 @@ class SlotSimulator:
         # LIBERO's done flag is its task-success predicate.
         return format_observation(raw, self._instruction), bool(done)
 
+    def chunk(self, actions: np.ndarray) -> tuple[dict, int, bool]:
+        """Apply `actions` in order, stopping early on success: (observation, actions applied, success)."""
+        if len(actions) == 0:
+            raise ValueError("a chunk needs at least one action")
+        applied, done = 0, False
+        for action in actions:
+            raw, _, done, _ = self._env.step(action)
+            applied += 1
+            if done:
+                break
+        return format_observation(raw, self._instruction), applied, bool(done)
+
     def close(self) -> None:
         if self._env is not None:
             self._env.close()
@@ -101,7 +116,7 @@ def serve(conn: Connection, camera_size: int, settle_steps: int) -> None:
         conn.send(("error", traceback.format_exc()))
         return
     simulator = SlotSimulator(camera_size, settle_steps)
-    handlers = {"reset": simulator.start, "step": simulator.step}
+    handlers = {"reset": simulator.start, "step": simulator.step, "chunk": simulator.chunk}
     conn.send(("ok", None))
     try:
         while True:
