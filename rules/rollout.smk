@@ -5,8 +5,8 @@
 from vlaquantbench import cells as cell_configs  # noqa: E402
 from vlaquantbench.workflow import CELLS_DIR  # noqa: E402
 
-STUDY = config.get("study") or {}
-CELLS = {} if WF.records_dir else cell_configs.study_cells(WF.cell_refs(), STUDY)
+# Built (and every cell checked against the registries and the layer-name index) at parse time.
+CELLS = {} if WF.records_dir else WF.study_cells()
 CALIBRATIONS = {
     cell_configs.config_hash(calib): calib
     for calib in map(cell_configs.calibration_config, CELLS.values())

@@ -17,6 +17,7 @@ import pytest
 from vlaquantbench.diagnostics.files import Diagnostics
 from vlaquantbench.diagnostics.proxy_audit import correlations, load_cohort, scope_table, write_proxy_audit
 from vlaquantbench.errors import UserError
+from vlaquantbench.quant.subsets import get_subset
 from vlaquantbench.replay.study import success_rates
 from paths import ROOT, REFERENCE
 
@@ -53,22 +54,38 @@ def test_reproducible_correlations_equal_the_paper(rhos, model):
         assert round(row["act_dispersion"], 2) == disp
 
 
-def test_cohort_patterns_are_the_recorded_ones():
-    """Where a cohort cell's records are published, its header's patterns and layer count match."""
+def test_cohort_subsets_select_what_the_records_selected():
+    """The cohort names subsets of config/scopes.yaml; where a cohort cell's records are published, the
+    subset's patterns select, among the diagnostic file's layers, exactly what the header's recorded
+    patterns select (the authors' adaRMS patterns differ in spelling, not in selection), and as many
+    layers as the header reports."""
     cohort = load_cohort()
     checked = 0
     for model, spec in cohort["models"].items():
-        preset = json.loads((DIAG / f"{spec['diagnostics']}.json").read_text())["preset"]
-        for subset, scope in spec["scopes"].items():
-            path = REFERENCE / "records" / cohort["benchmark"] / cohort["suite"] / model / f"ablate-{preset}-ah-{subset}.jsonl"
+        diag = Diagnostics.read(DIAG / f"{spec['diagnostics']}.json")
+        for name in spec["subsets"]:
+            subset = get_subset(model, name)
+            selected = diag.select(subset.only, subset.exclude)
+            assert len(selected) == subset.layers, (model, name)
+            path = REFERENCE / "records" / cohort["benchmark"] / cohort["suite"] / model / f"ablate-{diag.header['preset']}-ah-{name}.jsonl"
             if not path.exists():
                 continue
             header = json.loads(path.open().readline())
-            assert header["extra"]["only"] == scope.get("only"), path
-            assert header["extra"]["exclude"] == scope.get("exclude"), path
-            assert header["quant_report"]["ah"]["layers"] == scope["layers"], path
+            assert selected == diag.select(header["extra"]["only"], header["extra"]["exclude"]), path
+            assert header["quant_report"]["ah"]["layers"] == subset.layers, path
             checked += 1
     assert checked >= 14
+
+
+def test_cohort_names_only_defined_subsets(tmp_path):
+    cohort = tmp_path / "cohort.yaml"
+    text = (ROOT / "src/vlaquantbench/diagnostics/cohorts/proxy_audit.yaml").read_text()
+    cohort.write_text(text.replace("attn_fc2]", "attn_fc3]"))
+    with pytest.raises(UserError, match=r"models.xvla.subsets: unknown subset 'attn_fc3' for model 'xvla'"):
+        load_cohort(cohort)
+    cohort.write_text(text.replace("    subsets: [only_fc1, only_blocks", "    scopes: [only_fc1, only_blocks"))
+    with pytest.raises(UserError, match=rf"{cohort}: \s+models.openvla_oft: unknown key 'scopes'; allowed keys: baseline, diagnostics, label, subsets"):
+        load_cohort(cohort)
 
 
 def test_pattern_selection_on_diagnostic_layer_names():
@@ -86,13 +103,14 @@ def test_pattern_selection_on_diagnostic_layer_names():
 def test_count_mismatch_and_missing_inputs_are_user_errors(tmp_path):
     cohort = load_cohort()
     cohort["models"] = {"pi0": cohort["models"]["pi0"]}
-    cohort["models"]["pi0"]["scopes"]["onlymlp"]["layers"] = 53
-    with pytest.raises(UserError, match=r"pi0/onlymlp select 54 layers, the record says 53"):
-        scope_table(cohort, DIAG, success_rates(SUMMARY))
     with pytest.raises(UserError, match="pi0-ah-W4A4.json does not exist"):
         scope_table(cohort, tmp_path, success_rates(SUMMARY))
     broken = tmp_path / "pi0-ah-W4A4.json"
     data = json.loads((DIAG / "pi0-ah-W4A4.json").read_text())
+    del data["layers"]["gemma_expert.layers.0.mlp.up_proj"]  # a file missing one layer of the scope
+    broken.write_text(json.dumps(data))
+    with pytest.raises(UserError, match=r"pi0/onlymlp select 53 layers, config/scopes.yaml says 54"):
+        scope_table(cohort, tmp_path, success_rates(SUMMARY))
     del data["provenance"]["checkpoint_revision"]
     broken.write_text(json.dumps(data))
     with pytest.raises(UserError, match="provenance.checkpoint_revision"):

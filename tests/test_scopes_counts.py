@@ -152,3 +152,18 @@ def test_oft_vision_forward_leaves_exactly_the_attention_pool_unfired():
         assert report.to_header()["hooks"]["fired"] == 204
     finally:
         report.remove_hooks()
+
+
+@pytest.mark.parametrize("model", sorted(PAPER))
+def test_committed_layer_index_is_the_real_architecture(model):
+    """The workflow checks subset patterns against `models/<model>/linears.json` without torch; it must be
+    what the real builders give (regenerate with `vqb scopes --write-index`), for every variant."""
+    from vlaquantbench.models.layer_index import linear_names
+    from vlaquantbench.quant.scope import eligible_linears
+
+    spec = get_model_spec(model)
+    index = linear_names(model)
+    assert {c: list(g) for c, g in eligible_linears(meta_model(model), spec.components).items()} == index
+    for variant in set(spec.builders) - {"full"}:
+        built = eligible_linears(spec.build(variant, device="meta"), spec.components)
+        assert {c: list(g) for c, g in built.items()} == index, variant

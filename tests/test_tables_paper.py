@@ -4,10 +4,11 @@ import re
 from dataclasses import replace
 
 import pytest
+import yaml
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import find_cells, read_cell
-from vlaquantbench.tables import TableDefinition, load_table, render_latex, write_summary
+from vlaquantbench.tables import load_table, render_latex, write_summary
 from paths import ROOT, REFERENCE, PAPER_TEX as PAPER
 
 TABLES = ("lattice", "oft_protect_fc2", "clustered", "calibrated_subsets")
@@ -95,18 +96,27 @@ def test_unmeasured_entries_print_a_dash(cells):
     assert [row[3] for row in latex_rows(render_latex(definition, cells))].count("--") == 3
 
 
+GOOD_TABLE = {"caption": "c", "align": "lr", "header": [["a", "b"]], "values": [{"stat": "rate", "cell": "a"}],
+              "rows": [{"label": "x", "a": "libero/libero_spatial/pi05/rtn-W4A4-ah"}]}
+
+
 @pytest.mark.parametrize(
-    ("raw", "message"),
+    ("change", "message"),
     [
-        ({"caption": "c", "align": "lr", "header": [], "rows": []}, "missing field 'values'"),
-        ({"caption": "c", "align": "lr", "header": [], "values": [{"stat": "median", "cell": "a"}], "rows": []}, "values\\[0\\].stat"),
-        ({"caption": "c", "align": "lr", "header": [], "values": [{"stat": "delta", "cell": "a"}], "rows": []}, "needs minus"),
-        ({"caption": "c", "align": "lr", "header": [], "values": [{"stat": "rate", "cell": "a"}], "rows": [{"label": "x"}]}, "names no cell 'a'"),
+        ({"values": None}, "'values' is a required property"),
+        ({"values": [{"stat": "median", "cell": "a"}]}, r"values.0.stat: 'median' is not allowed; allowed values: rate, rate_ci, layers"),
+        ({"values": [{"stat": "delta", "cell": "a"}]}, "values.0: 'minus' is a required property"),
+        ({"rows": [{"label": "x"}]}, "rows.0 \\(x\\) names no cell 'a'"),
+        ({"rows": [{"label": "x", "a": "rtn-W4A4-ah"}]}, "rows.0.a: 'rtn-W4A4-ah' does not match"),
+        ({"captoin": "c"}, "unknown key 'captoin'; allowed keys: align, caption, cells, environment, header, rows, values"),
     ],
 )
-def test_bad_table_definitions_are_named(raw, message):
-    with pytest.raises(UserError, match=f"table 'broken': .*{message}"):
-        TableDefinition.from_dict("broken", raw)
+def test_bad_table_definitions_are_named(tmp_path, change, message):
+    raw = {k: v for k, v in {**GOOD_TABLE, **change}.items() if v is not None}
+    path = tmp_path / "broken.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    with pytest.raises(UserError, match=f"{path}: .*{message}"):
+        load_table(path)
 
 
 def test_table_refs_are_the_rows_cells():

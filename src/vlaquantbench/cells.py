@@ -1,25 +1,32 @@
-"""Cell references in the authors' naming -> canonical cell configs and their hashes.
+"""Cell references in the authors' naming -> typed, canonical cell configs and their hashes.
 
 A cell reference is `<benchmark>/<suite>/<model>/<cell>`; the cell name follows the grammar
 
     [seed<N>-][steps<N>-]<method>-<preset>-<scope>[-<subset>]
 
-    method  rtn | ablate | calib[_<comps>][_a<alpha*100>] | calib_set<k>_<comps>[_a<alpha*100>]
-            | awq | nf4 | int8 | smoothquant
+    method  a registered quantization method (`quant.methods`: rtn, awq, nf4, int8, int4wo,
+            smoothquant, fp8, fp8_tensor, fp8_static, ...) | ablate (RTN on a named subset)
+            | calib[_<comps>][_a<alpha*100>] | calib_set<k>_<comps>[_a<alpha*100>] (RTN after
+            rollout smoothing and clipping)
     comps   ah | llm | ve | all   (all = every component of the scope)
     scope   ve | mp | llm | ah | e2e | ve_mp_llm
     subset  a named subset of `config/scopes.yaml` for this model (its only/exclude patterns)
 
 `seed<N>` offsets every episode seed by N; `steps<N>` sets the number of flow-matching
 integration steps. `calib_set<k>` collects calibration statistics on init states
-`first + 2k, first + 2k + 1` (the paper's disjoint calibration sets). `awq` cells collect their
-statistics in the same calibration episodes: mean |x| and `AWQ_SAMPLE_ROWS` sampled input rows of
-every layer of the scope, without rollout smoothing or clipping. `smoothquant` cells always smooth
-(SmoothQuant's per-channel migration is the method): alpha = `SMOOTHQUANT_ALPHA`, the paper's LLM
-deployment setting, from the input absmax of the same rollout calibration episodes, no clipping (the
-paper's 512 text calibration samples cannot be drawn offline; the header's format says which). The canonical cell config
-(`cell_config`) holds everything that changes an episode's outcome; `config_hash` names the cell's
-output folder, so two cells share a folder exactly when they would produce the same records.
+`first + 2k, first + 2k + 1` (the paper's disjoint calibration sets). Methods that need statistics
+(`Method.statistics`: AWQ's sampled input rows, FP8 static scales, SmoothQuant's migration) collect
+them in the same calibration episodes of every component of the scope, without clipping, and
+without rollout smoothing unless the method's statistics name its alpha (`smoothquant`: 0.85, the
+paper's LLM deployment setting, from the input absmax of these episodes: the paper's 512 text
+calibration samples cannot be drawn offline; the header's format says which).
+
+`CellConfig` holds everything that changes an episode's outcome; its canonical JSON is hashed
+(`config_hash`) and names the cell's output folder, so two cells share a folder exactly when they
+would produce the same records. Every field is checked against the registries (benchmarks and
+suites, models, presets, methods, subsets, and the subset patterns against the model's committed
+layer-name index) before any work starts, and without importing torch: the workflow builds the DAG
+from these configs.
 """
 
 from __future__ import annotations
@@ -27,29 +34,27 @@ from __future__ import annotations
 import hashlib
 import json
 import re
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from vlaquantbench.config.study import RunnerConfig, StudyConfig
+from vlaquantbench.envs import BENCHMARK_SUITES
 from vlaquantbench.errors import UserError
+from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
+from vlaquantbench.quant.methods import METHODS, registered_methods
+from vlaquantbench.quant.patterns import scope_components
 
 SCOPES = ("ve", "mp", "llm", "ah", "e2e", "ve_mp_llm")
-SCOPE_COMPONENTS = {
-    "ve": ["ve"],
-    "mp": ["mp"],
-    "llm": ["llm"],
-    "ah": ["ah"],
-    "e2e": ["ve", "mp", "llm", "ah"],
-    "ve_mp_llm": ["ve", "mp", "llm"],
-}
-PLAIN_METHODS = ("rtn", "ablate", "awq", "nf4", "int8", "smoothquant")
 # Cell methods that are RTN grids in the quantizer: ablate = RTN on a named subset, calib* = RTN after
 # rollout smoothing/clipping; every other method names a registered quantization method.
-RTN_METHODS = ("rtn", "ablate")
+RTN_ALIASES = ("ablate",)
 CALIBRATION_COMPONENTS = ("ah", "llm", "ve", "all")
 
 
 def quantizer_method(cell_method: str) -> str:
-    """The quantization method (`vlaquantbench.quant` dispatch name) a cell's method runs."""
-    return "rtn" if cell_method in RTN_METHODS or cell_method.startswith("calib") else cell_method
+    """The quantization method (`vlaquantbench.quant.methods` name) a cell's method runs."""
+    return "rtn" if cell_method in RTN_ALIASES or cell_method.startswith("calib") else cell_method
+
 
 _CELL_NAME = re.compile(
     r"^(?:seed(?P<seed>\d+)-)?(?:steps(?P<steps>\d+)-)?"
@@ -60,38 +65,15 @@ _CALIB_METHOD = re.compile(
     r"^calib(?:_set(?P<set>\d+))?(?:_(?P<comps>ah|llm|ve|all))?(?:_a(?P<alpha>\d+))?$"
 )
 
-# Runner options that change what an episode does (and therefore the records); execution
-# details that do not (number of parallel environments, progress display) stay out of the hash.
-DEFAULT_RUNNER = {
-    "device": "cpu",
-    "dtype": "float32",
-    "executed_chunk": 10,
-    "flow_steps": 10,
-    "max_steps": None,  # None: the suite's step limit for the model family
-    "camera_size": 256,
-    "settle_steps": 10,
-    # auto | captured | eager (`models.adapter.resolve_sampler`); hashed because the captured and
-    # eager samplers order floating-point operations differently, so actions can differ in the last bits.
-    "sampler": "auto",
-}
-RUNNER_OPTIONS = tuple(DEFAULT_RUNNER)
-AWQ_SAMPLE_ROWS = 128  # input rows per layer for AWQ's scale search (the paper: 128 calibration samples)
-SMOOTHQUANT_ALPHA = 0.85  # the paper's SmoothQuant deployment migration strength (app. real-kernel settings)
-DEFAULT_CALIBRATION = {
-    "episodes": 2,
-    "first_init_state": 20,
-    "tasks": 1,
-    "alpha": 0.5,
-    "quantile": 0.999,
-}
 
-
-def parse_cell_name(name: str) -> dict[str, Any]:
-    """Split a cell name into its fields; UserError naming the cell and the grammar on a mismatch."""
+def parse_cell_name(name: str, ref: str | None = None) -> dict[str, Any]:
+    """Split a cell name into its fields; UserError naming the cell (its reference `ref` when given)
+    and the grammar on a mismatch."""
+    cell = ref or name
     match = _CELL_NAME.match(name)
     if not match:
         raise UserError(
-            f"cell name {name!r} does not follow "
+            f"cell {cell!r}: name {name!r} does not follow "
             "[seed<N>-][steps<N>-]<method>-<preset>-<scope>[-<subset>] "
             f"(scope one of {', '.join(SCOPES)})"
         )
@@ -102,17 +84,17 @@ def parse_cell_name(name: str) -> dict[str, Any]:
         calib = _CALIB_METHOD.match(method)
         if not calib:
             raise UserError(
-                f"cell {name!r}: method {method!r} is not calib[_set<k>][_<{'|'.join(CALIBRATION_COMPONENTS)}>][_a<alpha*100>]"
+                f"cell {cell!r}: method {method!r} is not calib[_set<k>][_<{'|'.join(CALIBRATION_COMPONENTS)}>][_a<alpha*100>]"
             )
         calibration = {
             "set": int(calib["set"]) if calib["set"] is not None else None,
             "components": calib["comps"] or "all",
             "alpha": int(calib["alpha"]) / 100 if calib["alpha"] is not None else None,
         }
-    elif method not in PLAIN_METHODS:
+    elif method not in RTN_ALIASES and method not in METHODS:
         raise UserError(
-            f"cell {name!r}: unknown method {method!r}; expected one of "
-            f"{', '.join(PLAIN_METHODS)} or calib[_set<k>]_<comps>[_a<alpha*100>]"
+            f"cell {cell!r}: unknown method {method!r}; expected one of "
+            f"{', '.join(registered_methods() + list(RTN_ALIASES))} or calib[_set<k>]_<comps>[_a<alpha*100>]"
         )
     return {
         "seed_offset": int(fields["seed"] or 0),
@@ -132,116 +114,173 @@ def parse_ref(ref: str) -> tuple[str, str, str, str]:
     return parts[0], parts[1], parts[2], parts[3]
 
 
-def _subset_patterns(ref: str, model: str, scope: str, subset: str | None) -> tuple[list[str] | None, list[str] | None]:
-    if subset is None:
-        return None, None
-    from vlaquantbench.quant.subsets import get_subset
+@dataclass(frozen=True)
+class CellCalibration:
+    """What a cell's calibration episodes observe (`components`), where (tasks x init states, seed),
+    and what the quantizer does with it (smoothing `alpha`, clip `quantile`; None: neither)."""
 
-    try:
-        named = get_subset(model, subset)
-    except UserError as err:
-        raise UserError(f"cell {ref!r}: {err}") from None
-    if named.scope != scope:
-        raise UserError(f"cell {ref!r}: subset {subset!r} of {model} is defined on scope {named.scope!r}, not {scope!r}")
-    return (list(named.only) if named.only else None, list(named.exclude) if named.exclude else None)
+    components: tuple[str, ...]
+    alpha: float | None
+    quantile: float | None
+    tasks: tuple[int, ...]
+    init_states: tuple[int, ...]
+    seed: int
+    sample_rows: int | None = None  # AWQ's sampled input rows per layer; absent from the canonical form when None
 
 
-def _check_preset(ref: str, preset: str) -> None:
+@dataclass(frozen=True)
+class CellConfig:
+    """One cell: everything that changes its episodes. `to_dict()` is its canonical form (hashed,
+    written to its header, passed to the runner); `from_dict` reads it back."""
+
+    ref: str
+    cell: str
+    benchmark: str
+    suite: str
+    model: str
+    variant: str
+    checkpoint: str | None
+    revision: str | None
+    method: str
+    preset: str
+    scope: str
+    subset: str | None
+    only: tuple[str, ...] | None
+    exclude: tuple[str, ...] | None
+    calibration: CellCalibration | None
+    seed: int
+    tasks: tuple[int, ...]
+    episodes_per_task: int
+    runner: RunnerConfig = field(default_factory=RunnerConfig)
+
+    @classmethod
+    def from_ref(cls, ref: str, study: StudyConfig) -> CellConfig:
+        """The cell `ref` under `study`; UserError naming the reference and the bad field first."""
+        benchmark, suite, model, name = parse_ref(ref)
+        fields = parse_cell_name(name, ref)
+        _check_registries(ref, benchmark, suite, model, fields["preset"])
+        if model not in study.models:
+            raise UserError(f"cell {ref!r}: model {model!r} is not in study.models ({', '.join(study.models) or 'none'})")
+        weights = study.models[model]
+        runner = study.runner
+        if fields["flow_steps"] is not None:
+            runner = RunnerConfig(**{**asdict(runner), "flow_steps": fields["flow_steps"]})
+        only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
+        seed = study.seed + fields["seed_offset"]
+        return cls(
+            ref=ref,
+            cell=name,
+            benchmark=benchmark,
+            suite=suite,
+            model=model,
+            variant=weights.variant,
+            checkpoint=weights.checkpoint,
+            revision=weights.revision,
+            method=fields["method"],
+            preset=fields["preset"],
+            scope=fields["scope"],
+            subset=fields["subset"],
+            only=only,
+            exclude=exclude,
+            calibration=_calibration(ref, fields, study, seed),
+            seed=seed,
+            tasks=tuple(study.task_ids),
+            episodes_per_task=study.episodes_per_task,
+            runner=runner,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        cfg = asdict(self)
+        if cfg["calibration"] is not None and cfg["calibration"]["sample_rows"] is None:
+            del cfg["calibration"]["sample_rows"]
+        return canonical(cfg)
+
+    @classmethod
+    def from_dict(cls, cfg: dict[str, Any]) -> CellConfig:
+        def tuple_or_none(value):
+            return None if value is None else tuple(value)
+
+        calibration = cfg["calibration"]
+        if calibration is not None:
+            calibration = CellCalibration(**{**calibration, **{k: tuple(calibration[k]) for k in
+                                                                ("components", "tasks", "init_states")}})
+        return cls(**{**cfg, "only": tuple_or_none(cfg["only"]), "exclude": tuple_or_none(cfg["exclude"]),
+                      "tasks": tuple(cfg["tasks"]), "calibration": calibration, "runner": RunnerConfig(**cfg["runner"])})
+
+    @property
+    def config_hash(self) -> str:
+        return config_hash(self.to_dict())
+
+
+def _check_registries(ref: str, benchmark: str, suite: str, model: str, preset: str) -> None:
     from vlaquantbench.quant.presets import parse_preset
 
+    if benchmark not in BENCHMARK_SUITES:
+        raise UserError(f"cell {ref!r}: unknown benchmark {benchmark!r}; known: {', '.join(BENCHMARK_SUITES)}")
+    if suite not in BENCHMARK_SUITES[benchmark]:
+        raise UserError(f"cell {ref!r}: unknown {benchmark} suite {suite!r}; known: {', '.join(BENCHMARK_SUITES[benchmark])}")
     try:
+        model_package(model)
+        if model not in rollout_models():
+            raise UserError(f"model {model!r} has no rollout adapter; models with one: {', '.join(rollout_models())}")
         parse_preset(preset)
     except UserError as err:
         raise UserError(f"cell {ref!r}: {err}") from None
 
 
-def cell_config(ref: str, study: dict[str, Any]) -> dict[str, Any]:
-    """The canonical config of the cell `ref` under `study` (the config's `study` section).
+def _subset_patterns(ref: str, model: str, scope: str, subset: str | None) -> tuple[tuple[str, ...] | None, tuple[str, ...] | None]:
+    """The subset's patterns, after checking each against the model's layer-name index."""
+    from vlaquantbench.models.layer_index import linear_names
+    from vlaquantbench.quant.patterns import select_names
+    from vlaquantbench.quant.subsets import get_subset
 
-    Raises UserError naming the reference and the missing/bad field before any work starts.
-    """
-    benchmark, suite, model, name = parse_ref(ref)
-    fields = parse_cell_name(name)
-    models = study.get("models", {})
-    if model not in models:
-        raise UserError(f"cell {ref!r}: model {model!r} is not in study.models ({', '.join(models) or 'none'})")
-    model_cfg = models[model]
-    runner = {**DEFAULT_RUNNER, **{k: v for k, v in study.get("runner", {}).items() if k in RUNNER_OPTIONS}}
-    if fields["flow_steps"] is not None:
-        runner["flow_steps"] = fields["flow_steps"]
-    _check_preset(ref, fields["preset"])
-    only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
-    seed = int(study.get("seed", 0)) + fields["seed_offset"]
-    cfg: dict[str, Any] = {
-        "ref": ref,
-        "cell": name,
-        "benchmark": benchmark,
-        "suite": suite,
-        "model": model,
-        "variant": model_cfg.get("variant", "full"),
-        "checkpoint": model_cfg.get("checkpoint"),
-        "revision": model_cfg.get("revision"),
-        "method": fields["method"],
-        "preset": fields["preset"],
-        "scope": fields["scope"],
-        "subset": fields["subset"],
-        "only": only,
-        "exclude": exclude,
-        "calibration": _calibration(ref, fields, study, seed),
-        "seed": seed,
-        "tasks": _tasks(ref, study),
-        "episodes_per_task": int(study.get("episodes_per_task", 20)),
-        "runner": runner,
-    }
-    return canonical(cfg)
+    only = exclude = None
+    where = f"cell {ref!r}"
+    try:
+        if subset is not None:
+            where += f": subset {subset!r} of {model}"
+            named = get_subset(model, subset)
+            if named.scope != scope:
+                raise UserError(f"is defined on scope {named.scope!r}, not {scope!r}")
+            only, exclude = named.only, named.exclude
+        select_names(linear_names(model), scope, only, exclude)
+    except UserError as err:
+        raise UserError(f"{where}: {err}") from None
+    return only, exclude
 
 
-def _tasks(ref: str, study: dict[str, Any]) -> list[int]:
-    tasks = study.get("tasks", 10)
-    if isinstance(tasks, int):
-        return list(range(tasks))
-    if not tasks or not all(isinstance(t, int) and t >= 0 for t in tasks):
-        raise UserError(f"cell {ref!r}: study.tasks must be a count or a list of task ids, got {tasks!r}")
-    return sorted(set(tasks))
-
-
-def _calibration(ref: str, fields: dict[str, Any], study: dict[str, Any], seed: int) -> dict[str, Any] | None:
+def _calibration(ref: str, fields: dict[str, Any], study: StudyConfig, seed: int) -> CellCalibration | None:
     parsed = fields["calibration"]
-    if parsed is None and fields["method"] not in ("awq", "smoothquant"):
+    statistics = METHODS[fields["method"]].statistics if fields["method"] in METHODS else None
+    if parsed is None and statistics is None:
         return None
-    settings = {**DEFAULT_CALIBRATION, **study.get("calibration", {})}
-    observed = _observed(ref, fields, settings)
-    first = int(settings["first_init_state"]) + 2 * ((parsed or {}).get("set") or 0)
-    episodes = int(settings["episodes"])
-    return {
-        **observed,
-        "tasks": list(range(int(settings["tasks"]))),
-        "init_states": list(range(first, first + episodes)),
-        "seed": seed,
-    }
-
-
-def _observed(ref: str, fields: dict[str, Any], settings: dict[str, Any]) -> dict[str, Any]:
-    """Which components the calibration episodes observe, and what the quantizer does with it."""
-    scope_components = SCOPE_COMPONENTS[fields["scope"]]
-    if fields["method"] == "awq":  # AWQ's own scale search: no rollout smoothing or clipping
-        return {"components": scope_components, "alpha": None, "quantile": None, "sample_rows": AWQ_SAMPLE_ROWS}
-    if fields["method"] == "smoothquant":  # SmoothQuant's migration, no clipping
-        return {"components": scope_components, "alpha": SMOOTHQUANT_ALPHA, "quantile": None}
-    parsed = fields["calibration"]
-    if parsed["components"] == "all":
-        components = scope_components
-    elif parsed["components"] in scope_components:
-        components = [parsed["components"]]
+    protocol = study.calibration
+    first = protocol.first_init_state + 2 * ((parsed or {}).get("set") or 0)
+    in_scope = scope_components(fields["scope"], COMPONENT_NAMES)
+    if parsed is None:  # the method's own statistics: every component of the scope, no smoothing or clipping
+        observed = {"components": in_scope, "alpha": None, "quantile": None, **statistics}
+    elif parsed["components"] == "all" or parsed["components"] in in_scope:
+        observed = {
+            "components": in_scope if parsed["components"] == "all" else [parsed["components"]],
+            "alpha": parsed["alpha"] if parsed["alpha"] is not None else protocol.alpha,
+            "quantile": protocol.quantile,
+        }
     else:
-        raise UserError(
-            f"cell {ref!r}: calibrates {parsed['components']!r}, which is outside scope {fields['scope']!r}"
-        )
-    return {
-        "components": components,
-        "alpha": parsed["alpha"] if parsed["alpha"] is not None else float(settings["alpha"]),
-        "quantile": float(settings["quantile"]),
-    }
+        raise UserError(f"cell {ref!r}: calibrates {parsed['components']!r}, which is outside scope {fields['scope']!r}")
+    return CellCalibration(
+        **{**observed, "components": tuple(observed["components"])},
+        tasks=tuple(range(protocol.tasks)),
+        init_states=tuple(range(first, first + protocol.episodes)),
+        seed=seed,
+    )
+
+
+def cell_config(ref: str, study: StudyConfig | dict[str, Any]) -> dict[str, Any]:
+    """The canonical config of the cell `ref` under `study` (typed, or a config's raw `study` section,
+    which is validated first). Raises UserError naming the reference and the bad field."""
+    if not isinstance(study, StudyConfig):
+        study = StudyConfig.from_dict(study)
+    return CellConfig.from_ref(ref, study).to_dict()
 
 
 def canonical(cfg: dict[str, Any]) -> dict[str, Any]:
@@ -278,7 +317,3 @@ def checkpoint_key(cfg: dict[str, Any]) -> str:
     revision = (cfg.get("revision") or "none")[:12]
     return f"{cfg['model']}-{cfg['variant']}-{revision}"
 
-
-def study_cells(refs: list[str], study: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Canonical configs of the cells `refs` keyed by config hash (what the rollout rules run)."""
-    return {config_hash(cfg): cfg for cfg in (cell_config(ref, study) for ref in refs)}

@@ -9,13 +9,14 @@ without it, the DAG produces the cell under `results/cells/<config-hash>/`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from vlaquantbench.errors import UserError
 
 if TYPE_CHECKING:
+    from vlaquantbench.config.study import StudyConfig
     from vlaquantbench.figures import ScopeRecoveryFigure
     from vlaquantbench.tables import TableDefinition
 
@@ -46,12 +47,35 @@ class WorkflowConfig:
         """Where the record files the tables read live: `records_dir`, or the DAG's cell folders."""
         return self.records_dir or Path(CELLS_DIR)
 
+    @cached_property
+    def study(self) -> "StudyConfig":
+        """The typed `study` section (the Snakefile has validated the whole config already)."""
+        from vlaquantbench.config.study import StudyConfig
+
+        return StudyConfig.from_dict(self.raw.get("study"))
+
+    def study_cells(self) -> dict[str, dict[str, Any]]:
+        """Canonical configs of every cell the listed tables read, keyed by config hash (what the rollout
+        rules run). A bad cell (unknown suite, model, preset, method or subset, or a subset pattern that
+        matches no layer) is refused here, while the DAG is built, naming the table file and the cell."""
+        from vlaquantbench import cells  # the DAG's cell hashing; imported only when cells are produced
+
+        configs = {}
+        for name in self._listed_tables():
+            for ref in self.table(name).refs():
+                try:
+                    cfg = cells.cell_config(ref, self.study)
+                except UserError as err:
+                    raise UserError(f"{self.tables_dir / f'{name}.yaml'}: {err}") from None
+                configs[cells.config_hash(cfg)] = cfg
+        return configs
+
     def cell_input(self, ref: str) -> str:
         """The record file of cell `ref`: the authors' `.jsonl` or a cell folder's `episodes.parquet`."""
         if self.records_dir is None:
             from vlaquantbench import cells  # the DAG's cell hashing; imported only when cells are produced
 
-            config_hash = cells.config_hash(cells.cell_config(ref, self.raw.get("study") or {}))
+            config_hash = cells.config_hash(cells.cell_config(ref, self.study))
             return f"{CELLS_DIR}/{config_hash}/episodes.parquet"
         found = self._recorded_cells().get(ref)
         if found is None:
@@ -130,8 +154,7 @@ class WorkflowConfig:
     def cell_refs(self) -> list[str]:
         """Cells the summary lists and the manifest check covers: every recorded cell in
         `records_dir`, plus every cell a table listed in `tables` reads."""
-        defined = set(self.table_names())
-        used = {ref for name in self.raw.get("tables", []) if name in defined for ref in self.table_record_refs(name)}
+        used = {ref for name in self._listed_tables() for ref in self.table_record_refs(name)}
         if self.records_dir is not None:
             used |= set(self._recorded_cells())
         return sorted(used)
@@ -146,6 +169,11 @@ class WorkflowConfig:
                 "add a table that lists it to `tables` in the config"
             )
         return refs
+
+    def _listed_tables(self) -> list[str]:
+        """The tables in the config's `tables` that have a definition in `tables_dir`."""
+        defined = set(self.table_names())
+        return [name for name in self.raw.get("tables", []) if name in defined]
 
     def _recorded_cells(self) -> dict[str, Path]:
         return _cells_in(self.records_dir)

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from vlaquantbench.manifest import verify_manifest, write_manifest
-
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("manifest", help="write (or --check) a TSV manifest of a records folder")
@@ -17,6 +15,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vlaquantbench.manifest import verify_manifest, write_manifest  # pandas: only when it runs
+
     if args.check:
         rows = verify_manifest(args.check, args.records_dir)
         print(f"{len(rows)} record files match {args.check}")

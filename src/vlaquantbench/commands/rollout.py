@@ -6,7 +6,8 @@
 
 Fetches the checkpoint and collects calibration statistics first when the cell needs them; an
 interrupted run resumes from its journal. Ctrl-C prints how many of the cell's episodes are recorded
-and exits 130; the same command resumes the cell.
+and exits 130; the same command resumes the cell. The config file is validated exactly as Snakemake
+validates it (the same schema and validator), and the cell against the registries, before anything runs.
 """
 
 from __future__ import annotations
@@ -16,17 +17,18 @@ import json
 import sys
 from pathlib import Path
 
-import yaml
-
 from vlaquantbench.cells import calibration_config, cell_config, checkpoint_key, config_hash
-from vlaquantbench.errors import UserError
+from vlaquantbench.config import load_workflow_config
+from vlaquantbench.config.study import StudyConfig
 from vlaquantbench.workflow import CELLS_DIR
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("rollout", help="run one cell's closed-loop episodes (resumable)")
     parser.add_argument("ref", help="cell reference <benchmark>/<suite>/<model>/<cell>")
-    parser.add_argument("--config", default="config/config.yaml", help="config whose `study` defines the cell")
+    parser.add_argument("--config", default="config/config.yaml",
+                        help="config whose `study` defines the cell; as with `snakemake --configfile`, it is merged "
+                             "over config/config.yaml of the current folder")
     parser.add_argument("--results", default=".", help="folder holding results/ (default: current folder)")
     parser.add_argument("--num-envs", type=int, help="LIBERO worker processes (default: study.execution)")
     parser.add_argument("--show", action="store_true", help="print the canonical cell config and its hash, run nothing")
@@ -34,10 +36,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    path = Path(args.config)
-    if not path.is_file():
-        raise UserError(f"config file {path} does not exist")
-    study = (yaml.safe_load(path.read_text()) or {}).get("study") or {}
+    # The whole file against the schema the Snakefile validates with, then the cell against the
+    # registries: a misspelt or unknown key fails here, before any checkpoint or model is touched.
+    study = StudyConfig.from_dict(load_workflow_config(args.config).get("study"), args.config)
     cfg = cell_config(args.ref, study)
     out = Path(args.results) / CELLS_DIR / config_hash(cfg)
     if args.show:
@@ -56,12 +57,12 @@ def run(args: argparse.Namespace) -> int:
         return 130
 
 
-def _run(args: argparse.Namespace, study: dict, cfg: dict, out: Path) -> int:
+def _run(args: argparse.Namespace, study: StudyConfig, cfg: dict, out: Path) -> int:
     from vlaquantbench.runner.calibration import calibrate
     from vlaquantbench.runner.cell import run_cell
     from vlaquantbench.runner.checkpoint import download_checkpoint
 
-    execution = dict(study.get("execution") or {})
+    execution = study.execution.as_kwargs()
     if args.num_envs:
         execution["num_envs"] = args.num_envs
     stamp = Path(args.results) / "results" / "checkpoints" / checkpoint_key(cfg) / "checkpoint.json"

@@ -3,6 +3,7 @@ success loss? Spearman correlations with average ranks for ties, one per model a
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 
@@ -12,6 +13,7 @@ from scipy.stats import spearmanr
 from vlaquantbench.atomic import atomic_write
 from vlaquantbench.diagnostics.files import DIAGNOSTICS, Diagnostics
 from vlaquantbench.errors import UserError
+from vlaquantbench.quant.subsets import get_subset
 from vlaquantbench.replay.study import load_definition, success_rates
 from vlaquantbench.tables.booktabs import Booktabs
 
@@ -21,25 +23,33 @@ COLUMNS = {"act_kurtosis": "Kurtosis", "out_rel_err": "Output error", "act_rel_e
 
 
 def load_cohort(name_or_path: str | Path = "proxy_audit") -> dict:
-    return load_definition(name_or_path, COHORTS, "diagnostic cohort")
+    """A cohort definition; its subsets must be named subsets of config/scopes.yaml for their model."""
+    cohort = load_definition(name_or_path, COHORTS, "diagnostic cohort", "cohort")
+    for model, spec in cohort["models"].items():
+        for subset in spec["subsets"]:
+            try:
+                get_subset(model, subset)
+            except UserError as err:
+                raise UserError(f"diagnostic cohort {str(name_or_path)!r}: models.{model}.subsets: {err}") from None
+    return cohort
 
 
 def scope_table(cohort: dict, diagnostics_dir: str | Path, rates: dict[str, float]) -> pd.DataFrame:
-    """One row per (model, scope): selected layer count, scope-averaged diagnostics, success loss in pp."""
+    """One row per (model, subset): selected layer count, scope-averaged diagnostics, success loss in pp."""
     rows = []
     for model, spec in cohort["models"].items():
         diag = Diagnostics.read(Path(diagnostics_dir) / f"{spec['diagnostics']}.json")
         prefix = f"{cohort['benchmark']}/{cohort['suite']}/{model}/"
         baseline = _rate(rates, prefix + spec["baseline"])
-        for subset, scope in spec["scopes"].items():
-            names = diag.select(scope.get("only"), scope.get("exclude"))
-            if len(names) != scope["layers"]:
+        for subset in map(functools.partial(get_subset, model), spec["subsets"]):
+            names = diag.select(subset.only, subset.exclude)
+            if len(names) != subset.layers:
                 raise UserError(
-                    f"{diag.path}: patterns only={scope.get('only')} exclude={scope.get('exclude')} of scope "
-                    f"{model}/{subset} select {len(names)} layers, the record says {scope['layers']}"
+                    f"{diag.path}: patterns only={subset.only} exclude={subset.exclude} of subset "
+                    f"{model}/{subset.name} select {len(names)} layers, config/scopes.yaml says {subset.layers}"
                 )
-            cell = f"ablate-{diag.header['preset']}-{diag.header['scope']}-{subset}"
-            rows.append({"model": model, "scope": subset, "cell": cell, "layers": len(names),
+            cell = f"ablate-{diag.header['preset']}-{diag.header['scope']}-{subset.name}"
+            rows.append({"model": model, "scope": subset.name, "cell": cell, "layers": len(names),
                          **diag.scope_average(names), "success_loss": baseline - _rate(rates, prefix + cell)})
     return pd.DataFrame(rows)
 

@@ -10,9 +10,9 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-import yaml  # noqa: E402
 
 from vlaquantbench.atomic import atomic_write  # noqa: E402
+from vlaquantbench.config import load_yaml  # noqa: E402
 from vlaquantbench.errors import UserError  # noqa: E402
 from vlaquantbench.records import Cell, read_cell  # noqa: E402
 from vlaquantbench.stats import wilson_interval  # noqa: E402
@@ -24,17 +24,6 @@ class ScopeRecoveryFigure:
     isolated: list[dict[str, Any]]  # {label, cell}
     nested: list[dict[str, Any]]  # {label, cell, repeats?: [refs]}
 
-    @classmethod
-    def from_dict(cls, name: str, raw: dict[str, Any]) -> "ScopeRecoveryFigure":
-        for field in ("baseline", "isolated", "nested"):
-            if not raw.get(field):
-                raise UserError(f"figure {name!r}: missing field {field!r}")
-        for field in ("isolated", "nested"):
-            for index, entry in enumerate(raw[field]):
-                if "label" not in entry or "cell" not in entry:
-                    raise UserError(f"figure {name!r}: {field}[{index}] needs label and cell")
-        return cls(raw["baseline"], raw["isolated"], raw["nested"])
-
     def refs(self) -> list[str]:
         entries = self.isolated + self.nested
         repeats = [ref for entry in self.nested for ref in entry.get("repeats", [])]
@@ -45,7 +34,7 @@ def load_figure(path: str | Path) -> ScopeRecoveryFigure:
     path = Path(path)
     if not path.is_file():
         raise UserError(f"unknown figure {path.stem!r}: no {path}")
-    return ScopeRecoveryFigure.from_dict(path.stem, yaml.safe_load(path.read_text()) or {})
+    return ScopeRecoveryFigure(**load_yaml(path, "figure"))
 
 
 def _rate(cell: Cell) -> float:

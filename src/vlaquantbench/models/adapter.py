@@ -12,7 +12,6 @@ cell fails if the adapter's executed length differs from the cell config (paper 
 from __future__ import annotations
 
 import functools
-import importlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
@@ -22,6 +21,7 @@ import torch
 from torch import nn
 
 from vlaquantbench.errors import UserError
+from vlaquantbench.models.registry import adapter_class
 
 
 @dataclass(frozen=True)
@@ -86,19 +86,6 @@ class PolicyAdapter(Protocol):
     def act(self, observations: Sequence[dict], generators: Sequence[torch.Generator]) -> np.ndarray:
         """Action chunks `[n, predicted_chunk, 7]` in environment units for n observations."""
         ...
-
-
-_ADAPTERS = {
-    "pi05": "vlaquantbench.models.pi05.adapter",
-    "pi0": "vlaquantbench.models.pi0.adapter",
-}
-
-
-def adapter_class(model: str) -> type:
-    """The adapter class of `model` (each model's `adapter.py` defines `ADAPTER`)."""
-    if model not in _ADAPTERS:
-        raise UserError(f"no rollout adapter for model {model!r}; adapters exist for {', '.join(_ADAPTERS)}")
-    return importlib.import_module(_ADAPTERS[model]).ADAPTER
 
 
 def make_adapter(config: AdapterConfig) -> PolicyAdapter:

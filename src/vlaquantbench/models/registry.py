@@ -1,31 +1,41 @@
-"""Model specs: which modules form each component scope, and how to build the real architecture.
+"""The model registry: every policy the project knows, by the name cell references use.
+
+A model is a folder `vlaquantbench/models/<name>/` (`MODELS` maps the name to it) holding
+`components.py` with a module-level `SPEC` (a `ModelSpec`: component scopes and builders of the real
+architecture), `linears.json` (its linear-layer names per component, `models.layer_index`) and, when
+the runner can drive it in closed loop, `adapter.py` with a module-level `ADAPTER` class. Folders are
+imported on first use, so looking up one model imports no other model's library, and this module
+imports no torch: the workflow checks model names while it builds the DAG.
 
 A `ModelSpec` is the only place that knows a policy's module layout. Quantization code
 (`vlaquantbench.quant`) asks it for component roots and exclusions and never names a model's
-modules itself. Specs live in `vlaquantbench.models.<model>.components` as a module-level `SPEC`
-and are imported on first use, so looking up one model does not import the others' libraries.
+modules itself.
 """
 
 from __future__ import annotations
 
 import fnmatch
 import importlib
+import importlib.util
 from collections.abc import Callable
 from dataclasses import dataclass, field
-
-import torch
-from torch import nn
+from typing import TYPE_CHECKING
 
 from vlaquantbench.errors import UserError
-from vlaquantbench.quant.scope import COMPONENT_NAMES
+from vlaquantbench.quant.patterns import COMPONENT_NAMES
 
-__all__ = ["COMPONENT_NAMES", "Component", "ModelSpec", "get_model_spec", "model_names", "seeded_build"]
+__all__ = ["COMPONENT_NAMES", "Component", "ModelSpec", "adapter_class", "get_model_spec", "model_names",
+           "rollout_models", "seeded_build"]
 
-_SPEC_MODULES = {
-    "pi05": "vlaquantbench.models.pi05.components",
-    "pi0": "vlaquantbench.models.pi0.components",
-    "openvla_oft": "vlaquantbench.models.openvla_oft.components",
-    "xvla": "vlaquantbench.models.xvla.components",
+if TYPE_CHECKING:
+    import torch
+    from torch import nn
+
+MODELS = {
+    "pi05": "vlaquantbench.models.pi05",
+    "pi0": "vlaquantbench.models.pi0",
+    "openvla_oft": "vlaquantbench.models.openvla_oft",
+    "xvla": "vlaquantbench.models.xvla",
 }
 
 
@@ -60,19 +70,39 @@ class ModelSpec:
     builders: dict[str, Callable[[torch.device, int], nn.Module]] = field(repr=False)
 
     def build(self, variant: str = "full", device: str | torch.device = "meta", seed: int = 0) -> nn.Module:
+        import torch
+
         if variant not in self.builders:
             raise UserError(f"model {self.name!r} has no variant {variant!r}; choose one of {sorted(self.builders)}")
         return self.builders[variant](torch.device(device), seed)
 
 
 def model_names() -> list[str]:
-    return sorted(_SPEC_MODULES)
+    return sorted(MODELS)
+
+
+def model_package(name: str) -> str:
+    """The package of model `name`; UserError listing the known models otherwise."""
+    if name not in MODELS:
+        raise UserError(f"unknown model {name!r}; known models: {', '.join(model_names())}")
+    return MODELS[name]
 
 
 def get_model_spec(name: str) -> ModelSpec:
-    if name not in _SPEC_MODULES:
-        raise UserError(f"unknown model {name!r}; known models: {', '.join(model_names())}")
-    return importlib.import_module(_SPEC_MODULES[name]).SPEC
+    return importlib.import_module(f"{model_package(name)}.components").SPEC
+
+
+def rollout_models() -> list[str]:
+    """Models the runner can drive in closed loop: those whose folder has an `adapter.py`."""
+    return [name for name in model_names() if importlib.util.find_spec(f"{MODELS[name]}.adapter") is not None]
+
+
+def adapter_class(name: str) -> type:
+    """The rollout adapter class of model `name` (its folder's `adapter.py` defines `ADAPTER`)."""
+    model_package(name)
+    if name not in rollout_models():
+        raise UserError(f"no rollout adapter for model {name!r}; adapters exist for {', '.join(rollout_models())}")
+    return importlib.import_module(f"{MODELS[name]}.adapter").ADAPTER
 
 
 def seeded_build(construct: Callable[[], nn.Module], device: torch.device, seed: int) -> nn.Module:
@@ -81,6 +111,8 @@ def seeded_build(construct: Callable[[], nn.Module], device: torch.device, seed:
     The global RNG state is restored afterwards so building a demo model never shifts the
     caller's random streams.
     """
+    import torch
+
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         with device:

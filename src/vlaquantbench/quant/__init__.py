@@ -1,37 +1,36 @@
 """Post-training quantization of VLA policies: RTN grids, presets, scoped application with
-counting activation hooks, and rollout calibration. See `vlaquantbench.quant.apply`."""
+counting activation hooks, and rollout calibration. See `vlaquantbench.quant.apply`.
 
-from vlaquantbench.quant import kernels  # noqa: F401  (registers the real-kernel and AWQ methods)
-from vlaquantbench.quant.apply import (
-    HooksNotFired,
-    MethodResult,
-    QuantConfig,
-    QuantReport,
-    quantize_,
-    register_method,
-    registered_methods,
-)
-from vlaquantbench.quant.calibration import CalibrationSettings, CalibrationStats
-from vlaquantbench.quant.presets import Preset, WeightGrid, parse_preset
-from vlaquantbench.quant.scope import Selection, select_layers
-from vlaquantbench.quant.subsets import Subset, get_subset, subsets_for
+Names are imported on first access (PEP 562), so the torch-free parts (`quant.presets`,
+`quant.methods`, `quant.subsets`, `quant.patterns`) load without torch when the workflow parses.
+"""
 
-__all__ = [
-    "CalibrationSettings",
-    "CalibrationStats",
-    "HooksNotFired",
-    "MethodResult",
-    "Preset",
-    "QuantConfig",
-    "QuantReport",
-    "Selection",
-    "Subset",
-    "WeightGrid",
-    "get_subset",
-    "parse_preset",
-    "quantize_",
-    "register_method",
-    "registered_methods",
-    "select_layers",
-    "subsets_for",
-]
+import importlib
+
+_EXPORTS = {
+    "HooksNotFired": "apply",
+    "MethodResult": "apply",
+    "QuantConfig": "apply",
+    "QuantReport": "apply",
+    "quantize_": "apply",
+    "register_method": "methods",
+    "registered_methods": "methods",
+    "CalibrationSettings": "calibration",
+    "CalibrationStats": "calibration",
+    "Preset": "presets",
+    "WeightGrid": "presets",
+    "parse_preset": "presets",
+    "Selection": "scope",
+    "select_layers": "scope",
+    "Subset": "subsets",
+    "get_subset": "subsets",
+    "subsets_for": "subsets",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)

@@ -7,14 +7,14 @@
     header.update(report.to_header())
 
 Layer selection (`quant.scope`) happens, and fails on bad scopes or patterns, before any weight
-changes. The quantization itself is a *method* looked up in a dispatch table: `rtn` (this module)
-fake-quantizes weights in place and installs counting activation hooks; real-kernel methods
-register through `register_method(name, fn)`. Weight changes are in place and not undone.
+changes. The quantization itself is a *method* looked up in the registry `quant.methods`: `rtn` (this
+module) fake-quantizes weights in place and installs counting activation hooks; real-kernel methods
+live in `quant.kernels`. Weight changes are in place and not undone.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import torch
@@ -23,6 +23,7 @@ from torch import nn
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.calibration import FLOOR, CalibrationSettings, CalibrationStats, smoothing_factors
 from vlaquantbench.quant.hooks import CountingHook, InputTransform
+from vlaquantbench.quant.methods import get_method
 from vlaquantbench.quant.presets import Preset, parse_preset
 from vlaquantbench.quant.scope import LayerOwner, Selection, select_layers
 
@@ -71,19 +72,6 @@ class MethodResult:
     hooks: dict[str, CountingHook] = field(default_factory=dict)
     calibrated: set[str] = field(default_factory=set)
     details: dict = field(default_factory=dict)
-
-
-MethodFn = Callable[[nn.Module, Selection, QuantConfig], MethodResult]
-_METHODS: dict[str, MethodFn] = {}
-
-
-def register_method(name: str, fn: MethodFn) -> None:
-    """Make `QuantConfig(method=name)` dispatch to `fn(model, selection, config) -> MethodResult`."""
-    _METHODS[name] = fn
-
-
-def registered_methods() -> list[str]:
-    return sorted(_METHODS)
 
 
 class HooksNotFired(RuntimeError):
@@ -147,13 +135,12 @@ class QuantReport:
 
 def quantize_(model: nn.Module, config: QuantConfig, components: Mapping[str, LayerOwner]) -> QuantReport:
     """Quantize the layers of `model` that `config` selects and return the report."""
-    if config.method not in _METHODS:
-        raise UserError(f"unknown quantization method {config.method!r}; registered: {', '.join(registered_methods())}")
+    method = get_method(config.method)
     selection = select_layers(model, components, config.scope, config.only, config.exclude)
     if config.preset.is_baseline and config.calibration is None:
         empty = Selection({comp: {} for comp in selection.layers})
         return QuantReport(config, empty, MethodResult(format="released precision"))
-    return QuantReport(config, selection, _METHODS[config.method](model, selection, config))
+    return QuantReport(config, selection, method.resolve()(model, selection, config))
 
 
 def rtn(model: nn.Module, selection: Selection, config: QuantConfig) -> MethodResult:
@@ -190,5 +177,3 @@ def _rtn_format(preset: Preset, calibration: CalibrationSettings | None) -> str:
     calib = f"; rollout smoothing alpha={calibration.alpha}, clip q={calibration.quantile}" if calibration else ""
     return f"RTN {preset.describe()}{calib}"
 
-
-register_method("rtn", rtn)

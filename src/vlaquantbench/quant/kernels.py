@@ -1,6 +1,6 @@
 """Real-kernel quantization methods for `quantize_`: packed weights and integer/FP8 matrix products.
 
-Registered in the method table of `quant.apply` when this module is imported:
+Registered by name in `quant.methods` (imported when a cell first uses one):
 
     nf4          bitsandbytes 4-bit NormalFloat, blocks of 64, bf16 compute   (preset W4)
     int8         bitsandbytes LLM.int8(): int8 weights, fp16 outlier columns  (preset W8)
@@ -30,7 +30,7 @@ import torch.nn.functional as F  # noqa: N812
 from torch import nn
 
 from vlaquantbench.errors import UserError
-from vlaquantbench.quant.apply import MethodResult, QuantConfig, register_method
+from vlaquantbench.quant.apply import MethodResult, QuantConfig
 from vlaquantbench.quant.awq import search_scales
 from vlaquantbench.quant.calibration import ChannelStats, smoothing_factors
 from vlaquantbench.quant.grid import fake_quant_weight
@@ -382,7 +382,3 @@ def fp8_static(model, selection, config):
     result.calibrated = set(result.hooks)
     return result
 
-
-for _name, _fn in {"nf4": nf4, "int8": llm_int8, "int4wo": int4_weight_only, "awq": awq,
-                   "smoothquant": smoothquant, "fp8": fp8, "fp8_tensor": fp8_tensorwise, "fp8_static": fp8_static}.items():
-    register_method(_name, _fn)

@@ -2,24 +2,21 @@
 
 Only `nn.Linear` weights are candidates, so embeddings, the non-linear parts of norms and the
 attention matrix products are never selected; each model's `Component.never` removes its
-vocabulary heads. Patterns are shell globs (`fnmatch`, case-sensitive) on qualified module names
-relative to the model passed in (e.g. `paligemma_with_expert.gemma_expert.model.layers.0.mlp.up_proj`).
+vocabulary heads. Patterns (`quant.patterns`) are shell globs on qualified module names relative to
+the model passed in (e.g. `paligemma_with_expert.gemma_expert.model.layers.0.mlp.up_proj`).
 """
 
 from __future__ import annotations
 
-import fnmatch
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
 from torch import nn
 
-from vlaquantbench.errors import UserError
+from vlaquantbench.quant.patterns import COMPONENT_NAMES, select_names
 
-# The scope grammar's components, in canonical order: vision encoder, multimodal projector,
-# language model, action head.
-COMPONENT_NAMES = ("ve", "mp", "llm", "ah")
+__all__ = ["COMPONENT_NAMES", "LayerOwner", "Selection", "eligible_linears", "select_layers"]
 
 
 class LayerOwner(Protocol):
@@ -48,18 +45,6 @@ class Selection:
         }
 
 
-def scope_components(scope: str, components: Mapping[str, LayerOwner]) -> list[str]:
-    """Components named by a scope: one of `ve|mp|llm|ah`, `e2e` (all), or an underscore join
-    such as `ve_mp_llm`. Components the model lacks (X-VLA has no MP) are dropped from `e2e`."""
-    if scope == "e2e":
-        return [c for c in COMPONENT_NAMES if c in components]
-    names = scope.split("_")
-    unknown = [n for n in names if n not in COMPONENT_NAMES]
-    if unknown or not names:
-        raise UserError(f"unknown scope {scope!r}; use one of {', '.join(COMPONENT_NAMES)}, e2e, or a join like ve_mp_llm")
-    return [c for c in COMPONENT_NAMES if c in names]
-
-
 def eligible_linears(model: nn.Module, components: Mapping[str, LayerOwner]) -> dict[str, dict[str, nn.Linear]]:
     """Every quantizable linear layer of `model`, grouped by the component that owns it."""
     grouped: dict[str, dict[str, nn.Linear]] = {c: {} for c in components}
@@ -86,22 +71,6 @@ def select_layers(
     Raises UserError when the scope holds no linear layer, when any single pattern matches no
     layer of the scope, or when the patterns together leave nothing selected.
     """
-    wanted = scope_components(scope, components)
     eligible = eligible_linears(model, components)
-    in_scope = {c: eligible.get(c, {}) for c in wanted}
-    names = [n for group in in_scope.values() for n in group]
-    if not names:
-        raise UserError(f"scope {scope!r} selects no linear layer in this model")
-    for kind, patterns in (("--only", only), ("--exclude", exclude)):
-        for pattern in patterns or ():
-            if not any(fnmatch.fnmatchcase(n, pattern) for n in names):
-                raise UserError(f"pattern {kind} {pattern!r} matches no linear layer in scope {scope!r}")
-
-    def keep(name: str) -> bool:
-        included = only is None or any(fnmatch.fnmatchcase(name, p) for p in only)
-        return included and not any(fnmatch.fnmatchcase(name, p) for p in exclude or ())
-
-    selected = {c: {n: m for n, m in group.items() if keep(n)} for c, group in in_scope.items()}
-    if not any(selected.values()):
-        raise UserError(f"patterns only={list(only or [])} exclude={list(exclude or [])} leave scope {scope!r} empty")
-    return Selection(selected)
+    names = select_names({c: list(group) for c, group in eligible.items()}, scope, only, exclude)
+    return Selection({c: {n: eligible[c][n] for n in group} for c, group in names.items()})

@@ -6,9 +6,9 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 from importlib import resources
+from pathlib import Path
 
-import yaml
-
+from vlaquantbench.config import load_yaml
 from vlaquantbench.errors import UserError
 
 
@@ -25,24 +25,22 @@ class Subset:
 
 @functools.cache
 def _load() -> dict[str, dict[str, Subset]]:
-    text = resources.files("vlaquantbench").joinpath("config/scopes.yaml").read_text()
-    table: dict[str, dict[str, Subset]] = {}
-    for model, entries in yaml.safe_load(text).items():
-        table[model] = {}
-        for name, entry in entries.items():
-            unknown = set(entry) - {"scope", "only", "exclude", "layers", "params"}
-            if unknown or "scope" not in entry or "layers" not in entry:
-                raise ValueError(f"config/scopes.yaml {model}.{name}: needs scope and layers, got {sorted(entry)}")
-            table[model][name] = Subset(
+    path = Path(str(resources.files("vlaquantbench").joinpath("config/scopes.yaml")))
+    return {
+        model: {
+            name: Subset(
                 name=name,
                 model=model,
                 scope=entry["scope"],
                 only=tuple(entry["only"]) if entry.get("only") else None,
                 exclude=tuple(entry["exclude"]) if entry.get("exclude") else None,
-                layers=int(entry["layers"]),
+                layers=entry["layers"],
                 params=entry.get("params"),
             )
-    return table
+            for name, entry in entries.items()
+        }
+        for model, entries in load_yaml(path, "scopes").items()
+    }
 
 
 def subsets_for(model: str) -> dict[str, Subset]:

@@ -7,26 +7,26 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
 
+from vlaquantbench.config import load_yaml
 from vlaquantbench.errors import UserError
 from vlaquantbench.records.summary import read_summary
 
 STUDIES = Path(__file__).with_name("studies")
 
 
-def load_definition(name_or_path: str | Path, folder: Path, kind: str) -> dict:
-    """A YAML definition by name (`<folder>/<name>.yaml`) or by path."""
+def load_definition(name_or_path: str | Path, folder: Path, kind: str, schema: str) -> dict:
+    """A YAML definition by name (`<folder>/<name>.yaml`) or by path, validated against `schema`."""
     path = Path(name_or_path)
     if not path.suffix:
         path = folder / f"{name_or_path}.yaml"
     if not path.exists():
         raise UserError(f"unknown {kind} {str(name_or_path)!r}: no {path}")
-    return yaml.safe_load(path.read_text())
+    return load_yaml(path, schema)
 
 
 def load_study(name_or_path: str | Path = "pi05_libero_spatial") -> dict:
-    return load_definition(name_or_path, STUDIES, "replay study")
+    return load_definition(name_or_path, STUDIES, "replay study", "replay_study")
 
 
 def with_formats(study: dict, formats: list[str] | None) -> dict:

@@ -33,8 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from vlaquantbench.config import load_yaml
 from vlaquantbench.errors import UserError
 from vlaquantbench.stats import BOOTSTRAP_DRAWS, BOOTSTRAP_SEED
 
@@ -52,8 +51,6 @@ STATS = {
     "lowest_within": ("cells", "labels", "minus", "within_pp"),  # label of the first cell within N pp of `minus`
 }
 ROW_KINDS = ("label", "section", "midrule")
-ENVIRONMENTS = ("tabular", "longtable")
-STREAMS = ("per_contrast", "shared")
 
 
 @dataclass(frozen=True)
@@ -61,19 +58,6 @@ class BootstrapSpec:
     draws: int = BOOTSTRAP_DRAWS
     seed: int = BOOTSTRAP_SEED
     stream: str = "per_contrast"
-
-    @classmethod
-    def from_dict(cls, where: str, raw: dict[str, Any] | None) -> "BootstrapSpec":
-        raw = raw or {}
-        unknown = sorted(set(raw) - {"draws", "seed", "stream"})
-        if unknown:
-            raise UserError(f"{where}: bootstrap has unknown key(s) {unknown}; allowed: draws, seed, stream")
-        spec = cls(**raw)
-        if spec.stream not in STREAMS:
-            raise UserError(f"{where}: bootstrap.stream must be one of {STREAMS}, got {spec.stream!r}")
-        if not isinstance(spec.draws, int) or spec.draws < 1:
-            raise UserError(f"{where}: bootstrap.draws must be a positive integer, got {spec.draws!r}")
-        return spec
 
 
 @dataclass(frozen=True)
@@ -106,27 +90,18 @@ class TableDefinition:
     tabcolsep: str = ""
 
     @classmethod
-    def from_dict(cls, name: str, raw: dict[str, Any]) -> "TableDefinition":
-        where = f"table {name!r}"
-        for field in ("caption", "align", "header", "values", "rows"):
-            if field not in raw:
-                raise UserError(f"{where}: missing field {field!r}")
-        environment = raw.get("environment", "tabular")
-        if environment not in ENVIRONMENTS:
-            raise UserError(f"{where}: environment must be one of {ENVIRONMENTS}, got {environment!r}")
+    def from_dict(cls, name: str, raw: dict[str, Any], where: str | None = None) -> "TableDefinition":
+        """A table from its YAML content, already valid under schema `table` (`load_table`: fields,
+        types, allowed keys and values); here the checks across fields. UserError names `where`."""
+        where = where or f"table {name!r}"
         values = []
         for index, spec in enumerate(raw["values"]):
-            stat = spec.get("stat")
-            if stat not in STATS:
-                raise UserError(f"{where}: values[{index}].stat must be one of {sorted(STATS)}, got {stat!r}")
+            stat = spec["stat"]
             missing = [key for key in STATS[stat] if not spec.get(key)]
             if missing:
-                raise UserError(f"{where}: values[{index}] ({stat}) needs {', '.join(missing)}")
-            unknown = sorted(set(spec) - {"stat", "cell", "minus", "bold_below", "bold", "cells", "labels", "within_pp"})
-            if unknown:
-                raise UserError(f"{where}: values[{index}] has unknown key(s) {unknown}")
+                raise UserError(f"{where}: values.{index} ({stat}) needs {', '.join(missing)}")
             if len(spec.get("labels") or ()) not in (0, len(spec.get("cells") or ())):
-                raise UserError(f"{where}: values[{index}] needs one label per cell")
+                raise UserError(f"{where}: values.{index} needs one label per cell")
             values.append(
                 ColumnSpec(stat=stat, cell=spec.get("cell", ""), minus=spec.get("minus"), bold_below=spec.get("bold_below"),
                            bold=bool(spec.get("bold")), cells=tuple(spec.get("cells") or ()),
@@ -137,7 +112,7 @@ class TableDefinition:
         for index, row in enumerate(raw["rows"]):
             kinds = [kind for kind in ROW_KINDS if kind in row]
             if len(kinds) != 1:
-                raise UserError(f"{where}: rows[{index}] needs exactly one of {', '.join(ROW_KINDS)}, got {sorted(row)}")
+                raise UserError(f"{where}: rows.{index} needs exactly one of {', '.join(ROW_KINDS)}, got {sorted(row)}")
             if kinds[0] != "label" or "unavailable" in row:
                 rows.append(dict(row))
                 continue
@@ -145,11 +120,12 @@ class TableDefinition:
             for spec in values:
                 for key in spec.keys():
                     if key not in merged:
-                        raise UserError(f"{where}: rows[{index}] ({row['label']}) names no cell {key!r}")
+                        raise UserError(f"{where}: rows.{index} ({row['label']}) names no cell {key!r}")
             rows.append(merged)
-        bootstrap = BootstrapSpec.from_dict(where, raw.get("bootstrap"))
+        bootstrap = BootstrapSpec(**raw.get("bootstrap", {}))
         layout = {key: str(raw.get(key, "")) for key in ("size", "tabcolsep")}
-        return cls(name, raw["align"], raw["header"], values, rows, raw["caption"], environment, bootstrap, **layout)
+        return cls(name, raw["align"], raw["header"], values, rows, raw["caption"], raw.get("environment", "tabular"),
+                   bootstrap, **layout)
 
     def cell_rows(self) -> list[dict[str, Any]]:
         """The rows that print numbers of cells (not sections, rules or unavailable rows)."""
@@ -162,12 +138,8 @@ class TableDefinition:
 
 
 def load_table(path: str | Path) -> TableDefinition:
-    """Read `config/tables/<name>.yaml`; the table's name is the file's stem."""
+    """Read `config/tables/<name>.yaml` (schema `table`); the table's name is the file's stem."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"unknown table {path.stem!r}: no {path}")
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise UserError(f"{path}: not valid YAML ({err})") from err
-    return TableDefinition.from_dict(path.stem, raw or {})
+    return TableDefinition.from_dict(path.stem, load_yaml(path, "table"), where=str(path))

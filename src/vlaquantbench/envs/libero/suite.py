@@ -7,10 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
+from vlaquantbench.envs import BENCHMARK_SUITES
 from vlaquantbench.envs.libero.offline import load_libero
 from vlaquantbench.errors import UserError
 
-SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10")
+SUITES = BENCHMARK_SUITES["libero"]
 
 # Policy steps before an unfinished episode counts as a failure (settle steps not counted). The pi
 # models use lerobot's limits, OpenVLA-OFT its own client's; both are visible in the authors' records.

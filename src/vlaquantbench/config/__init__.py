@@ -1,0 +1,103 @@
+"""Every YAML file the project reads goes through `load_yaml(path, schema)`: parsed, then validated by
+jsonschema (Draft 2020-12, the validator Snakemake's `validate` uses) against
+`vlaquantbench/config/schemas/<schema>.schema.yaml`.
+
+    table = load_yaml("config/tables/lattice.yaml", "table")
+
+A file that does not satisfy its schema raises one `UserError` naming the file and, for each
+violation, the field path and what is allowed (the allowed keys of a misspelt one, the allowed
+values of an enum). Nothing here imports torch: the workflow parses configs without it.
+"""
+
+from __future__ import annotations
+
+import functools
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+from jsonschema import Draft202012Validator
+from jsonschema.exceptions import ValidationError
+
+from vlaquantbench.errors import UserError
+
+SCHEMAS = ("config", "table", "figure", "scopes", "cohort", "replay_study")
+# The Snakefile's `configfile:`; `snakemake --configfile FILE` merges FILE over it.
+WORKFLOW_CONFIG = Path("config/config.yaml")
+
+
+def schema_path(name: str) -> Path:
+    """The schema file `<name>.schema.yaml` (package data; `workflow/schemas/` links to it)."""
+    if name not in SCHEMAS:
+        raise ValueError(f"no schema {name!r}; schemas: {', '.join(SCHEMAS)}")
+    return Path(str(resources.files(__package__).joinpath(f"schemas/{name}.schema.yaml")))
+
+
+@functools.cache
+def schema(name: str) -> dict[str, Any]:
+    loaded = yaml.safe_load(schema_path(name).read_text())
+    Draft202012Validator.check_schema(loaded)
+    return loaded
+
+
+def validate(data: Any, schema_name: str, where: str, subschema: tuple[str, ...] = ()) -> Any:
+    """`data` if it satisfies schema `schema_name` (or the part of it at the property path `subschema`,
+    e.g. ("study",)); else UserError `<where>: <field.path>: <problem>` for every violation."""
+    rules = schema(schema_name)
+    for key in subschema:
+        rules = rules["properties"][key]
+    errors = sorted(Draft202012Validator(rules).iter_errors(data), key=lambda e: [str(p) for p in e.absolute_path])
+    if errors:
+        lines = [_describe(error, subschema) for error in errors]
+        raise UserError(f"{where}: " + ("\n  ".join([""] + lines) if len(lines) > 1 else lines[0]))
+    return data
+
+
+def load_yaml(path: str | Path, schema_name: str) -> Any:
+    """Parse the YAML file `path` and validate it against schema `schema_name`."""
+    return validate(_parse(path), schema_name, str(path))
+
+
+def _parse(path: str | Path) -> Any:
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such file")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise UserError(f"{path}: not valid YAML ({err})") from None
+    return {} if data is None else data
+
+
+def load_workflow_config(path: str | Path, base: str | Path = WORKFLOW_CONFIG) -> dict[str, Any]:
+    """The config `snakemake --configfile path` runs with, validated as the Snakefile validates it:
+    `base` (the Snakefile's own config file, when it exists) with `path` merged over it key by key
+    (nested mappings merged, every other value replaced, as Snakemake's `update_config` does)."""
+    path, base = Path(path), Path(base)
+    if not base.is_file() or base.resolve() == path.resolve():
+        return load_yaml(path, "config")
+    merged = _merge(_parse(base), _parse(path))
+    return validate(merged, "config", f"{path} (merged over {base})")
+
+
+def _merge(config: dict[str, Any], overwrite: dict[str, Any]) -> dict[str, Any]:
+    merged = dict(config)
+    for key, value in overwrite.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = _merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def _describe(error: ValidationError, prefix: tuple[str, ...]) -> str:
+    path = ".".join(str(p) for p in (*prefix, *error.absolute_path)) or "(top level)"
+    if error.validator == "additionalProperties" and isinstance(error.instance, dict):
+        allowed = sorted(error.schema.get("properties", {}))
+        unknown = sorted(set(error.instance) - set(allowed))
+        keys = ", ".join(repr(k) for k in unknown)
+        return f"{path}: unknown key {keys}; allowed keys: {', '.join(allowed)}"
+    if error.validator == "enum":
+        return f"{path}: {error.instance!r} is not allowed; allowed values: {', '.join(map(str, error.validator_value))}"
+    return f"{path}: {error.message}"

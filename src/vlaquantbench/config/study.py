@@ -1,0 +1,97 @@
+"""The typed study config: the `study` section of a workflow config, after schema validation.
+
+These dataclasses are the one place where study defaults live; the schema
+(`schemas/config.schema.yaml`) only says what is allowed. Everything except `label`, `tables_dir`
+and `execution` enters each cell's canonical config (`vlaquantbench.cells.CellConfig`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from vlaquantbench.config import validate
+
+
+@dataclass(frozen=True)
+class ModelWeights:
+    """Which weights a model's cells use: `full` (the released checkpoint), `demo` (reduced-width random
+    weights of the same classes) or `random` (the released architecture with seeded random weights)."""
+
+    variant: str
+    checkpoint: str | None = None
+    revision: str | None = None  # pinned commit of the checkpoint (40 hex digits)
+
+
+@dataclass(frozen=True)
+class RunnerConfig:
+    """Runner options that change what an episode does, hence hashed into every cell."""
+
+    device: str = "cpu"
+    dtype: str = "float32"
+    executed_chunk: int = 10  # actions executed per predicted chunk (pi: 10 of 50)
+    flow_steps: int = 10  # flow-matching integration steps (cell prefix steps<N> overrides)
+    max_steps: int | None = None  # None: the suite's step limit for the model family
+    camera_size: int = 256
+    settle_steps: int = 10
+    # auto | captured | eager (`models.adapter.resolve_sampler`); hashed because the captured and
+    # eager samplers order floating-point operations differently, so actions can differ in the last bits.
+    sampler: str = "auto"
+
+
+@dataclass(frozen=True)
+class CalibrationProtocol:
+    """How calibration episodes are drawn (paper app:calib): `episodes` init states from
+    `first_init_state` (+2k for calib_set<k>) of the first `tasks` tasks; smoothing `alpha` and clip
+    `quantile` unless the cell name overrides alpha."""
+
+    episodes: int = 2
+    first_init_state: int = 20
+    tasks: int = 1
+    alpha: float = 0.5
+    quantile: float = 0.999
+
+
+@dataclass(frozen=True)
+class ExecutionConfig:
+    """How cells run, not what they compute: never hashed, so changing it reruns nothing."""
+
+    num_envs: int = 2  # LIBERO worker processes per rollout job
+    torch_threads: int | None = 1
+    progress: bool = True  # a tqdm bar per cell
+
+    def as_kwargs(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    models: dict[str, ModelWeights] = field(default_factory=dict)
+    tasks: int | tuple[int, ...] = 10  # a count (tasks 0..N-1) or task ids
+    episodes_per_task: int = 20  # episode i of a task starts from init state i
+    seed: int = 0  # run seed added to every episode seed (1009*task + episode)
+    runner: RunnerConfig = field(default_factory=RunnerConfig)
+    calibration: CalibrationProtocol = field(default_factory=CalibrationProtocol)
+    execution: ExecutionConfig = field(default_factory=ExecutionConfig)
+    label: str | None = None
+    tables_dir: str | None = None
+
+    @classmethod
+    def from_dict(cls, raw: dict[str, Any] | None, where: str = "study") -> StudyConfig:
+        """The study of a config's `study` section; UserError `<where>: study.<field>: ...` first."""
+        raw = dict(raw or {})
+        validate(raw, "config", where, subschema=("study",))
+        tasks = raw.pop("tasks", cls.tasks)
+        return cls(
+            models={name: ModelWeights(**weights) for name, weights in raw.pop("models", {}).items()},
+            tasks=tasks if isinstance(tasks, int) else tuple(sorted(set(tasks))),
+            runner=RunnerConfig(**raw.pop("runner", {})),
+            calibration=CalibrationProtocol(**raw.pop("calibration", {})),
+            execution=ExecutionConfig(**raw.pop("execution", {})),
+            **raw,
+        )
+
+    @property
+    def task_ids(self) -> list[int]:
+        return list(range(self.tasks)) if isinstance(self.tasks, int) else list(self.tasks)
+

@@ -1,0 +1,63 @@
+"""The quantization method registry: every method `quantize_` can run, by name, without importing it.
+
+    METHODS["fp8"].resolve()          # -> vlaquantbench.quant.kernels.fp8 (imported on first use)
+    register_method("mine", fn)       # a method defined at run time (tests, plugins)
+
+Cell names draw their methods from this table (`vlaquantbench.cells`), so every registered method is
+reachable from a cell, and the workflow can check a cell's method while it builds the DAG without
+importing torch. `statistics` says what a method needs from the calibration episodes: None (nothing),
+{} (per-channel input statistics, e.g. FP8 static activation scales), {"alpha": a} (those statistics
+and smoothing with migration strength a, SmoothQuant) or {"sample_rows": n} (AWQ's scale search on n
+sampled input rows per layer, the paper's 128 calibration samples).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from vlaquantbench.errors import UserError
+
+
+@dataclass(frozen=True)
+class Method:
+    implementation: str | Callable  # "module:function", imported by `resolve`, or the function itself
+    statistics: dict[str, Any] | None = None
+
+    def resolve(self) -> Callable:
+        if callable(self.implementation):
+            return self.implementation
+        module, _, function = self.implementation.partition(":")
+        return getattr(importlib.import_module(module), function)
+
+
+_KERNELS = "vlaquantbench.quant.kernels"
+METHODS: dict[str, Method] = {
+    "rtn": Method("vlaquantbench.quant.apply:rtn"),
+    "nf4": Method(f"{_KERNELS}:nf4"),
+    "int8": Method(f"{_KERNELS}:llm_int8"),
+    "int4wo": Method(f"{_KERNELS}:int4_weight_only"),
+    "awq": Method(f"{_KERNELS}:awq", statistics={"sample_rows": 128}),
+    # SmoothQuant's per-channel migration is the method: alpha 0.85 (the paper's deployment setting)
+    "smoothquant": Method(f"{_KERNELS}:smoothquant", statistics={"alpha": 0.85}),
+    "fp8": Method(f"{_KERNELS}:fp8"),
+    "fp8_tensor": Method(f"{_KERNELS}:fp8_tensorwise"),
+    "fp8_static": Method(f"{_KERNELS}:fp8_static", statistics={}),
+}
+
+
+def register_method(name: str, fn: Callable, statistics: dict[str, Any] | None = None) -> None:
+    """Make `QuantConfig(method=name)` dispatch to `fn(model, selection, config) -> MethodResult`."""
+    METHODS[name] = Method(fn, statistics)
+
+
+def registered_methods() -> list[str]:
+    return sorted(METHODS)
+
+
+def get_method(name: str) -> Method:
+    if name not in METHODS:
+        raise UserError(f"unknown quantization method {name!r}; registered: {', '.join(registered_methods())}")
+    return METHODS[name]

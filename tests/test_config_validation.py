@@ -1,0 +1,197 @@
+"""Every YAML kind through the one loader, and bad input refused early and by name: `vqb rollout --show`
+validates a config exactly as Snakemake does, and a bad cell in a table fails `snakemake -n` naming the
+table file and the cell, before any job runs (issue 14 §2, issue 17 items 1-2)."""
+
+import dataclasses
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from vlaquantbench.config import load_workflow_config, load_yaml, schema, validate
+from vlaquantbench.config.study import RunnerConfig, StudyConfig
+from vlaquantbench.errors import UserError
+from vlaquantbench.workflow import WorkflowConfig
+from paths import ROOT
+
+PACKAGE = ROOT / "src" / "vlaquantbench"
+COMMITTED = {
+    "config": sorted((ROOT / "config").glob("*.yaml")),
+    "table": sorted((ROOT / "config" / "tables").glob("*.yaml")) + sorted((ROOT / "config" / "demo" / "tables").glob("*.yaml")),
+    "figure": sorted((ROOT / "config" / "figures").glob("*.yaml")),
+    "scopes": [ROOT / "config" / "scopes.yaml"],
+    "cohort": sorted((PACKAGE / "diagnostics" / "cohorts").glob("*.yaml")),
+    "replay_study": sorted((PACKAGE / "replay" / "studies").glob("*.yaml")),
+}
+COMMITTED["config"].remove(ROOT / "config" / "scopes.yaml")  # the link to the package's subsets
+DEMO_TABLE = ROOT / "config" / "demo" / "tables" / "lattice.yaml"
+ATTENTION = "libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn"
+
+
+@pytest.mark.parametrize("kind", sorted(COMMITTED))
+def test_every_committed_yaml_satisfies_its_schema(kind):
+    assert COMMITTED[kind]
+    for path in COMMITTED[kind]:
+        if kind == "config":  # as Snakemake reads `--configfile path`: merged over config/config.yaml
+            load_workflow_config(path, ROOT / "config" / "config.yaml")
+        else:
+            load_yaml(path, kind)
+
+
+BROKEN = [  # (schema, file content, the field path and problem the error must name)
+    ("config", {"tables": ["lattice"], "study": {"runner": {"max_step": 3}}},
+     r"study.runner: unknown key 'max_step'; allowed keys: camera_size, device, dtype, executed_chunk, flow_steps, max_steps"),
+    ("table", {"caption": "c", "align": "lr", "header": [["a"]], "values": [{"stat": "rate", "cell": "c"}],
+               "rows": [{"label": "x", "c": "libero/libero_spatial/pi05/rtn-W4A4-ah"}], "enviroment": "tabular"},
+     r"\(top level\): unknown key 'enviroment'; allowed keys: align, caption, cells, environment"),
+    ("figure", {"baseline": "a/b/c/d", "isolated": [{"label": "x"}], "nested": [{"label": "y", "cell": "a/b/c/d"}]},
+     r"isolated.0: 'cell' is a required property"),
+    ("scopes", {"pi05": {"onlyself_attn": {"scope": "ah", "only": ["*self_attn*"], "layer": 72}}},
+     r"pi05.onlyself_attn: unknown key 'layer'; allowed keys: exclude, layers, only, params, scope"),
+    ("cohort", {"benchmark": "libero", "suite": "libero_spatial", "models": {}},
+     r"models: {} should be non-empty"),
+    ("replay_study", {**yaml.safe_load((PACKAGE / "replay/studies/pi05_libero_spatial.yaml").read_text()), "revision": "main"},
+     r"revision: 'main' does not match"),
+]
+
+
+@pytest.mark.parametrize(("kind", "content", "message"), BROKEN, ids=[b[0] for b in BROKEN])
+def test_the_loader_names_the_file_and_the_field(tmp_path, kind, content, message):
+    path = tmp_path / f"{kind}.yaml"
+    path.write_text(yaml.safe_dump(content))
+    with pytest.raises(UserError, match=rf"^{path}: (\s+.*\n)*?\s*{message}"):
+        load_yaml(path, kind)
+
+
+def test_defaults_live_in_the_dataclasses_and_the_schema_allows_exactly_their_fields():
+    study = schema("config")["properties"]["study"]
+    def keys(node):
+        if isinstance(node, dict):
+            yield from node
+            for value in node.values():
+                yield from keys(value)
+        elif isinstance(node, list):
+            for value in node:
+                yield from keys(value)
+
+    assert "default" not in set(keys(schema("config")))  # Snakemake's validate would fill them in
+    assert set(study["properties"]) == {f.name for f in dataclasses.fields(StudyConfig)}
+    assert set(study["properties"]["runner"]["properties"]) == {f.name for f in dataclasses.fields(RunnerConfig)}
+    # The Snakefile validates with the same file: workflow/schemas links to the package's schema.
+    assert (ROOT / "workflow/schemas/config.schema.yaml").resolve() == (PACKAGE / "config/schemas/config.schema.yaml")
+    assert StudyConfig.from_dict({}).runner == RunnerConfig() and StudyConfig.from_dict({}).episodes_per_task == 20
+    with pytest.raises(UserError, match=r"^where: study.tasks: 0 is not valid"):
+        validate({"tasks": 0}, "config", "where", subschema=("study",))
+
+
+# --- vqb rollout CELL --config FILE --show: the real command line ---
+
+
+def vqb_show(config: Path, ref: str = ATTENTION) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "vlaquantbench.cli", "rollout", ref, "--config", str(config), "--show",
+           "--results", str(config.parent / "out")]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+
+
+def demo_config(tmp_path: Path, edit) -> Path:
+    config = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
+    edit(config)
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+MISSPELT = [
+    (lambda c: c["study"].update(episodes_per_tsak=2), "study: unknown key 'episodes_per_tsak'; allowed keys: calibration, episodes_per_task"),
+    (lambda c: c["study"]["runner"].update(max_step=3), "study.runner: unknown key 'max_step'; allowed keys: camera_size, device"),
+    (lambda c: c["study"]["models"]["pi05"].update(varient="full"), "study.models.pi05: unknown key 'varient'; allowed keys: checkpoint, revision, variant"),
+    (lambda c: c.update(stduy={}), r"\(top level\): unknown key 'stduy'; allowed keys: diagnostics_dir, manifest"),
+    (lambda c: c["study"].update(episodes_per_task=0), "study.episodes_per_task: 0 is less than the minimum of 1"),
+    (lambda c: c["study"]["models"]["pi05"].update(variant="ful"), "study.models.pi05.variant: 'ful' is not allowed; allowed values: full, demo, random"),
+]
+
+
+@pytest.mark.parametrize(("edit", "message"), MISSPELT, ids=["episodes", "max_step", "variant_key", "top_level", "zero", "variant_value"])
+def test_vqb_rollout_refuses_a_bad_config_before_anything_runs(tmp_path, edit, message):
+    config = demo_config(tmp_path, edit)
+    result = vqb_show(config)
+    assert result.returncode == 2, result.stdout
+    assert f"vqb rollout: error: {config} (merged over config/config.yaml): " in result.stderr, result.stderr
+    assert message.replace("\\", "") in result.stderr.replace("\\", ""), result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_vqb_rollout_show_names_the_folder_snakemake_uses(tmp_path):
+    config = demo_config(tmp_path, lambda c: None)
+    result = vqb_show(config)
+    assert result.returncode == 0, result.stderr
+    wf = WorkflowConfig.from_snakemake(yaml.safe_load(config.read_text()), ROOT)
+    shown = yaml.safe_load(result.stdout)
+    assert shown["config_hash"] in wf.study_cells() and wf.study_cells()[shown["config_hash"]] == shown["config"]
+
+
+# --- snakemake -n: a bad cell of a table is refused while the DAG is built ---
+
+
+def dry_run(tmp_path: Path, row_cell: str | None = None, copy_src: bool = False, study_edit=None) -> tuple[int, str]:
+    """`snakemake -n tables/lattice.tex` on the demo study in a checkout whose demo lattice table has one
+    row, reading `row_cell`."""
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    for item in ("Snakefile", "rules", "workflow", "manifests"):
+        (checkout / item).symlink_to(ROOT / item)
+    shutil.copytree(ROOT / "config", checkout / "config", symlinks=True)
+    if copy_src:
+        shutil.copytree(ROOT / "src", checkout / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+        (checkout / "config" / "scopes.yaml").unlink()
+        (checkout / "config" / "scopes.yaml").symlink_to(checkout / "src/vlaquantbench/config/scopes.yaml")
+    else:
+        (checkout / "src").symlink_to(ROOT / "src")
+    table_path = checkout / "config" / "demo" / "tables" / "lattice.yaml"
+    table = yaml.safe_load(table_path.read_text())
+    table["rows"] = [{"label": "row", "cell": row_cell or ATTENTION}]
+    table_path.write_text(yaml.safe_dump(table))
+    if study_edit:
+        config_path = checkout / "config" / "config.yaml"
+        config = yaml.safe_load(config_path.read_text())
+        study_edit(config)
+        config_path.write_text(yaml.safe_dump(config))
+    cmd = [sys.executable, "-m", "snakemake", "-n", "tables/lattice.tex", "--cores", "1"]
+    result = subprocess.run(cmd, cwd=checkout, capture_output=True, text=True, timeout=300)
+    return result.returncode, result.stdout + result.stderr
+
+
+BAD_CELLS = [
+    ("libero/libero_spatail/pi05/rtn-W4A4-ah", "unknown libero suite 'libero_spatail'; known: libero_spatial"),
+    ("libero/libero_spatial/pi5/rtn-W4A4-ah", "unknown model 'pi5'; known models: openvla_oft, pi0, pi05, xvla"),
+    ("libero/libero_spatial/pi05/rtn-W4A3X-ah", "unknown quantization preset 'W4A3X'"),
+    ("libero/libero_spatial/pi05/quip-W4A4-ah", "unknown method 'quip'; expected one of awq, fp8, fp8_static"),
+    ("libero/libero_spatial/pi05/ablate-W4A4-ah-onlyselfattn", "subset 'onlyselfattn' of pi05: unknown subset 'onlyselfattn'"),
+]
+
+
+@pytest.mark.parametrize(("cell", "message"), BAD_CELLS, ids=["suite", "model", "preset", "method", "subset"])
+def test_snakemake_dry_run_refuses_a_bad_cell_naming_the_table_and_the_cell(tmp_path, cell, message):
+    returncode, output = dry_run(tmp_path, cell)
+    table = tmp_path / "checkout/config/demo/tables/lattice.yaml"
+    assert returncode != 0 and f"{table}: cell {cell!r}: {message}" in output, output[-3000:]
+
+
+def test_snakemake_dry_run_refuses_a_subset_pattern_that_matches_nothing(tmp_path):
+    def misspell_pattern(_):
+        scopes = tmp_path / "checkout/src/vlaquantbench/config/scopes.yaml"
+        scopes.write_text(scopes.read_text().replace('onlyself_attn: {scope: ah, only: ["*self_attn*"]',
+                                                     'onlyself_attn: {scope: ah, only: ["*self_atn*"]'))
+
+    returncode, output = dry_run(tmp_path, copy_src=True, study_edit=misspell_pattern)
+    table = tmp_path / "checkout/config/demo/tables/lattice.yaml"
+    assert returncode != 0 and (f"{table}: cell {ATTENTION!r}: subset 'onlyself_attn' of pi05: pattern --only "
+                                "'*self_atn*' matches no linear layer in scope 'ah'") in output, output[-3000:]
+
+
+def test_snakemake_validates_the_same_schema(tmp_path):
+    returncode, output = dry_run(tmp_path, study_edit=lambda c: c["study"]["runner"].update(max_step=3))
+    assert returncode != 0 and "'max_step' was unexpected" in output, output[-3000:]
