@@ -46,7 +46,7 @@ BROKEN = [  # (schema, file content, the field path and problem the error must n
      r"study.runner: unknown key 'max_step'; allowed keys: camera_size, device, dtype, executed_chunk, flow_steps, max_steps"),
     ("table", {"caption": "c", "align": "lr", "header": [["a"]], "values": [{"stat": "rate", "cell": "c"}],
                "rows": [{"label": "x", "c": "libero/libero_spatial/pi05/rtn-W4A4-ah"}], "enviroment": "tabular"},
-     r"\(top level\): unknown key 'enviroment'; allowed keys: align, caption, cells, environment"),
+     r"\(top level\): unknown key 'enviroment'; allowed keys: align, bootstrap, caption, cells, environment"),
     ("figure", {"baseline": "a/b/c/d", "isolated": [{"label": "x"}], "nested": [{"label": "y", "cell": "a/b/c/d"}]},
      r"isolated.0: 'cell' is a required property"),
     ("scopes", {"pi05": {"onlyself_attn": {"scope": "ah", "only": ["*self_attn*"], "layer": 72}}},

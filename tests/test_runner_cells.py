@@ -169,8 +169,10 @@ def test_every_registered_method_is_reachable_from_a_cell_name():
         cfg = cell_config(ref(f"{method}-W8A8-ah"), STUDY)
         assert cfg["method"] == method and quantizer_method(method) == method
         assert callable(METHODS[method].resolve())  # the implementation the registry names exists
-        if METHODS[method].statistics is not None:  # calibration episodes collect what the method needs
-            assert cfg["calibration"]["components"] == ["ah"] and cfg["calibration"]["alpha"] is None
+        statistics = METHODS[method].statistics
+        if statistics is not None:  # calibration episodes of the scope collect what the method needs
+            assert cfg["calibration"]["components"] == ["ah"] and cfg["calibration"]["quantile"] is None
+            assert cfg["calibration"]["alpha"] == statistics.get("alpha")
     assert quantizer_method("ablate") == quantizer_method("calib_ah") == "rtn"
 
 
