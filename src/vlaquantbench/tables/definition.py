@@ -97,6 +97,8 @@ class TableDefinition:
         values = []
         for index, spec in enumerate(raw["values"]):
             stat = spec["stat"]
+            if stat not in STATS:
+                raise UserError(f"{where}: values.{index}.stat: {stat!r} is not allowed; allowed values: {', '.join(STATS)}")
             missing = [key for key in STATS[stat] if not spec.get(key)]
             if missing:
                 raise UserError(f"{where}: values.{index} ({stat}) needs {', '.join(missing)}")
