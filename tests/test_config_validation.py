@@ -195,3 +195,19 @@ def test_snakemake_dry_run_refuses_a_subset_pattern_that_matches_nothing(tmp_pat
 def test_snakemake_validates_the_same_schema(tmp_path):
     returncode, output = dry_run(tmp_path, study_edit=lambda c: c["study"]["runner"].update(max_step=3))
     assert returncode != 0 and "'max_step' was unexpected" in output, output[-3000:]
+
+
+def test_replay_configurations_take_subsets_from_scopes_yaml(tmp_path):
+    from vlaquantbench.replay.study import load_study
+    from vlaquantbench.quant.subsets import get_subset
+
+    study = load_study()
+    assert study["configurations"]["union"]["layers"] == get_subset("pi05", "attn_adarms").layers == 108
+    text = (PACKAGE / "replay/studies/pi05_libero_spatial.yaml").read_text()
+    path = tmp_path / "study.yaml"
+    path.write_text(text.replace("subset: attn_adarms,", "subset: attn_adarms, layers: 108,"))
+    with pytest.raises(UserError, match=rf"^{path}: configurations.union: .* should not be valid"):
+        load_study(path)  # a subset's layer count lives in config/scopes.yaml only
+    path.write_text(text.replace("subset: attn_adarms,", "subset: attn_adarm,"))
+    with pytest.raises(UserError, match=r"configurations.union.subset: unknown subset 'attn_adarm' for model 'pi05'"):
+        load_study(path)

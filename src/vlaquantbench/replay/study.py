@@ -10,6 +10,7 @@ from pathlib import Path
 
 from vlaquantbench.config import load_yaml
 from vlaquantbench.errors import UserError
+from vlaquantbench.quant.subsets import get_subset
 from vlaquantbench.records.summary import read_summary
 
 STUDIES = Path(__file__).with_name("studies")
@@ -26,7 +27,16 @@ def load_definition(name_or_path: str | Path, folder: Path, kind: str, schema: s
 
 
 def load_study(name_or_path: str | Path = "pi05_libero_spatial") -> dict:
-    return load_definition(name_or_path, STUDIES, "replay study", "replay_study")
+    """A replay study; a configuration with a subset takes its scope and layer count from config/scopes.yaml."""
+    study = load_definition(name_or_path, STUDIES, "replay study", "replay_study")
+    for name, conf in study["configurations"].items():
+        if conf["subset"] is not None:
+            try:
+                subset = get_subset(study["model"], conf["subset"])
+            except UserError as err:
+                raise UserError(f"replay study {str(name_or_path)!r}: configurations.{name}.subset: {err}") from None
+            conf.update(scope=subset.scope, layers=subset.layers)
+    return study
 
 
 def with_formats(study: dict, formats: list[str] | None) -> dict:
