@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from vlaquantbench.config.study import RunnerConfig
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.registry import adapter_class
 
@@ -34,10 +35,10 @@ class AdapterConfig:
     variant: str
     checkpoint: str | None = None
     checkpoint_dir: str | None = None  # local snapshot of `checkpoint` (full variant)
-    device: str = "cpu"
-    dtype: str = "float32"
-    executed_chunk: int = 10
-    flow_steps: int = 10
+    device: str = RunnerConfig.device
+    dtype: str = RunnerConfig.dtype
+    executed_chunk: int = RunnerConfig.executed_chunk
+    flow_steps: int = RunnerConfig.flow_steps
     seed: int = 0  # demo and random weights
     # "captured" or "eager" (`resolve_sampler`). Eager unless a cell resolves otherwise: the replay
     # and diagnostics probes wrap lerobot's `sample_actions`/`denoise_step`, which only eager calls.

@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from vlaquantbench.atomic import write_text
 from vlaquantbench.envs.libero import EpisodeSpec, LiberoSuite, LiberoVectorEnv, episode_seed, simulator_versions
+from vlaquantbench.config.study import RunnerConfig
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.replay.probe import PolicyProbe, torch_rng_state
@@ -39,10 +40,10 @@ class RecordSettings:
     revision: str | None = None
     checkpoint_dir: str | None = None
     max_steps: int | None = None  # default: the suite's step limit for the model
-    executed_chunk: int = 10
-    flow_steps: int = 10
+    executed_chunk: int = RunnerConfig.executed_chunk
+    flow_steps: int = RunnerConfig.flow_steps
     run_seed: int = 0
-    device: str = "cpu"
+    device: str = RunnerConfig.device
     threads: int = 1  # CPU kernels' blocking depends on it; the replay uses the same count
 
     @classmethod

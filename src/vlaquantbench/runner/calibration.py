@@ -9,6 +9,7 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
+from vlaquantbench.config.study import ExecutionConfig
 from vlaquantbench.envs.libero import EpisodeSpec, LiberoSuite, LiberoVectorEnv, episode_seed
 from vlaquantbench.runner.cell import calibration_settings, load_policy
 from vlaquantbench.runner.loop import run_episodes
@@ -20,9 +21,9 @@ def calibrate(
     output: str | Path,
     checkpoint_stamp: str | Path | None = None,
     *,
-    num_envs: int = 2,
-    torch_threads: int | None = 1,
-    progress: bool = True,
+    num_envs: int = ExecutionConfig.num_envs,
+    torch_threads: int | None = ExecutionConfig.torch_threads,
+    progress: bool = ExecutionConfig.progress,
 ) -> Path:
     """Collect statistics for `calib` (a `cells.calibration_config`) and save them to `output`."""
     from vlaquantbench.quant import select_layers

@@ -21,6 +21,7 @@ import torch
 from tqdm import tqdm
 
 from vlaquantbench.cells import canonical, config_hash, quantizer_method
+from vlaquantbench.config.study import ExecutionConfig
 from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv, simulator_versions
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
@@ -76,9 +77,9 @@ class CellRun:
         checkpoint_stamp: str | Path | None = None,
         calibration_stats: str | Path | None = None,
         *,
-        num_envs: int = 2,
-        torch_threads: int | None = 1,
-        progress: bool = True,
+        num_envs: int = ExecutionConfig.num_envs,
+        torch_threads: int | None = ExecutionConfig.torch_threads,
+        progress: bool = ExecutionConfig.progress,
     ):
         self.cfg = cfg
         self.out_dir = Path(out_dir)
