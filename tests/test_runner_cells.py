@@ -103,6 +103,9 @@ def test_calibrated_cells_share_statistics_across_presets():
         ("calib_llm-W4A4-ah", "outside scope 'ah'"),
         ("ablate-W4A4-ah-nosuchsubset", "unknown subset 'nosuchsubset'"),
         ("rtn-W9Z-ah", "unknown quantization preset 'W9Z'"),
+        ("nf4-W8A8-ah", "method 'nf4' implements W4; preset 'W8A8' does not match"),
+        ("fp8-W4A8-ah", "method 'fp8' implements W8A8; preset 'W4A8' does not match"),
+        ("awq-W4A8-ah", r"method 'awq' is weight-only \(W<b>\[G<g>\]\); preset 'W4A8' does not match"),
     ],
 )
 def test_bad_cell_names_are_user_errors_naming_the_cell(cell, message):
@@ -165,8 +168,9 @@ def test_every_registered_method_is_reachable_from_a_cell_name():
     from vlaquantbench.quant.methods import METHODS, registered_methods
 
     assert {"int4wo", "fp8", "fp8_tensor", "fp8_static"} <= set(registered_methods())
+    presets = {"nf4": "W4", "int8": "W8", "int4wo": "W4", "awq": "W4"}  # the presets these implement
     for method in registered_methods():
-        cfg = cell_config(ref(f"{method}-W8A8-ah"), STUDY)
+        cfg = cell_config(ref(f"{method}-{presets.get(method, 'W8A8')}-ah"), STUDY)
         assert cfg["method"] == method and quantizer_method(method) == method
         assert callable(METHODS[method].resolve())  # the implementation the registry names exists
         statistics = METHODS[method].statistics

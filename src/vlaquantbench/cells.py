@@ -158,7 +158,7 @@ class CellConfig:
         """The cell `ref` under `study`; UserError naming the reference and the bad field first."""
         benchmark, suite, model, name = parse_ref(ref)
         fields = parse_cell_name(name, ref)
-        _check_registries(ref, benchmark, suite, model, fields["preset"])
+        _check_registries(ref, benchmark, suite, model, fields["preset"], quantizer_method(fields["method"]))
         if model not in study.models:
             raise UserError(f"cell {ref!r}: model {model!r} is not in study.models ({', '.join(study.models) or 'none'})")
         weights = study.models[model]
@@ -212,7 +212,7 @@ class CellConfig:
         return config_hash(self.to_dict())
 
 
-def _check_registries(ref: str, benchmark: str, suite: str, model: str, preset: str) -> None:
+def _check_registries(ref: str, benchmark: str, suite: str, model: str, preset: str, method: str) -> None:
     from vlaquantbench.quant.presets import parse_preset
 
     if benchmark not in BENCHMARK_SUITES:
@@ -223,7 +223,7 @@ def _check_registries(ref: str, benchmark: str, suite: str, model: str, preset: 
         model_package(model)
         if model not in rollout_models():
             raise UserError(f"model {model!r} has no rollout adapter; models with one: {', '.join(rollout_models())}")
-        parse_preset(preset)
+        METHODS[method].check_preset(method, parse_preset(preset))
     except UserError as err:
         raise UserError(f"cell {ref!r}: {err}") from None
 

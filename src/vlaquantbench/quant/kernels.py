@@ -31,11 +31,11 @@ from torch import nn
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.apply import MethodResult, QuantConfig
+from vlaquantbench.quant.methods import get_method
 from vlaquantbench.quant.awq import search_scales
 from vlaquantbench.quant.calibration import ChannelStats, smoothing_factors
 from vlaquantbench.quant.grid import fake_quant_weight
 from vlaquantbench.quant.hooks import CountingHook, InputTransform
-from vlaquantbench.quant.presets import WeightGrid
 from vlaquantbench.quant.scope import Selection
 
 try:  # one-pass activation quantization on CUDA; the torch expression below elsewhere
@@ -225,12 +225,8 @@ def _bnb_linear(linear: nn.Linear, kind: str) -> nn.Module:
     return module.to(device)  # bitsandbytes quantizes on the move to a CUDA device
 
 
-def _require(config: QuantConfig, method: str, bits: int, act_bits: int | None) -> None:
-    preset = config.preset
-    if (not isinstance(preset.weight, WeightGrid) or preset.weight.bits != bits or preset.act_bits != act_bits
-            or preset.act_format is not None):
-        want = f"W{bits}" + (f"A{act_bits}" if act_bits else "")
-        raise UserError(f"method {method!r} implements {want}; preset {preset.name!r} does not match")
+def _require(config: QuantConfig, method: str) -> None:
+    get_method(method).check_preset(method, config.preset)
 
 
 def _swap(model: nn.Module, name: str, linear: nn.Linear, new: nn.Module) -> None:
@@ -250,19 +246,19 @@ def _replace_all(model: nn.Module, selection: Selection, make, fmt: str) -> Meth
 
 
 def nf4(model, selection, config):
-    _require(config, "nf4", 4, None)
+    _require(config, "nf4")
     return _replace_all(model, selection, lambda n, m: _bnb_linear(m, "nf4"),
                         "bitsandbytes NF4 (4-bit NormalFloat, block 64, bf16 compute)")
 
 
 def llm_int8(model, selection, config):
-    _require(config, "int8", 8, None)
+    _require(config, "int8")
     return _replace_all(model, selection, lambda n, m: _bnb_linear(m, "int8"),
                         "bitsandbytes LLM.int8() (int8 row-wise weights, fp16 outlier columns above 6.0)")
 
 
 def int4_weight_only(model, selection, config):
-    _require(config, "int4wo", 4, None)
+    _require(config, "int4wo")
     group = config.preset.weight.group_size or 128
     return _replace_all(model, selection, lambda n, m: Int4WeightOnlyLinear(m, group),
                         f"int4 weight-only, asymmetric group {group}, tinygemm (torch._weight_int4pack_mm), bf16 activations")
@@ -289,9 +285,8 @@ def awq(model, selection, config):
     """AWQ: per layer, the `quant.awq` scale search on the calibration rows, then Q(W diag(s)) with
     an input hook dividing by s. W4 asymmetric groups on CUDA use the int4wo tinygemm kernel
     (its grid spans [min, max] of each group, not the zero-including range of `quant.grid`)."""
+    _require(config, "awq")
     grid = config.preset.weight
-    if not isinstance(grid, WeightGrid) or config.preset.quantizes_activations:
-        raise UserError(f"method 'awq' is weight-only (W<b>[G<g>]); preset {config.preset.name!r} does not match")
     stats = _layer_stats(selection, config, "awq", "AWQ calibration statistics (mean |x| and sampled input rows)",
                          "collect them on the unquantized policy with quant.calibration.observe(layers, "
                          "sample_rows=128) and pass stats=... (the runner's calibrate step does this for awq cells)",
@@ -337,7 +332,7 @@ def smoothquant(model, selection, config):
     """SmoothQuant W8A8: migrate activation outliers into the weights with d_j = a_j^alpha / w_j^(1-alpha)
     (`quant.calibration.smoothing_factors`), then int8 per-channel weights and per-token inputs.
     Layers of components the calibration does not cover (the pi models' projector) run unsmoothed."""
-    _require(config, "smoothquant", 8, 8)
+    _require(config, "smoothquant")
     if config.calibration is None or config.calibration.alpha is None:
         raise UserError("method 'smoothquant' smooths by definition: pass calibration=CalibrationSettings(alpha=...) "
                         "and stats=... (the runner's calibrate step collects them for smoothquant cells)")
@@ -359,20 +354,20 @@ def smoothquant(model, selection, config):
 
 
 def fp8(model, selection, config):
-    _require(config, "fp8", 8, 8)
+    _require(config, "fp8")
     return _replace_all(model, selection, lambda n, m: Fp8DynamicLinear(m),
                         "W8A8 FP8 e4m3 (per-channel weights, dynamic per-token activations, torch._scaled_mm row-wise, fast accumulation)")
 
 
 def fp8_tensorwise(model, selection, config):
-    _require(config, "fp8_tensor", 8, 8)
+    _require(config, "fp8_tensor")
     return _replace_all(model, selection, lambda n, m: Fp8DynamicLinear(m, tensorwise=True),
                         "W8A8 FP8 e4m3 (one weight scale, one dynamic activation scale per call, torch._scaled_mm, fast accumulation)")
 
 
 def fp8_static(model, selection, config):
     """FP8 W8A8 with static activation scales from the calibration statistics' per-channel absmax."""
-    _require(config, "fp8_static", 8, 8)
+    _require(config, "fp8_static")
     layers = _layer_stats(selection, config, "fp8_static", "calibration statistics (input absmax)",
                           "observe them on the unquantized policy with quant.calibration.observe(layers) "
                           "and pass stats=...")

@@ -19,12 +19,30 @@ from dataclasses import dataclass
 from typing import Any
 
 from vlaquantbench.errors import UserError
+from vlaquantbench.quant.presets import Preset, WeightGrid
 
 
 @dataclass(frozen=True)
 class Method:
     implementation: str | Callable  # "module:function", imported by `resolve`, or the function itself
     statistics: dict[str, Any] | None = None
+    # Presets the method implements: (weight bits, activation bits or None) of an integer preset,
+    # WEIGHT_ONLY (any integer weight grid, activations unquantized), or None (every preset).
+    presets: tuple[int, int | None] | str | None = None
+
+    def check_preset(self, name: str, preset: Preset) -> None:
+        """UserError when method `name` cannot run `preset` (the cell grammar checks it at DAG build)."""
+        if self.presets is None:
+            return
+        integer = isinstance(preset.weight, WeightGrid) and preset.act_format is None
+        if self.presets == WEIGHT_ONLY:
+            if not integer or preset.act_bits is not None:
+                raise UserError(f"method {name!r} is weight-only (W<b>[G<g>]); preset {preset.name!r} does not match")
+            return
+        bits, act_bits = self.presets
+        if not integer or preset.weight.bits != bits or preset.act_bits != act_bits:
+            want = f"W{bits}" + (f"A{act_bits}" if act_bits else "")
+            raise UserError(f"method {name!r} implements {want}; preset {preset.name!r} does not match")
 
     def resolve(self) -> Callable:
         if callable(self.implementation):
@@ -33,24 +51,26 @@ class Method:
         return getattr(importlib.import_module(module), function)
 
 
+WEIGHT_ONLY = "weight-only"
 _KERNELS = "vlaquantbench.quant.kernels"
 METHODS: dict[str, Method] = {
     "rtn": Method("vlaquantbench.quant.apply:rtn"),
-    "nf4": Method(f"{_KERNELS}:nf4"),
-    "int8": Method(f"{_KERNELS}:llm_int8"),
-    "int4wo": Method(f"{_KERNELS}:int4_weight_only"),
-    "awq": Method(f"{_KERNELS}:awq", statistics={"sample_rows": 128}),
+    "nf4": Method(f"{_KERNELS}:nf4", presets=(4, None)),
+    "int8": Method(f"{_KERNELS}:llm_int8", presets=(8, None)),
+    "int4wo": Method(f"{_KERNELS}:int4_weight_only", presets=(4, None)),
+    "awq": Method(f"{_KERNELS}:awq", statistics={"sample_rows": 128}, presets=WEIGHT_ONLY),
     # SmoothQuant's per-channel migration is the method: alpha 0.85 (the paper's deployment setting)
-    "smoothquant": Method(f"{_KERNELS}:smoothquant", statistics={"alpha": 0.85}),
-    "fp8": Method(f"{_KERNELS}:fp8"),
-    "fp8_tensor": Method(f"{_KERNELS}:fp8_tensorwise"),
-    "fp8_static": Method(f"{_KERNELS}:fp8_static", statistics={}),
+    "smoothquant": Method(f"{_KERNELS}:smoothquant", statistics={"alpha": 0.85}, presets=(8, 8)),
+    "fp8": Method(f"{_KERNELS}:fp8", presets=(8, 8)),
+    "fp8_tensor": Method(f"{_KERNELS}:fp8_tensorwise", presets=(8, 8)),
+    "fp8_static": Method(f"{_KERNELS}:fp8_static", statistics={}, presets=(8, 8)),
 }
 
 
-def register_method(name: str, fn: Callable, statistics: dict[str, Any] | None = None) -> None:
+def register_method(name: str, fn: Callable, statistics: dict[str, Any] | None = None,
+                    presets: tuple[int, int | None] | str | None = None) -> None:
     """Make `QuantConfig(method=name)` dispatch to `fn(model, selection, config) -> MethodResult`."""
-    METHODS[name] = Method(fn, statistics)
+    METHODS[name] = Method(fn, statistics, presets)
 
 
 def registered_methods() -> list[str]:
