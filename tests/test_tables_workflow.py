@@ -10,7 +10,7 @@ from test_tables_paper import latex_rows, paper_rows
 
 from vlaquantbench.records import find_cells, read_cell
 from vlaquantbench.tables import load_table, render_latex, summarize
-from paths import ROOT, RECORDS
+from paths import ROOT, RECORDS, REFERENCE
 
 TABLES = ("lattice", "oft_protect_fc2", "clustered", "calibrated_subsets")
 FLIPPED = "libero/libero_spatial/pi05/ablate-W4A4-ah-onlyadarms"  # 187/200 successes; flipping one failure gives 188
@@ -19,12 +19,16 @@ pytestmark = pytest.mark.slow
 
 
 def layout(tmp_path: Path, records: Path) -> Path:
-    """A workdir whose `../shared/reference/records` is `records`, as config/reference.yaml expects."""
+    """A workdir whose `../shared/reference` is the reference data with `records` as its records folder."""
     workdir = tmp_path / "checkout"
     workdir.mkdir()
     (workdir / "manifests").symlink_to(ROOT / "manifests")
-    (tmp_path / "shared" / "reference").mkdir(parents=True)
-    (tmp_path / "shared" / "reference" / "records").symlink_to(records)
+    reference = tmp_path / "shared" / "reference"
+    reference.mkdir(parents=True)
+    for entry in REFERENCE.iterdir():  # the summary and the authors' other files as they are
+        if entry.name != "records":
+            (reference / entry.name).symlink_to(entry)
+    (reference / "records").symlink_to(records)
     return workdir
 
 
