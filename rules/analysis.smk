@@ -54,6 +54,7 @@ rule paper_table:
         verified=rules.verify_records.output[0],
         cells=lambda wc: records_of(WF.checked_refs(WF.table_record_refs(wc.table), f"tables/{wc.table}.tex")),
         summary=lambda wc: WF.table_summary(wc.table),
+        sources=lambda wc: list(WF.table_sources(wc.table).values()),
     output:
         tex="tables/{table}.tex",
         html=report("tables/{table}.html", caption="../workflow/report/table.rst", category="Tables",
@@ -64,31 +65,38 @@ rule paper_table:
         table="|".join(PAPER_TABLES),
     params:
         definition=lambda wc: WF.table(wc.table),
-        refs=lambda wc: WF.table_record_refs(wc.table),
+        refs=lambda wc: WF.table_record_refs(wc.table) + list(WF.table_sources(wc.table)),
         report=lambda wc: report_params(f"tables/{wc.table}.tex"),
     script:
         "../workflow/scripts/paper_table.py"
 
 
+SCOPE_RECOVERY = "figures/scope_recovery.pdf"
+
+
 rule scope_recovery_figure:
     input:
         verified=rules.verify_records.output[0],
-        cells=lambda wc: records_of(WF.checked_refs(WF.figure("scope_recovery").refs(), "figures/scope_recovery.pdf")),
+        cells=lambda wc: records_of(WF.checked_refs(WF.record_refs(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY), SCOPE_RECOVERY)),
+        summary=lambda wc: WF.summary_input(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY),
     output:
-        report("figures/scope_recovery.pdf", caption="../workflow/report/figure.rst", category="Figures"),
+        report(SCOPE_RECOVERY, caption="../workflow/report/figure.rst", category="Figures"),
     log:
         "logs/figures/scope_recovery.log",
     params:
         figure=lambda wc: WF.figure("scope_recovery"),
-        refs=lambda wc: WF.figure("scope_recovery").refs(),
-        report=lambda wc: report_params("figures/scope_recovery.pdf"),
+        refs=lambda wc: WF.record_refs(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY),
+        report=lambda wc: report_params(SCOPE_RECOVERY),
     script:
         "../workflow/scripts/scope_recovery_figure.py"
 
 
 # Every table and figure the published data supports, in one target (and in `--report report.html`).
+# The replay, proxy-audit and replay-figure rules live in rules/replay.smk.
 rule paper:
     input:
         expand("tables/{table}.tex", table=PAPER_TABLES),
+        expand("tables/{table}.tex", table=["replay_composition", "replay_all_formats", "replay_bias", "proxy_audit"]),
         "tables/summary.csv",
         "figures/scope_recovery.pdf",
+        "figures/replay_formats.pdf",

@@ -68,8 +68,13 @@ rule replay_composition_table:
     input:
         REPLAY_ANALYSES,
     output:
-        "tables/replay_composition.tex",
+        tex="tables/replay_composition.tex",
+        html=report("tables/replay_composition.html", caption="../workflow/report/derived.rst", category="Tables",
+                    labels={"table": "replay_composition"}),
+    log:
+        "logs/tables/replay_composition.log",
     params:
+        source=lambda wc: f"the replay analysis files in {REPLAY_DIR}",
         analysis_dir=REPLAY_DIR,
         study=REPLAY_STUDY,
         formats=REPLAY["formats"],
@@ -82,8 +87,13 @@ rule replay_all_formats_table:
         analyses=REPLAY_ANALYSES,
         success=SUCCESS_SUMMARY,
     output:
-        "tables/replay_all_formats.tex",
+        tex="tables/replay_all_formats.tex",
+        html=report("tables/replay_all_formats.html", caption="../workflow/report/derived.rst", category="Tables",
+                    labels={"table": "replay_all_formats"}),
+    log:
+        "logs/tables/replay_all_formats.log",
     params:
+        source=lambda wc: f"the replay analysis files in {REPLAY_DIR}",
         analysis_dir=REPLAY_DIR,
         study=REPLAY_STUDY,
         formats=REPLAY["formats"],
@@ -95,8 +105,13 @@ rule replay_bias_table:
     input:
         REPLAY_ANALYSES,
     output:
-        "tables/replay_bias.tex",
+        tex="tables/replay_bias.tex",
+        html=report("tables/replay_bias.html", caption="../workflow/report/derived.rst", category="Tables",
+                    labels={"table": "replay_bias"}),
+    log:
+        "logs/tables/replay_bias.log",
     params:
+        source=lambda wc: f"the replay analysis files in {REPLAY_DIR}",
         analysis_dir=REPLAY_DIR,
         study=REPLAY_STUDY,
         formats=REPLAY["formats"],
@@ -108,8 +123,11 @@ rule replay_formats_figure:
     input:
         REPLAY_ANALYSES,
     output:
-        "figures/replay_formats.pdf",
+        report("figures/replay_formats.pdf", caption="../workflow/report/derived.rst", category="Figures"),
+    log:
+        "logs/figures/replay_formats.log",
     params:
+        source=lambda wc: f"the replay analysis files in {REPLAY_DIR}",
         analysis_dir=REPLAY_DIR,
         study=REPLAY_STUDY,
         formats=REPLAY["formats"],
@@ -157,7 +175,12 @@ rule proxy_audit_table:
     output:
         table="tables/proxy_audit.tex",
         scopes="tables/proxy_audit.scopes.csv",
+        html=report("tables/proxy_audit.html", caption="../workflow/report/derived.rst", category="Tables",
+                    labels={"table": "proxy_audit"}),
+    log:
+        "logs/tables/proxy_audit.log",
     params:
+        source=lambda wc: f"the layer diagnostics in {DIAGNOSTICS_DIR} and the success summary {SUCCESS_SUMMARY}",
         diagnostics_dir=DIAGNOSTICS_DIR,
     script:
         "../workflow/scripts/proxy_audit_table.py"

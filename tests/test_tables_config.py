@@ -7,7 +7,7 @@ import pytest
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import read_cell, write_cell
 from vlaquantbench.workflow import WorkflowConfig
-from paths import ROOT, RECORDS
+from paths import ROOT, RECORDS, REFERENCE
 
 REF = "libero/libero_spatial/pi05/rtn-W4A4-ah"
 
@@ -34,8 +34,21 @@ def test_cell_refs_cover_every_recorded_cell_and_every_table():
     wf = config(RECORDS, tables=("lattice", "replay_bias"))  # tables without a definition are other rules'
     assert len(wf.cell_refs()) == 65
     assert set(wf.table("lattice").refs()) <= set(wf.cell_refs())
-    assert set(wf.figure("scope_recovery").refs()) <= set(wf.table("lattice").refs())
+    figure = wf.figure("scope_recovery").refs()
+    with pytest.raises(UserError, match="figures/s.pdf: cell libero/libero_spatial/pi05/seed1-.* no success_summary is set"):
+        wf.record_refs(figure, "figures/s.pdf")  # its seed repeats have no records here
+    summarized = WorkflowConfig.from_snakemake({**wf.raw, "success_summary": str(REFERENCE / "authors-summary.csv")}, ROOT)
+    assert set(summarized.record_refs(figure, "f")) <= set(wf.table("lattice").refs())
+    assert summarized.summary_input(figure, "f") == [str(REFERENCE / "authors-summary.csv")]
     assert {"lattice", "clustered", "oft_protect_fc2", "calibrated_subsets"} <= set(wf.table_names())
+
+
+def test_measurement_files_are_named_by_source(tmp_path):
+    wf = WorkflowConfig.from_snakemake({"sources": {"latency": str(REFERENCE / "authors-files/results/latency")}}, ROOT)
+    found = wf.table_sources("efficiency")
+    assert found["latency:openvla_oft/baseline.jsonl"] == str(REFERENCE / "authors-files/results/latency/openvla_oft/baseline.jsonl")
+    with pytest.raises(UserError, match="tables/fidelity.tex: cell fidelity:openvla_oft/awq-W3-llm.json names source 'fidelity'"):
+        wf.table_sources("fidelity")
 
 
 def test_dag_mode_tables_read_only_checked_cells():

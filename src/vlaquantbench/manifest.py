@@ -1,7 +1,10 @@
-"""Manifests: a TSV of record files with episodes, successes and SHA-256, frozen next to a study.
+"""Manifests: a TSV of record files with episodes, successes, SHA-256 and outcomes, frozen next to a study.
 
 Paths are relative to the records folder, so a manifest stays valid wherever the records are copied.
-Verification stops on the first record that is unlisted, missing, or whose contents changed.
+`outcomes` lists each episode's success (1/0) in file order, so a changed record is explained: which
+episodes or successes changed, and on which line. Building a manifest refuses a cell whose episodes
+do not match what its header declares. Verification stops on the first record that is unlisted,
+missing, or whose contents changed.
 """
 
 from __future__ import annotations
@@ -14,9 +17,11 @@ from typing import Iterable
 
 from vlaquantbench.atomic import atomic_write
 from vlaquantbench.errors import UserError
-from vlaquantbench.records import find_cells, read_cell, record_files
+from vlaquantbench.records import Cell, check_declared_episodes, episode_gaps, find_cells, read_cell, record_files
 
-COLUMNS = ("path", "episodes", "successes", "sha256")
+COLUMNS = ("path", "episodes", "successes", "sha256", "outcomes")
+REQUIRED = COLUMNS[:4]  # manifests written before `outcomes` existed still verify
+EXPLAINED = 5  # changed episodes named in an error, at most
 
 
 @dataclass(frozen=True)
@@ -25,6 +30,11 @@ class ManifestRow:
     episodes: int | None  # None for a cell folder's header.json
     successes: int | None
     sha256: str
+    outcomes: str | None = None  # "1"/"0" per episode in file order
+
+
+def _outcomes(cell: Cell) -> str:
+    return "".join("1" if ok else "0" for ok in cell.episodes["success"])
 
 
 def sha256_file(path: Path) -> str:
@@ -41,7 +51,7 @@ def manifest_rows(records_dir: str | Path, cells: Iterable[str | Path] | None = 
     cell_paths = [Path(p) for p in cells] if cells is not None else list(find_cells(root).values())
     rows = []
     for cell_path in cell_paths:
-        cell = read_cell(cell_path)
+        cell = check_declared_episodes(read_cell(cell_path))
         for file in record_files(cell_path):
             counted = file.suffix != ".json"
             rows.append(
@@ -50,6 +60,7 @@ def manifest_rows(records_dir: str | Path, cells: Iterable[str | Path] | None = 
                     episodes=cell.n_episodes if counted else None,
                     successes=cell.n_successes if counted else None,
                     sha256=sha256_file(file),
+                    outcomes=_outcomes(cell) if counted else None,
                 )
             )
     return sorted(rows, key=lambda row: row.path)
@@ -64,7 +75,8 @@ def _write_rows(rows: list[ManifestRow], output: str | Path) -> Path:
         writer = csv.writer(handle, delimiter="\t", lineterminator="\n")
         writer.writerow(COLUMNS)
         for row in rows:
-            writer.writerow(["" if value is None else value for value in (row.path, row.episodes, row.successes, row.sha256)])
+            values = (row.path, row.episodes, row.successes, row.sha256, row.outcomes)
+            writer.writerow(["" if value is None else value for value in values])
     return output
 
 
@@ -74,17 +86,56 @@ def read_manifest(path: str | Path) -> dict[str, ManifestRow]:
         raise UserError(f"manifest {path} not found")
     with open(path, newline="") as handle:
         reader = csv.DictReader(handle, delimiter="\t")
-        if tuple(reader.fieldnames or ()) != COLUMNS:
-            raise UserError(f"manifest {path}: expected columns {', '.join(COLUMNS)}, got {reader.fieldnames}")
+        if tuple(reader.fieldnames or ()) not in (COLUMNS, REQUIRED):
+            raise UserError(f"manifest {path}: expected columns {', '.join(REQUIRED)}[, outcomes], got {reader.fieldnames}")
         return {
             row["path"]: ManifestRow(
                 path=row["path"],
                 episodes=int(row["episodes"]) if row["episodes"] else None,
                 successes=int(row["successes"]) if row["successes"] else None,
                 sha256=row["sha256"],
+                outcomes=row.get("outcomes") or None,
             )
             for row in reader
         }
+
+
+def _episode_lines(file: Path) -> list[str]:
+    """Where each episode sits in `file`: `line N` of an authors' .jsonl, `row N` of a parquet table."""
+    if file.suffix == ".jsonl":
+        lines = file.read_text().splitlines()
+        return [f"line {number}" for number, line in enumerate(lines[1:], start=2) if line.strip()]
+    return [f"row {number}" for number in range(1, read_cell(file).n_episodes + 1)]
+
+
+def explain_change(file: Path, listed: ManifestRow) -> str:
+    """What differs between record `file` and its manifest row: episodes, successes, which lines."""
+    if listed.episodes is None:
+        return "the run header changed"
+    try:
+        cell = read_cell(file)
+    except UserError as err:
+        return f"the record no longer reads ({err})"
+    changes = []
+    if cell.n_episodes != listed.episodes:
+        changes.append(f"{cell.n_episodes} episodes instead of {listed.episodes}")
+        changes += episode_gaps(cell)
+    if cell.n_successes != listed.successes:
+        changes.append(f"{cell.n_successes} successes instead of {listed.successes}")
+    now = _outcomes(cell)
+    if listed.outcomes and len(listed.outcomes) == len(now):
+        where = _episode_lines(file)
+        flipped = [i for i, (was, is_) in enumerate(zip(listed.outcomes, now)) if was != is_]
+        for i in flipped[:EXPLAINED]:
+            episode = cell.episodes.iloc[i]
+            changes.append(
+                f"{where[i]} (task {episode['task_id']}, episode {episode['episode']}): success "
+                f"{'true' if listed.outcomes[i] == '1' else 'false'} -> {'true' if now[i] == '1' else 'false'}"
+            )
+        if len(flipped) > EXPLAINED:
+            changes.append(f"{len(flipped) - EXPLAINED} more changed outcomes")
+    return "; ".join(changes) or "episodes and successes unchanged: another field of an episode or the header changed"
+
 
 
 def verify_manifest(
@@ -109,7 +160,9 @@ def verify_manifest(
         if relative not in listed:
             raise UserError(f"record {file} is not listed in manifest {manifest}")
         if sha256_file(file) != listed[relative].sha256:
-            raise UserError(f"record {file} does not match manifest {manifest} (SHA-256 differs)")
+            raise UserError(
+                f"record {file} does not match manifest {manifest} (SHA-256 differs: {explain_change(file, listed[relative])})"
+            )
         verified.append(listed[relative])
     return verified
 

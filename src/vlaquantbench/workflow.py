@@ -62,7 +62,7 @@ class WorkflowConfig:
 
         configs = {}
         for name in self._listed_tables():
-            for ref in self.table(name).refs():
+            for ref in self.table_record_refs(name):
                 try:
                     cfg = cells.cell_config(ref, self.study)
                 except UserError as err:
@@ -114,10 +114,10 @@ class WorkflowConfig:
         value = self.raw.get("success_summary")
         return Path(value) if value else None
 
-    def table_record_refs(self, name: str) -> list[str]:
-        """Cells of table `name` read from episode records. With `records_dir` set, a cell without records
-        comes from `success_summary`; a cell in neither is an error naming it (at DAG build, before any job)."""
-        refs = self.table(name).refs()
+    def record_refs(self, refs: list[str], target: str) -> list[str]:
+        """Of `target`'s cells `refs`, those read from episode records. With `records_dir` set, a cell without
+        records comes from `success_summary`; a cell in neither is an error naming it (at DAG build, before any job)."""
+        refs = [ref for ref in refs if not is_source_ref(ref)]
         if self.records_dir is None:
             return refs
         recorded = self._recorded_cells()
@@ -129,14 +129,38 @@ class WorkflowConfig:
             for ref in absent:
                 if ref not in summarized:
                     where = f"nor in success_summary {self.success_summary}" if self.success_summary else "and no success_summary is set"
-                    raise UserError(f"tables/{name}.tex: cell {ref} is neither in records_dir {self.records_dir} {where}")
+                    raise UserError(f"{target}: cell {ref} is neither in records_dir {self.records_dir} {where}")
         return [ref for ref in refs if ref in recorded]
 
-    def table_summary(self, name: str) -> list[str]:
-        """`[success_summary]` when table `name` reads cells from it, else `[]` (a rule input)."""
-        if self.records_dir is None or len(self.table_record_refs(name)) == len(self.table(name).refs()):
+    def summary_input(self, refs: list[str], target: str) -> list[str]:
+        """`[success_summary]` when some of `target`'s cells `refs` come from it, else `[]` (a rule input)."""
+        cells = [ref for ref in refs if not is_source_ref(ref)]
+        if self.records_dir is None or len(self.record_refs(refs, target)) == len(cells):
             return []
         return [str(self.success_summary)]
+
+    def source_files(self, refs: list[str], target: str) -> dict[str, str]:
+        """The measurement files `target` reads (`<source>:<path>` cells -> file), from config `sources`."""
+        found = {}
+        for ref in filter(is_source_ref, refs):
+            source, path = ref.split(":", 1)
+            folder = (self.raw.get("sources") or {}).get(source)
+            if folder is None:
+                raise UserError(f"{target}: cell {ref} names source {source!r}, which config `sources` does not define")
+            file = Path(folder) / path
+            if not file.is_file():
+                raise UserError(f"{target}: cell {ref}: {file} does not exist")
+            found[ref] = str(file)
+        return found
+
+    def table_record_refs(self, name: str) -> list[str]:
+        return self.record_refs(self.table(name).refs(), f"tables/{name}.tex")
+
+    def table_summary(self, name: str) -> list[str]:
+        return self.summary_input(self.table(name).refs(), f"tables/{name}.tex")
+
+    def table_sources(self, name: str) -> dict[str, str]:
+        return self.source_files(self.table(name).refs(), f"tables/{name}.tex")
 
     def data_source(self) -> str:
         """Where a table's numbers come from, in words (report captions)."""
@@ -152,12 +176,12 @@ class WorkflowConfig:
         return f"{path} (SHA-256 {sha256_file(path)})" if path.is_file() else f"{path} (built from the records)"
 
     def cell_refs(self) -> list[str]:
-        """Cells the summary lists and the manifest check covers: every recorded cell in
-        `records_dir`, plus every cell a table listed in `tables` reads."""
-        used = {ref for name in self._listed_tables() for ref in self.table_record_refs(name)}
+        """Cells the summary lists and the manifest check covers: every recorded cell in `records_dir`
+        (a superset of what any table reads from records), or, when the DAG runs the cells, every cell
+        a table listed in `tables` reads."""
         if self.records_dir is not None:
-            used |= set(self._recorded_cells())
-        return sorted(used)
+            return sorted(self._recorded_cells())
+        return sorted({ref for name in self._listed_tables() for ref in self.table_record_refs(name)})
 
     def checked_refs(self, refs: list[str], target: str) -> list[str]:
         """`refs` of `target`, provided the manifest check covers them all (so no table reads an unchecked record)."""
@@ -177,6 +201,11 @@ class WorkflowConfig:
 
     def _recorded_cells(self) -> dict[str, Path]:
         return _cells_in(self.records_dir)
+
+
+def is_source_ref(ref: str) -> bool:
+    """`<source>:<path>` names a measurement file (latency, fidelity), not a cell's episode records."""
+    return ":" in ref
 
 
 CELLS_DIR = "results/cells"

@@ -6,7 +6,8 @@ from vlaquantbench.tables import write_table
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
 summary = sm.input.summary[0] if sm.input.summary else None
-write_table(sm.params.definition, dict(zip(sm.params.refs, sm.input.cells)), sm.output.tex, summary=summary,
+files = [*sm.input.cells, *sm.input.sources]  # the records, then the measurement files, as params.refs lists them
+write_table(sm.params.definition, dict(zip(sm.params.refs, files)), sm.output.tex, summary=summary,
             html_output=sm.output.html,
             notes=[f"Data source: {sm.params.report['source']}.",
                    f"Records checked against manifest {sm.params.report['manifest']}."])

@@ -14,8 +14,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 from vlaquantbench.atomic import atomic_write  # noqa: E402
 from vlaquantbench.config import load_yaml  # noqa: E402
 from vlaquantbench.errors import UserError  # noqa: E402
-from vlaquantbench.records import Cell, read_cell  # noqa: E402
+from vlaquantbench.records import Cell  # noqa: E402
 from vlaquantbench.stats import wilson_interval  # noqa: E402
+from vlaquantbench.tables.latex import read_cells  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -41,8 +42,12 @@ def _rate(cell: Cell) -> float:
     return 100.0 * cell.n_successes / cell.n_episodes
 
 
-def plot_scope_recovery(figure: ScopeRecoveryFigure, cell_paths: Mapping[str, str | Path], output: str | Path) -> Path:
-    cells = {ref: read_cell(path) for ref, path in cell_paths.items()}
+def plot_scope_recovery(
+    figure: ScopeRecoveryFigure, cell_paths: Mapping[str, str | Path], output: str | Path, summary: str | Path | None = None
+) -> Path:
+    """Draw the figure from its cells' records (`cell_paths`); cells without records (the seed-1/2 repeats of
+    the reference data) come from `summary`."""
+    cells = read_cells(figure.refs(), cell_paths, summary, "figure scope_recovery")
     baseline = _rate(cells[figure.baseline])
     fig, (left, right) = plt.subplots(1, 2, figsize=(7.5, 2.8), constrained_layout=True)
 
@@ -65,7 +70,7 @@ def plot_scope_recovery(figure: ScopeRecoveryFigure, cell_paths: Mapping[str, st
     right.set_xlabel("quantized action-head layers")
     right.set_title("(b) nested scopes", fontsize=9)
 
-    if any(cell.header.get("variant") == "demo" for cell in cells.values()):
+    if any(cell.header.get("variant") == "demo" for cell in cells.values()):  # summary rows carry no variant
         fig.suptitle("Demo policy with random weights: says nothing about the released checkpoint", fontsize=8)
     for axis in (left, right):
         axis.axhline(baseline, ls="--", color="gray", lw=1)

@@ -78,6 +78,38 @@ class Cell:
         return sum(int(entry["layers"]) for entry in report.values() if isinstance(entry, dict) and "layers" in entry)
 
 
+def episode_gaps(cell: Cell) -> list[str]:
+    """What the header declares but the episodes lack: per task, episode indices 0..n-1 with no hole and
+    n at most the header's `episodes_per_task`; every task of the header's `tasks` present with all of them.
+
+    A cell may hold fewer episodes per task than declared when its protocol ran fewer (the authors' X-VLA
+    cells have 19 or 20 per task under `episodes_per_task: 20`): the tables state such counts from the data.
+    """
+    declared = cell.header.get("episodes_per_task")
+    tasks = cell.header.get("tasks")
+    gaps = []
+    by_task = cell.episodes.groupby("task_id")["episode"].apply(lambda e: sorted(int(i) for i in e)).to_dict()
+    for task in tasks or ():
+        if int(task) not in by_task:
+            gaps.append(f"task {task} (listed in the header) has no episodes")
+    for task, episodes in sorted(by_task.items()):
+        expected = range(int(declared)) if tasks and declared else range(episodes[-1] + 1)
+        missing = sorted(set(expected) - set(episodes))
+        if missing:
+            gaps.append(f"task {task} lacks episode(s) {', '.join(map(str, missing))}")
+        if declared is not None and len(episodes) > int(declared):
+            gaps.append(f"task {task} has {len(episodes)} episodes, the header declares {declared} per task")
+    return gaps
+
+
+def check_declared_episodes(cell: Cell) -> Cell:
+    """Refuse a cell whose episodes do not match what its header declares (see `episode_gaps`), naming the file."""
+    gaps = episode_gaps(cell)
+    if gaps:
+        raise UserError(f"{cell.path}: episodes do not match the header: {'; '.join(gaps)}")
+    return cell
+
+
 def normalize_episodes(rows: pd.DataFrame | list[dict[str, Any]], source: Path) -> pd.DataFrame:
     """Episode table with the required columns, known dtypes and unique (task_id, episode, seed)."""
     frame = rows if isinstance(rows, pd.DataFrame) else pd.DataFrame(rows)

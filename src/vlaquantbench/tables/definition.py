@@ -18,6 +18,7 @@ rows:
   - {section: '\\emph{OpenVLA-OFT}'}            # a full-width line
   - {midrule: true}
   - {label: SIMPLER-VM, unavailable: 'needs per-episode records that are not published'}
+  - {label: BF16, cell: 'latency:openvla_oft/baseline.jsonl'}   # `<source>:<path>`: a file of config `sources`
 bootstrap: {draws: 5000, seed: 0, stream: shared}   # optional; for `bootstrap` columns
 ```
 A row names its cells under its own keys (they override `cells`); a null cell prints `--`.
@@ -49,7 +50,12 @@ STATS = {
     "episodes": ("cell",),  # the cell's episode count, from its data
     "rates": ("cells",),  # several cells' rates joined by " / " (e.g. seeds 0/1/2)
     "lowest_within": ("cells", "labels", "minus", "within_pp"),  # label of the first cell within N pp of `minus`
+    "median_ms": ("cell", "field"),  # median over episodes of a per-episode latency in s, printed in ms
+    "max": ("cell", "field"),  # maximum over episodes (a session's peak memory: each episode logs the peak so far)
+    "value": ("cell", "key"),  # a number from a .json measurement file: dotted `key` ({name} filled from the row's `fill`),
+    # `index` into a list, times `scale`, `signed` for a leading +
 }
+DEFAULT_DIGITS = {"median_ms": 1, "max": 2, "value": 2}
 ROW_KINDS = ("label", "section", "midrule")
 
 
@@ -70,6 +76,12 @@ class ColumnSpec:
     cells: tuple[str, ...] = ()  # row keys of the cells a multi-cell stat reads, in order
     labels: tuple[str, ...] = ()  # what lowest_within prints for each of `cells`
     within_pp: float | None = None
+    field: str = ""  # median_ms / max: the episode column
+    key: str = ""  # value: the JSON key
+    index: int | None = None  # value: position in a JSON list
+    scale: float = 1.0  # value: printed multiplied by this
+    digits: int | None = None  # decimals printed (median_ms 1, max 2, value 2 unless given)
+    signed: bool = False  # value: print a leading + for positive numbers
 
     def keys(self) -> list[str]:
         """The row keys naming this column's cells."""
@@ -107,7 +119,10 @@ class TableDefinition:
             values.append(
                 ColumnSpec(stat=stat, cell=spec.get("cell", ""), minus=spec.get("minus"), bold_below=spec.get("bold_below"),
                            bold=bool(spec.get("bold")), cells=tuple(spec.get("cells") or ()),
-                           labels=tuple(str(label) for label in spec.get("labels") or ()), within_pp=spec.get("within_pp"))
+                           labels=tuple(str(label) for label in spec.get("labels") or ()), within_pp=spec.get("within_pp"),
+                           field=spec.get("field", ""), key=spec.get("key", ""), index=spec.get("index"),
+                           scale=float(spec.get("scale", 1.0)), digits=spec.get("digits", DEFAULT_DIGITS.get(stat)),
+                           signed=bool(spec.get("signed")))
             )
         shared = raw.get("cells") or {}
         rows = []

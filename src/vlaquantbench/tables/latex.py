@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 from collections import Counter
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Callable, Mapping
@@ -18,7 +20,40 @@ from vlaquantbench.tables.definition import BootstrapSpec, ColumnSpec, TableDefi
 
 MISSING = "--"
 UNAVAILABLE = "n/a"
-AnyCell = Cell | SummaryCell
+
+
+@dataclass(frozen=True)
+class MeasurementFile:
+    """A `.json` of measured values (e.g. the authors' action-fidelity summaries): numbers, no episodes."""
+
+    ref: str
+    values: dict
+    path: Path
+    episodes = None
+
+    @classmethod
+    def read(cls, ref: str, path: str | Path) -> "MeasurementFile":
+        path = Path(path)
+        try:
+            return cls(ref, json.loads(path.read_text()), path)
+        except (OSError, json.JSONDecodeError) as err:
+            raise UserError(f"cell {ref}: {path} is not a readable JSON file ({err})") from err
+
+    def get(self, key: str, index: int | None):
+        """The number at dotted `key` (e.g. `configs.attention.executed_action_mae`), element `index` of a list."""
+        value = self.values
+        for part in key.split("."):
+            if not isinstance(value, dict) or part not in value:
+                raise UserError(f"cell {self.ref}: {self.path} has no {key!r}")
+            value = value[part]
+        if index is not None:
+            if not isinstance(value, list) or not -len(value) <= index < len(value):
+                raise UserError(f"cell {self.ref}: {self.path}: {key!r} has no element {index}")
+            value = value[index]
+        return float(value)
+
+
+AnyCell = Cell | SummaryCell | MeasurementFile
 
 
 def _signed(value: float) -> str:
@@ -73,6 +108,15 @@ def _format(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell], bootstrap
     cell, minus = cells.get(ref) if ref else None, cells.get(minus_ref) if minus_ref else None
     if cell is None or (spec.minus and minus is None):
         return MISSING
+    if spec.stat == "value":
+        value = cell.get(spec.key.format(**row.get("fill", {})), spec.index) * spec.scale
+        return f"{round(value, spec.digits) + 0.0:{'+' if spec.signed else ''}.{spec.digits}f}"
+    if spec.stat in ("median_ms", "max"):
+        values = _episodes(cell, ref, spec.stat)
+        if spec.field not in values or values[spec.field].isna().all():
+            raise UserError(f"cell {ref}: its episodes record no {spec.field} ({cell.path})")
+        column = values[spec.field].dropna()
+        return f"{1000.0 * column.median():.{spec.digits}f}" if spec.stat == "median_ms" else f"{column.max():.{spec.digits}f}"
     if spec.stat == "episodes":
         text = str(cell.n_episodes)
     elif spec.stat == "rate":
@@ -139,7 +183,7 @@ def _escape(text: str) -> str:
 
 def episode_counts(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
     """The cells' episode counts as a caption phrase, from the data: the common count and the exceptions."""
-    counts = {ref: cells[ref].n_episodes for ref in refs if ref in cells}
+    counts = {ref: cells[ref].n_episodes for ref in refs if ref in cells and not isinstance(cells[ref], MeasurementFile)}
     if not counts:
         return "no episodes"
     common, _ = Counter(counts.values()).most_common(1)[0]
@@ -147,7 +191,7 @@ def episode_counts(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
     others = sorted({n for n in counts.values() if n != common})
     exceptions = []
     for n in others:
-        names = sorted(ref.split("/", 2)[2] for ref, count in counts.items() if count == n)
+        names = sorted(ref.split("/", 2)[-1] for ref, count in counts.items() if count == n)
         if len(names) > 3:  # many cells: name their models
             names = sorted({name.split("/")[0] + " cells" for name in names})
         exceptions.append(f"{n} for {', '.join(_escape(name) for name in names)}")
@@ -163,7 +207,7 @@ def caption(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> str:
         from_summary = [ref for ref in refs if isinstance(cells.get(ref), SummaryCell)]
         which = "All cells" if len(from_summary) == len([r for r in refs if r in cells]) else (
             f"{len(from_summary)} of {len([r for r in refs if r in cells])} cells ("
-            + ", ".join(_escape(ref.split("/", 2)[2]) for ref in from_summary) + ")"
+            + ", ".join(_escape(ref.split("/", 2)[-1]) for ref in from_summary) + ")"
         )
         text += f" {which} come from the authors' per-cell summary ({_escape(', '.join(summary))}), not from episode records."
     unavailable = [row for row in definition.rows if "unavailable" in row]
@@ -191,16 +235,20 @@ def render_latex(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> s
 
 
 def read_cells(
-    definition: TableDefinition, cell_paths: Mapping[str, str | Path], summary: str | Path | None = None
+    refs: list[str], cell_paths: Mapping[str, str | Path], summary: str | Path | None = None, owner: str = "table"
 ) -> dict[str, AnyCell]:
-    """The table's cells: records where `cell_paths` has them, else the summary's row; a cell in neither is an error."""
-    cells: dict[str, AnyCell] = {ref: read_cell(path) for ref, path in cell_paths.items()}
+    """The cells `refs` of `owner`: records where `cell_paths` has them, else the summary's row; a cell in
+    neither is an error naming it."""
+    cells: dict[str, AnyCell] = {
+        ref: MeasurementFile.read(ref, path) if str(path).endswith(".json") else read_cell(path)
+        for ref, path in cell_paths.items()
+    }
     rows = read_summary(summary) if summary else {}
-    for ref in definition.refs():
+    for ref in refs:
         if ref not in cells:
             if ref not in rows:
                 where = f" nor in the summary {summary}" if summary else " and no summary is configured (success_summary)"
-                raise UserError(f"table {definition.name}: cell {ref} is neither in the records{where}")
+                raise UserError(f"{owner}: cell {ref} is neither in the records{where}")
             cells[ref] = rows[ref]
     return cells
 
@@ -215,4 +263,5 @@ def write_table(
 ) -> Path:
     """Read the table's cells (reference -> record path, the rest from `summary`), render, and write `output`
     (and its browser page `html_output`)."""
-    return booktabs(definition, read_cells(definition, cell_paths, summary), notes).write(output, html_output)
+    cells = read_cells(definition.refs(), cell_paths, summary, f"table {definition.name}")
+    return booktabs(definition, cells, notes).write(output, html_output)
