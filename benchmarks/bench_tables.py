@@ -32,7 +32,8 @@ from vlaquantbench.workflow import WorkflowConfig
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = ROOT.parent / "shared" / "reference"
 RECORDS = REFERENCE / "records"
-SOURCES = {"latency": REFERENCE / "authors-files/results/latency", "fidelity": REFERENCE / "authors-files/results/fidelity"}
+SOURCES = {name: REFERENCE / "authors-files/results" / folder
+           for name, folder in (("latency", "latency"), ("fidelity", "fidelity"), ("replay", "replay/pi05_spatial"))}
 REPEATS = 3
 GOAL_S = 30.0
 
