@@ -79,6 +79,9 @@ def test_header_declared_counts_are_followed():
     cell = read_cell(RECORDS / CELL)
     complete = replace(cell, header={**cell.header, "tasks": list(range(11))})  # a project header lists its tasks
     assert episode_gaps(complete) == ["task 10 (listed in the header) has no episodes"]
+    project = replace(cell, header={**cell.header, "config": {"tasks": list(range(10))}},
+                      episodes=cell.episodes[~((cell.episodes["task_id"] == 9) & (cell.episodes["episode"] == 19))])
+    assert episode_gaps(project) == ["task 9 lacks episode(s) 19"]  # a listed task's last episode is required too
     over = replace(cell, header={**cell.header, "episodes_per_task": 19})
     assert "task 0 has 20 episodes, the header declares 19 per task" in episode_gaps(over)
 

@@ -80,13 +80,14 @@ class Cell:
 
 def episode_gaps(cell: Cell) -> list[str]:
     """What the header declares but the episodes lack: per task, episode indices 0..n-1 with no hole and
-    n at most the header's `episodes_per_task`; every task of the header's `tasks` present with all of them.
+    n at most the header's `episodes_per_task`; where the header lists its tasks (this project's cells,
+    under `config.tasks`), every listed task present with exactly `episodes_per_task` episodes.
 
     A cell may hold fewer episodes per task than declared when its protocol ran fewer (the authors' X-VLA
     cells have 19 or 20 per task under `episodes_per_task: 20`): the tables state such counts from the data.
     """
     declared = cell.header.get("episodes_per_task")
-    tasks = cell.header.get("tasks")
+    tasks = cell.header.get("tasks") or (cell.header.get("config") or {}).get("tasks")  # this project's cells list them
     gaps = []
     by_task = cell.episodes.groupby("task_id")["episode"].apply(lambda e: sorted(int(i) for i in e)).to_dict()
     for task in tasks or ():
