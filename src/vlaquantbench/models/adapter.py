@@ -34,6 +34,7 @@ class AdapterConfig:
     # architecture at full size with seeded random weights (throughput benchmarks without a checkpoint)
     variant: str
     checkpoint: str | None = None
+    revision: str | None = None  # the revision the cell pins (full variant)
     checkpoint_dir: str | None = None  # local snapshot of `checkpoint` (full variant)
     device: str = RunnerConfig.device
     dtype: str = RunnerConfig.dtype
@@ -51,6 +52,7 @@ class AdapterConfig:
             model=cfg["model"],
             variant=cfg["variant"],
             checkpoint=cfg["checkpoint"],
+            revision=cfg["revision"],
             checkpoint_dir=checkpoint_dir,
             device=runner["device"],
             dtype=runner["dtype"],
@@ -66,6 +68,9 @@ class PolicyAdapter(Protocol):
     predicted_chunk: int
     executed_chunk: int
     model: nn.Module
+    # Set by `load`: the header's `tokenizer` and `normalization` records (what the policy's
+    # prompts were tokenized with and its actions unnormalized with, with file hashes).
+    checkpoint_provenance: dict
 
     @property
     def components(self) -> dict: ...

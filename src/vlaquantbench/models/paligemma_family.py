@@ -8,8 +8,10 @@ the top-level action projections, which each model's `components.py` lists.
 from __future__ import annotations
 
 import contextlib
+import json
 import types
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from unittest import mock
 
 import torch
@@ -23,9 +25,15 @@ _EXPERT = "paligemma_with_expert.gemma_expert"
 # Demo sizes keep every depth, head count and the grouped-query layout (8 query heads, 1 KV head,
 # shared between VLM and expert) so layer names and subset counts equal the full model's; only
 # widths shrink. Vision keeps 224 px / patch 14, so the image token count is the released one.
-_DEMO_VLM_TEXT = dict(width=64, depth=18, mlp_dim=256, num_heads=8, num_kv_heads=1, head_dim=16)
-_DEMO_EXPERT = dict(width=32, depth=18, mlp_dim=128, num_heads=8, num_kv_heads=1, head_dim=16)
-_DEMO_VISION = dict(hidden_size=64, intermediate_size=128, num_attention_heads=4, num_hidden_layers=27)
+DEMO_WIDTHS = {
+    "gemma_2b": dict(width=64, depth=18, mlp_dim=256, num_heads=8, num_kv_heads=1, head_dim=16),
+    "gemma_300m": dict(width=32, depth=18, mlp_dim=128, num_heads=8, num_kv_heads=1, head_dim=16),
+    "vision": dict(hidden_size=64, intermediate_size=128, num_attention_heads=4, num_hidden_layers=27),
+}
+# A checkpoint folder holding this file was saved at reduced widths (the offline hub fixture,
+# `vqb hub-fixture`): lerobot hard-codes the released widths, so loading it needs `reduced_widths`.
+# Released checkpoints have no such file and load unpatched.
+REDUCED_WIDTHS_FILE = "vlaquantbench_reduced_widths.json"
 
 
 def pi_components(action_projections: Sequence[str]) -> dict[str, Component]:
@@ -48,32 +56,33 @@ def pi_builders(modeling: types.ModuleType, model_cls: type, config_cls: type) -
 
     def demo(device: torch.device, seed: int) -> nn.Module:
         config = config_cls(dtype="float32", device="cpu")
-        with _reduced_widths(modeling):
+        with reduced_widths(modeling):
             model = seeded_build(lambda: model_cls(config), device, seed)
-        _randomize_linears(model, seed)
+        randomize_linears(model, seed)
         return model.eval()
 
     return {"full": full, "demo": demo}
 
 
 @contextlib.contextmanager
-def _reduced_widths(modeling: types.ModuleType):
-    """Patch the two size sources lerobot hard-codes while the demo model is constructed.
+def reduced_widths(modeling: types.ModuleType, widths: dict[str, dict] = DEMO_WIDTHS):
+    """Patch the two size sources lerobot hard-codes while a reduced-width model is constructed.
 
     lerobot accepts only the released Gemma variants (`get_gemma_config`) and sets the SigLIP MLP
-    width and projector output inside `PaliGemmaWithExpertModel`, so the demo resizes the finished
-    PaliGemma config just before the VLM is instantiated from it.
+    width and projector output inside `PaliGemmaWithExpertModel`, so this resizes the finished
+    PaliGemma config just before the VLM is instantiated from it. `widths` maps each Gemma variant
+    and "vision" to its sizes (`DEMO_WIDTHS`).
     """
     real_vlm_cls = modeling.PaliGemmaForConditionalGenerationWithPiGemma
 
     def demo_vlm(config):
-        for key, value in _DEMO_VISION.items():
+        for key, value in widths["vision"].items():
             setattr(config.vision_config, key, value)
         config.vision_config.projection_dim = config.text_config.hidden_size
         return real_vlm_cls(config=config)
 
     def demo_gemma_config(variant: str):
-        return modeling.GemmaConfig(**(_DEMO_VLM_TEXT if variant == "gemma_2b" else _DEMO_EXPERT))
+        return modeling.GemmaConfig(**widths[variant])
 
     with (
         mock.patch.object(modeling, "PaliGemmaForConditionalGenerationWithPiGemma", demo_vlm),
@@ -82,7 +91,16 @@ def _reduced_widths(modeling: types.ModuleType):
         yield
 
 
-def _randomize_linears(model: nn.Module, seed: int) -> None:
+def checkpoint_widths(modeling: types.ModuleType, folder: str | Path):
+    """The context a checkpoint folder loads in: `reduced_widths` with the sizes its
+    `REDUCED_WIDTHS_FILE` records, or nothing for a released checkpoint."""
+    marker = Path(folder) / REDUCED_WIDTHS_FILE
+    if not marker.exists():
+        return contextlib.nullcontext()
+    return reduced_widths(modeling, json.loads(marker.read_text()))
+
+
+def randomize_linears(model: nn.Module, seed: int) -> None:
     """Give every linear layer seeded random weights, including those lerobot zero-initialises
     (the adaRMS `dense` modulations), so every selectable layer affects the demo's output."""
     generator = torch.Generator().manual_seed(seed)

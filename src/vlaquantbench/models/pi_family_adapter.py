@@ -19,7 +19,9 @@ float32), and the demo processors: what throughput benchmarks need when no check
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,6 +30,7 @@ from torch import nn
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, BatchInvariantLinears, episode_generator
+from vlaquantbench.models.paligemma_family import REDUCED_WIDTHS_FILE, checkpoint_widths
 from vlaquantbench.models.registry import get_model_spec
 
 CAMERA_KEYS = {"agentview": "observation.images.image", "wrist": "observation.images.image2"}
@@ -49,6 +52,14 @@ def _range_stats(low: list[float], high: list[float]) -> dict[str, torch.Tensor]
 DEMO_STATS = {
     STATE_KEY: _range_stats(_STATE_LOW, _STATE_HIGH),
     "action": _range_stats([-1.0] * ACTION_DIM, [1.0] * ACTION_DIM),
+}
+
+
+# What the header of a random-weight (demo, random) cell records instead of a checkpoint's tokenizer
+# and statistics: these stand-ins are never used for a released checkpoint.
+DEMO_PROVENANCE = {
+    "tokenizer": {"class": "PreTrainedTokenizerFast", "source": "offline_byte_tokenizer (random-weight policy only)"},
+    "normalization": {"source": "DEMO_STATS fixed ranges (random-weight policy only)"},
 }
 
 
@@ -93,10 +104,12 @@ class PiFamilyAdapter:
             self.model = get_model_spec(self.name).build(variant="demo", device=self._device, seed=self.config.seed)
             self.policy_config = self._demo_policy_config("float32")
             self.preprocessor, self.postprocessor = self._demo_processors(self.policy_config)
+            self.checkpoint_provenance = {**DEMO_PROVENANCE, "widths": "reduced (demo)"}
         elif self.config.variant == "random":
             self.model = self._random_full_model()
             self.policy_config = self._demo_policy_config(self.config.dtype)
             self.preprocessor, self.postprocessor = self._demo_processors(self.policy_config)
+            self.checkpoint_provenance = {**DEMO_PROVENANCE, "widths": "released"}
         else:
             self._load_checkpoint()
         self.model.eval()
@@ -111,28 +124,52 @@ class PiFamilyAdapter:
             )
 
     def _load_checkpoint(self) -> None:
-        import importlib
+        """The released checkpoint through lerobot's own loaders, after the checks lerobot's loaders
+        skip (`vlaquantbench.hub.checks`): pinned revision, processor and normalizer files, tokenizer,
+        and a state dict that fits the architecture."""
+        from lerobot.policies.factory import make_pre_post_processors
 
-        from lerobot.processor import PolicyProcessorPipeline
+        from vlaquantbench.hub import checks
 
-        if not self.config.checkpoint_dir:
+        folder = self.config.checkpoint_dir
+        if not folder:
             raise UserError(f"{self.name}: checkpoint {self.config.checkpoint} has no local snapshot; run its download rule")
+        checks.check_snapshot_revision(folder, self.config.checkpoint, self.config.revision)
+        normalization = checks.check_processors(folder)
+        tokenizers = [checks.load_tokenizer(name)[1] for name in checks.tokenizer_names(folder)]
+        weights = Path(folder) / "model.safetensors"
+        found = checks.weight_shapes(weights)
         lib = importlib.import_module(self.policy_module)
-        policy_config = getattr(lib, self.config_class).from_pretrained(self.config.checkpoint_dir, local_files_only=True)
+        policy_cls = getattr(lib, self.policy_class)
+        policy_config = getattr(lib, self.config_class).from_pretrained(folder, local_files_only=True)
         policy_config.device = self.config.device  # the checkpoint's saved device may not exist here
         policy_config.dtype = self.config.dtype
-        policy = getattr(lib, self.policy_class).from_pretrained(
-            self.config.checkpoint_dir, config=policy_config, local_files_only=True
+        with checkpoint_widths(importlib.import_module(policy_cls.__module__), folder):
+            policy = policy_cls.from_pretrained(folder, config=policy_config, local_files_only=True)
+        checks.check_state_dict_fits(
+            self._loaded_keys(policy, found), {k: tuple(v.shape) for k, v in policy.state_dict().items()}, weights
         )
         self.policy_config = policy.config
         self.model = policy.model.to(self._device)
-        overrides = {"device_processor": {"device": self.config.device}}
-        self.preprocessor = PolicyProcessorPipeline.from_pretrained(
-            self.config.checkpoint_dir, "policy_preprocessor.json", local_files_only=True, overrides=overrides
+        # lerobot's loader of a checkpoint's processors (as lerobot-eval uses it): the batch and
+        # action converters, the relative/absolute action steps wired together.
+        self.preprocessor, self.postprocessor = make_pre_post_processors(
+            policy.config, pretrained_path=folder,
+            preprocessor_overrides={"device_processor": {"device": self.config.device}},
         )
-        self.postprocessor = PolicyProcessorPipeline.from_pretrained(
-            self.config.checkpoint_dir, "policy_postprocessor.json", local_files_only=True
-        )
+        self.checkpoint_provenance = {
+            "tokenizer": tokenizers[0] if len(tokenizers) == 1 else tokenizers,
+            "normalization": normalization,
+            "widths": "reduced (offline hub fixture)" if (Path(folder) / REDUCED_WIDTHS_FILE).exists() else "released",
+        }
+
+    @staticmethod
+    def _loaded_keys(policy, shapes: dict[str, tuple]) -> dict[str, tuple]:
+        """The file's keys and shapes as lerobot's `from_pretrained` renames them before loading
+        (its key fixes, then the `model.` prefix), computed on meta tensors."""
+        meta = {k: torch.empty(shape, device="meta") for k, shape in shapes.items()}
+        fixed = policy._fix_pytorch_state_dict_keys(meta, policy.config)
+        return {(k if k.startswith("model.") else f"model.{k}"): tuple(v.shape) for k, v in fixed.items()}
 
     def _random_full_model(self) -> nn.Module:
         if self.config.dtype not in ("bfloat16", "float32"):
@@ -144,8 +181,6 @@ class PiFamilyAdapter:
         return model
 
     def _demo_policy_config(self, dtype: str):
-        import importlib
-
         from lerobot.configs import FeatureType, PolicyFeature
 
         lib = importlib.import_module(self.policy_module)

@@ -130,6 +130,7 @@ class CellRun:
             **{k: cfg[k] for k in ("model", "checkpoint", "revision", "benchmark", "suite", "preset", "scope")},
             **{k: cfg[k] for k in ("only", "exclude", "method", "seed", "episodes_per_task", "calibration")},
             "variant": cfg["variant"],
+            **{k: getattr(self.adapter, "checkpoint_provenance", {}).get(k) for k in ("tokenizer", "normalization", "widths")},
             "config": cfg,
             "quant_report": quantized["quant_report"],
             "quant_format": quantized["quant_format"],

@@ -1,0 +1,36 @@
+"""`vqb hub-fixture DIR`: write an offline Hugging Face cache holding the study's released
+checkpoints (reduced widths, real layout, real repository ids and pinned revisions), e.g.
+
+    vqb hub-fixture /tmp/hf --config config/paper_smoke.yaml
+    HF_HOME=/tmp/hf HF_HUB_OFFLINE=1 snakemake --cores 2 tables/lattice.tex --configfile config/paper_smoke.yaml
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import yaml
+
+from vlaquantbench.errors import UserError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("hub-fixture", help="write an offline HF cache of the study's checkpoints")
+    parser.add_argument("dir", help="the cache root (use it as HF_HOME)")
+    parser.add_argument("--config", default="config/paper.yaml", help="config whose study.models pin the checkpoints")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random weights and statistics")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from vlaquantbench.hub.fixture import build_hub_fixture, full_variant_models
+
+    path = Path(args.config)
+    if not path.is_file():
+        raise UserError(f"config file {path} does not exist")
+    study = (yaml.safe_load(path.read_text()) or {}).get("study") or {}
+    written = build_hub_fixture(args.dir, full_variant_models(study), seed=args.seed)
+    print(json.dumps(written, indent=2))
+    return 0

@@ -1,0 +1,183 @@
+"""The released checkpoints' loading path, offline, on the hub fixture (`vqb hub-fixture`):
+huggingface_hub and lerobot resolve it like the real repositories; each fault a snapshot can carry
+is refused before any rollout, naming the file or revision; actions are unnormalized with the
+checkpoint's own statistics and prompts tokenized with its own tokenizer."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from vlaquantbench.errors import UserError
+from vlaquantbench.hub.cache import offline_cache
+from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+from vlaquantbench.runner.checkpoint import download_checkpoint
+
+PI05 = "lerobot/pi05_libero_finetuned_v044"
+TOKENIZER = "google/paligemma-3b-pt-224"
+
+
+def pinned(hub_fixture, model="pi05"):
+    entry = hub_fixture["study"]["models"][model]
+    return entry["checkpoint"], entry["revision"]
+
+
+def load(hub_fixture, folder, model="pi05", revision=None, home=None):
+    checkpoint, pinned_revision = pinned(hub_fixture, model)
+    adapter = make_adapter(AdapterConfig(model=model, variant="full", checkpoint=checkpoint,
+                                         revision=revision or pinned_revision, checkpoint_dir=str(folder)))
+    with offline_cache(home or hub_fixture["home"]):
+        adapter.load()
+    return adapter
+
+
+def snapshot_copy(hub_fixture, tmp_path, repo=PI05) -> Path:
+    """A writable copy of a checkpoint snapshot, in a folder named by its revision like the cache's."""
+    source = Path(hub_fixture["repos"][repo]["path"])
+    return Path(shutil.copytree(source, tmp_path / "snapshots" / source.name))
+
+
+def test_the_fixture_resolves_through_huggingface_hub_and_transformers_offline(hub_fixture):
+    from huggingface_hub import snapshot_download
+    from transformers import AutoTokenizer
+
+    checkpoint, revision = pinned(hub_fixture)
+    with offline_cache(hub_fixture["home"]):
+        folder = Path(snapshot_download(checkpoint, revision=revision, local_files_only=True))
+        assert Path(snapshot_download(checkpoint, revision=revision)) == folder  # no local_files_only: tree cache
+        tokenizer = AutoTokenizer.from_pretrained(TOKENIZER)
+    assert folder.name == revision and folder.parent.parent.name == "models--lerobot--pi05_libero_finetuned_v044"
+    assert {p.name for p in folder.iterdir()} == {
+        "config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json",
+        "policy_preprocessor_step_3_normalizer_processor.safetensors",
+        "policy_postprocessor_step_0_unnormalizer_processor.safetensors", "vlaquantbench_reduced_widths.json",
+    }
+    assert all(p.is_symlink() and p.resolve().parent.name == "blobs" for p in folder.iterdir())
+    assert (folder.parent.parent / "refs" / "main").read_text() == revision
+    assert json.loads((folder / "config.json").read_text())["type"] == "pi05"
+    assert type(tokenizer).__name__ == "GemmaTokenizer"
+    ids = tokenizer("Task: pick up the black bowl, State: 3 255;\nAction: ").input_ids
+    assert ids[0] == tokenizer.bos_token_id == 2 and tokenizer.convert_ids_to_tokens(0) == "<pad>"
+    assert tokenizer.decode(ids[1:]) == "Task: pick up the black bowl, State: 3 255;\nAction: "
+
+
+def test_a_snapshot_of_another_revision_is_refused_naming_both(hub_fixture, tmp_path):
+    checkpoint, revision = pinned(hub_fixture)
+    other = "1" * 40
+    with offline_cache(hub_fixture["home"]), pytest.raises(UserError, match=rf"{checkpoint}@{other}.*holds revisions {revision}"):
+        download_checkpoint("pi05", "full", checkpoint, other, tmp_path / "checkpoint.json")
+    folder = hub_fixture["repos"][checkpoint]["path"]
+    with pytest.raises(UserError, match=rf"snapshot {folder} is revision {revision}, but the config pins revision {other}"):
+        load(hub_fixture, folder, revision=other)
+
+
+@pytest.mark.parametrize("fault, message", [
+    ("missing_postprocessor", r"processor file policy_postprocessor.json is missing"),
+    ("corrupt_preprocessor", r"processor file .*policy_preprocessor.json is corrupt"),
+    ("missing_normalizer", r"normalizer state file policy_preprocessor_step_3_normalizer_processor.safetensors .* missing"),
+    ("corrupt_unnormalizer", r"normalizer state file .*policy_postprocessor_step_0_unnormalizer_processor.safetensors is corrupt"),
+    ("statistics_without_std", r"unnormalizer_processor.safetensors lacks action.std, which MEAN_STD normalization"),
+])
+def test_a_missing_or_corrupt_processor_file_is_refused_naming_it(hub_fixture, tmp_path, fault, message):
+    folder = snapshot_copy(hub_fixture, tmp_path)
+    unnormalizer = folder / "policy_postprocessor_step_0_unnormalizer_processor.safetensors"
+    if fault == "missing_postprocessor":
+        (folder / "policy_postprocessor.json").unlink()
+    elif fault == "corrupt_preprocessor":
+        (folder / "policy_preprocessor.json").write_text('{"name": "policy_preprocessor", "steps": [')
+    elif fault == "missing_normalizer":
+        (folder / "policy_preprocessor_step_3_normalizer_processor.safetensors").unlink()
+    elif fault == "corrupt_unnormalizer":
+        unnormalizer.write_bytes(unnormalizer.read_bytes()[:100])
+    else:
+        stats = {k: v for k, v in load_file(unnormalizer).items() if k != "action.std"}
+        unnormalizer.unlink()
+        save_file(stats, unnormalizer)
+    with pytest.raises(UserError, match=message):
+        load(hub_fixture, folder)
+
+
+@pytest.mark.parametrize("fault, message", [
+    ("missing", r"does not fit the architecture: 1 missing keys: model.action_out_proj.bias"),
+    ("unexpected", r"does not fit the architecture: 1 unexpected keys: model.extra_head.weight"),
+    ("shape", r"does not fit the architecture: wrong shapes: model.action_in_proj.weight \(32, 16\) vs \(32, 32\)"),
+])
+def test_a_state_dict_that_does_not_fit_the_architecture_is_refused(hub_fixture, tmp_path, fault, message):
+    folder = snapshot_copy(hub_fixture, tmp_path)
+    weights = folder / "model.safetensors"
+    state = load_file(weights)
+    if fault == "missing":
+        del state["model.action_out_proj.bias"]
+    elif fault == "unexpected":
+        state["model.extra_head.weight"] = torch.zeros(2, 2)
+    else:
+        state["model.action_in_proj.weight"] = state["model.action_in_proj.weight"][:, :16].contiguous()
+    weights.unlink()
+    save_file(state, weights)
+    with pytest.raises(UserError, match=rf"state dict {weights} {message}"):
+        load(hub_fixture, folder)
+
+
+def test_a_tokenizer_that_does_not_load_is_refused_naming_it(hub_fixture, tmp_path):
+    # A cache whose PaliGemma tokenizer.json is truncated; the checkpoints are the fixture's.
+    home = tmp_path / "hf"
+    (home / "hub").mkdir(parents=True)
+    for repo in Path(hub_fixture["home"], "hub").iterdir():
+        if repo.name == "models--google--paligemma-3b-pt-224":
+            shutil.copytree(repo, home / "hub" / repo.name, symlinks=True)
+        else:
+            (home / "hub" / repo.name).symlink_to(repo)
+    blob = next((home / "hub" / "models--google--paligemma-3b-pt-224" / "snapshots").glob("*/tokenizer.json")).resolve()
+    blob.write_text(blob.read_text()[:500])
+    with pytest.raises(UserError, match=rf"tokenizer {TOKENIZER} \(named by policy_preprocessor.json\) does not load"):
+        load(hub_fixture, hub_fixture["repos"][PI05]["path"], home=home)
+
+
+def test_actions_are_unnormalized_with_the_checkpoints_statistics_and_prompts_use_its_tokenizer(hub_fixture):
+    from transformers import AutoTokenizer
+
+    folder = Path(hub_fixture["repos"][PI05]["path"])
+    adapter = load(hub_fixture, folder)
+    # By hand, from the files: the postprocessor's unnormalizer step, its mode and its statistics.
+    step = next(s for s in json.loads((folder / "policy_postprocessor.json").read_text())["steps"]
+                if s["registry_name"] == "unnormalizer_processor")
+    assert step["config"]["norm_map"]["ACTION"] == "MEAN_STD"
+    stats = load_file(folder / step["state_file"])
+    normalized = torch.randn(3, 50, 7, generator=torch.Generator().manual_seed(0))
+    expected = normalized.double().numpy() * stats["action.std"].double().numpy() + stats["action.mean"].double().numpy()
+    np.testing.assert_allclose(adapter.postprocessor(normalized.clone()).numpy(), expected, rtol=0, atol=1e-6)
+
+    header = adapter.checkpoint_provenance
+    assert header["normalization"]["policy_postprocessor"]["state_files"] == {step["state_file"]: adapter_sha(folder / step["state_file"])}
+    assert header["tokenizer"]["class"] == "GemmaTokenizer" and header["tokenizer"]["repo"] == TOKENIZER
+    assert header["tokenizer"]["revision"] == hub_fixture["repos"][TOKENIZER]["revision"]
+    assert header["widths"] == "reduced (offline hub fixture)"
+    # pi0.5's prompt carries the state, normalized with the checkpoint's statistics, in 256 bins.
+    state = stats["observation.state.mean"].numpy()  # normalizes to 0.0, the lower edge of bin 128 of 256 on [-1, 1]
+    batch = adapter.preprocessor({
+        "observation.images.image": torch.zeros(1, 3, 128, 128), "observation.images.image2": torch.zeros(1, 3, 128, 128),
+        "observation.state": torch.from_numpy(state[None]), "task": ["put the bowl on the plate"],
+    })
+    with offline_cache(hub_fixture["home"]):
+        tokenizer = AutoTokenizer.from_pretrained(TOKENIZER)
+    prompt = "Task: put the bowl on the plate, State: " + " ".join(["128"] * 8) + ";\nAction: "
+    ids = tokenizer(prompt).input_ids
+    tokens = batch["observation.language.tokens"][0]
+    assert tokens[: len(ids)].tolist() == ids and not batch["observation.language.attention_mask"][0, len(ids):].any()
+
+
+def adapter_sha(path):
+    from vlaquantbench.hub.checks import sha256
+
+    return sha256(path)
+
+
+def test_the_demo_policy_header_says_its_tokenizer_and_ranges_are_stand_ins():
+    adapter = make_adapter(AdapterConfig(model="pi05", variant="demo"))
+    adapter.load()
+    assert "random-weight policy only" in adapter.checkpoint_provenance["tokenizer"]["source"]
+    assert "random-weight policy only" in adapter.checkpoint_provenance["normalization"]["source"]
