@@ -9,11 +9,8 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
-import yaml
-
-from vlaquantbench.errors import UserError
+from vlaquantbench.config import load_workflow_config
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -27,10 +24,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from vlaquantbench.hub.fixture import build_hub_fixture, full_variant_models
 
-    path = Path(args.config)
-    if not path.is_file():
-        raise UserError(f"config file {path} does not exist")
-    study = (yaml.safe_load(path.read_text()) or {}).get("study") or {}
+    study = load_workflow_config(args.config).get("study") or {}  # validated as Snakemake validates it
     written = build_hub_fixture(args.dir, full_variant_models(study), seed=args.seed)
     print(json.dumps(written, indent=2))
     return 0

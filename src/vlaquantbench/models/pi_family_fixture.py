@@ -88,3 +88,17 @@ def write_pi_checkpoint(folder: Path, adapter_class: type, make_processors: str,
         raise RuntimeError(f"{factory} no longer loads the tokenizer {PALIGEMMA_TOKENIZER} the fixture provides")
     preprocessor.save_pretrained(folder)
     postprocessor.save_pretrained(folder)
+
+
+MEAN_STD = {"VISUAL": "IDENTITY", "STATE": "MEAN_STD", "ACTION": "MEAN_STD"}
+
+
+def pi_fixture(adapter_class: type, make_processors: str, normalization: dict = MEAN_STD):
+    """The `HubFixture` of a pi-family model: PaliGemma's tokenizer, then the checkpoint."""
+    from vlaquantbench.hub.fixture import HubFixture
+    from vlaquantbench.hub.tokenizer import write_libero_paligemma_tokenizer
+
+    return HubFixture(
+        tokenizers={PALIGEMMA_TOKENIZER: write_libero_paligemma_tokenizer},
+        write_checkpoint=lambda folder, seed: write_pi_checkpoint(folder, adapter_class, make_processors, normalization, seed),
+    )

@@ -1,17 +1,10 @@
 """pi0.5's offline hub fixture: `lerobot/pi05_libero_finetuned_v044` as lerobot 0.6.1 saves a
-LIBERO-finetuned `PI05Policy` (reduced widths), with PaliGemma's tokenizer."""
+LIBERO-finetuned `PI05Policy` (reduced widths), with PaliGemma's tokenizer.
 
-from vlaquantbench.hub.fixture import HubFixture
-from vlaquantbench.hub.tokenizer import REPO_ID, write_libero_paligemma_tokenizer
+Normalization MEAN_STD, not lerobot's pi0.5 default QUANTILES: the mode the released LIBERO
+finetune's policy_preprocessor.json is reported to carry (README, "Offline hub fixture")."""
+
 from vlaquantbench.models.pi05.adapter import Pi05Adapter
-from vlaquantbench.models.pi_family_fixture import write_pi_checkpoint
+from vlaquantbench.models.pi_family_fixture import pi_fixture
 
-FIXTURE = HubFixture(
-    tokenizers={REPO_ID: write_libero_paligemma_tokenizer},
-    # MEAN_STD, not lerobot's pi0.5 default QUANTILES: the mode the released LIBERO finetune's
-    # policy_preprocessor.json is reported to carry (README, "Offline hub fixture").
-    write_checkpoint=lambda folder, seed: write_pi_checkpoint(
-        folder, Pi05Adapter, "lerobot.policies.pi05.processor_pi05:make_pi05_pre_post_processors",
-        {"VISUAL": "IDENTITY", "STATE": "MEAN_STD", "ACTION": "MEAN_STD"}, seed,
-    ),
-)
+FIXTURE = pi_fixture(Pi05Adapter, "lerobot.policies.pi05.processor_pi05:make_pi05_pre_post_processors")
