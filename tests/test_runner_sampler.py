@@ -41,10 +41,10 @@ class _Recording:
         return y
 
 
-def _act_w4a4_ah(sampler: str, obs, seeds):
+def _act_ah(sampler: str, obs, seeds, preset="W4A4"):
     adapter = make_adapter(AdapterConfig(model="pi05", variant="demo", flow_steps=1, sampler=sampler))
     adapter.load()
-    report = quantize_(adapter.model, QuantConfig.from_preset("W4A4", scope="ah"), components=adapter.components)
+    report = quantize_(adapter.model, QuantConfig.from_preset(preset, scope="ah"), components=adapter.components)
     inference = adapter.prepare_inference(report)
     calls = []
     for name, hook in report.result.hooks.items():
@@ -63,7 +63,10 @@ def one_thread():
     torch.set_num_threads(previous)
 
 
-def test_captured_sampler_returns_the_eager_actions_under_w4a4_ah(one_thread):
+# NVFP4: a float format (its linear groups run member by member through the hooks) whose input scale
+# is per sample, so the captured path must hand every layer the same sample-major input as eager.
+@pytest.mark.parametrize("preset", ["W4A4", "NVFP4"])
+def test_captured_sampler_returns_the_eager_actions_under_4_bit_ah(one_thread, preset):
     """Every episode's chunk equals the eager one to REL_TOL, unless a 4-bit rounding decision flipped
     on a last-bit difference: then the first quantized activation that differs (in the eager order of
     calls) was computed from inputs that agree to REL_TOL. Such a flip moves one value by a whole grid
@@ -72,8 +75,8 @@ def test_captured_sampler_returns_the_eager_actions_under_w4a4_ah(one_thread):
     W4A4. Measured here: episodes 1-3 agree to 2e-7; episode 0 flips in layer 4's o_proj (inputs
     agree to 1.3e-7, chunk off by 0.11)."""
     obs, seeds = observations(4, seed=0), [0, 1, 2, 3]
-    eager, eager_calls, eager_report, eager_record = _act_w4a4_ah("eager", obs, seeds)
-    captured, captured_calls, captured_report, captured_record = _act_w4a4_ah("captured", obs, seeds)
+    eager, eager_calls, eager_report, eager_record = _act_ah("eager", obs, seeds, preset)
+    captured, captured_calls, captured_report, captured_record = _act_ah("captured", obs, seeds, preset)
     assert eager_record == {"sampler": "eager"}
     assert captured_record == {"sampler": "captured", "cuda_graph": False, "fused_quant": False, "tf32": False}
     # Every AH hook fired on both paths (167 layers, time MLP and AdaRMS modulations included).
