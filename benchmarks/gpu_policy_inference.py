@@ -210,7 +210,7 @@ def main() -> None:
         layer_groups = [g for layer in groups.prefix + groups.expert for g in (layer.qkv, layer.out, layer.mlp_in, layer.mlp_out)]
         layer_groups += [g for layer in groups.vision for g in (layer.qkv, layer.out, layer.mlp_in, layer.mlp_out)]
         cell["linear_groups"] = {"fused": sum(g.fused for g in layer_groups), "total": len(layer_groups),
-                                 "quantized_by_producer_or_group": sum(g.act_bits is not None for g in layer_groups)}
+                                 "quantized_by_producer_or_group": sum(g.input_quantization is not None for g in layer_groups)}
         cell["unfired_after_capture"] = report.unfired()
         cell["hook_calls_eager_plus_capture"] = sum(report.hook_calls().values())
         cell["hook_calls_eager"] = eager_hook_calls

@@ -22,7 +22,7 @@ STUDY = {
 def test_mxfp4_and_nvfp4_action_head_cells_run_with_every_hook_fired(tmp_path):
     actions = {}
     for preset, words in [("MXFP4", "OCP MX v1.0, E2M1 elements in blocks of 32"),
-                          ("NVFP4", "E2M1 elements in blocks of 16, E4M3 block scale x FP32 scale")]:
+                          ("NVFP4", "E2M1 elements in blocks of 16 along the input dimension, E4M3 block scale x FP32 scale")]:
         cfg = cell_config(f"libero/libero_spatial/pi05/rtn-{preset}-ah", STUDY)
         folder = run_cell(cfg, tmp_path / preset, num_envs=1, progress=False).parent
         header = json.loads((folder / "header.json").read_text())

@@ -80,7 +80,7 @@ def test_grouped_linears_with_fused_quantization_equal_the_hooks_exactly():
     layer_groups = [g for layer in groups.prefix + groups.expert for g in (layer.qkv, layer.out, layer.mlp_in, layer.mlp_out)]
     layer_groups += [g for layer in groups.vision for g in (layer.qkv, layer.out, layer.mlp_in, layer.mlp_out)]
     assert len(layer_groups) == 4 * (27 + 18 + 18)
-    assert all(g.fused and g.act_bits == 4 for g in layer_groups)
+    assert all(g.fused and g.input_quantization == 4 for g in layer_groups)
     grouped_calls = report.hook_calls()
 
     for hook in report.result.hooks.values():
@@ -108,9 +108,28 @@ def test_a_calibrated_transform_keeps_its_layers_apart():
     plain[1].remove()
     CountingHook(layers[1], InputTransform(smooth=torch.rand(16) + 0.5, act_bits=8))
     group = LinearGroup(layers)
-    assert not group.fused and group.act_bits is None
+    assert not group.fused and group.input_quantization is None
     x = torch.randn(4, 16)
     expected = [layer(x) for layer in layers]
     assert all(torch.equal(a, b) for a, b in zip(group(group.input_from(torch.clone, (x,))), expected))
     with pytest.raises(ValueError, match="must come from its input_from"):
         group(x)
+
+
+def test_float_format_members_share_one_product_and_their_hooks_result():
+    from torch import nn
+
+    from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
+    from vlaquantbench.quant.hooks import CountingHook, InputTransform
+    from vlaquantbench.quant.presets import FORMATS
+
+    torch.manual_seed(0)
+    layers = [nn.Linear(64, 8) for _ in range(3)]
+    hooks = [CountingHook(layer, InputTransform(act_format=FORMATS["MXFP4"])) for layer in layers]
+    group = LinearGroup(layers)
+    assert group.fused and group.input_quantization is FORMATS["MXFP4"]
+    x = torch.randn(2, 5, 64)
+    expected = [layer(x) for layer in layers]  # through the hooks
+    got = group(group.input_from(torch.clone, (x,)))
+    assert all(torch.allclose(a, b, rtol=1e-6, atol=1e-6) for a, b in zip(got, expected))
+    assert [h.calls for h in hooks] == [2, 2, 2]

@@ -40,7 +40,21 @@ def test_fused_quantizes_the_last_output_and_each_member_counts_its_run():
 
 def test_only_plain_per_token_quantization_can_be_fused():
     smoothed = CountingHook(nn.Linear(8, 4), InputTransform(smooth=torch.rand(8) + 0.5, act_bits=4)).quantizer
-    assert not smoothed.is_per_token
-    with pytest.raises(ValueError, match="not plain per-token quantization"):
+    assert not smoothed.is_plain
+    with pytest.raises(ValueError, match="not plain per-token or float-format quantization"):
         smoothed.fused(_norm, torch.randn(2, 8), 1e-6)
     assert smoothed.calls == 0  # nothing ran
+
+
+def test_float_format_quantizers_fuse_as_their_hooks_quantize():
+    from vlaquantbench.quant.presets import FORMATS
+
+    fmt = FORMATS["NVFP4"]
+    layers = [nn.Linear(40, 4).to(torch.bfloat16) for _ in range(2)]
+    quantizers = [CountingHook(layer, InputTransform(act_format=fmt)).quantizer for layer in layers]
+    assert quantizers[0].plain_quantization is fmt
+    x = torch.randn(2, 5, 40, dtype=torch.bfloat16)
+    normed = quantizers[0].fused(_norm, x, 1e-6)[1]
+    assert quantizers[1].fused(_norm, x, 1e-6)[1] is normed and [q.calls for q in quantizers] == [1, 1]
+    produced = _norm(x, 1e-6)[1]
+    assert torch.equal(normed, InputTransform(act_format=fmt)(produced)) and not torch.equal(normed, produced)

@@ -41,7 +41,6 @@ SCALE_FLOOR = 1e-12  # amax floor of tensor/row scales: an all-zero tensor quant
 MX_BLOCK = 32
 NVFP4_BLOCK = 16
 E8M0_MIN_EXPONENT, E8M0_MAX_EXPONENT = -127, 127
-INF_EXPONENT = 128  # floor(log2) assigned to an Inf amax: the float32 exponent field of Inf
 
 
 @dataclass(frozen=True)
@@ -84,12 +83,11 @@ def pow2(exponent: torch.Tensor) -> torch.Tensor:
 
 
 def floor_log2(x: torch.Tensor) -> torch.Tensor:
-    """floor(log2 |x|) as int32, exact (from `frexp`, subnormals included); Inf gives
-    `INF_EXPONENT`, 0 gives a value below every E8M0 exponent. NaN gives an unspecified value."""
-    mantissa, exponent = torch.frexp(x.float().abs())
-    exponent = exponent.to(torch.int32) - 1
-    exponent = torch.where(mantissa == 0, torch.full_like(exponent, -1000), exponent)
-    return torch.where(torch.isinf(x), torch.full_like(exponent, INF_EXPONENT), exponent)
+    """floor(log2 |x|) as int32, read from the float32 exponent field (shifts and masks, which a
+    compiler fuses like any elementwise op). Exact for normal values; 0 and subnormals give -127,
+    which every use clamps as the exact value would be (no element format's smallest normal exponent
+    and no E8M0 exponent lies below -126 / -127); Inf and NaN give 128 (the exponent field of Inf, so an Inf block is scaled as one of amax 2^128)."""
+    return ((x.float().view(torch.int32) >> 23) & 0xFF) - 127
 
 
 def round_to_element(x: torch.Tensor, element: FloatElement) -> torch.Tensor:

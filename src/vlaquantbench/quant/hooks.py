@@ -64,21 +64,20 @@ class ActivationQuantizer:
         self.calls = 0
 
     @property
-    def per_token_bits(self) -> int | None:
-        """The bit width of a transform that only quantizes per token (None: one that changes
-        nothing). `fused` needs such a transform; ValueError for any other (smoothing or clipping
-        vectors, a float format, a wrapped transform). The Triton form (`quant.fused_kernel`) exposes the
-        transform it computes as `reference`."""
+    def plain_quantization(self) -> int | FloatFormat | None:
+        """What a transform that only quantizes does: the bit width of per-token integer quantization,
+        or the float format (None: a transform that changes nothing). `fused` needs such a transform;
+        ValueError for any other (smoothing or clipping vectors, a wrapped transform). The Triton form
+        (`quant.fused_kernel`) exposes the transform it computes as `reference`."""
         transform = getattr(self.transform, "reference", self.transform)
-        if (not isinstance(transform, InputTransform) or transform.smooth is not None or transform.clip is not None
-                or transform.act_format is not None):
-            raise ValueError(f"{type(self.transform).__name__} is not plain per-token quantization")
-        return transform.act_bits
+        if not isinstance(transform, InputTransform) or transform.smooth is not None or transform.clip is not None:
+            raise ValueError(f"{type(self.transform).__name__} is not plain per-token or float-format quantization")
+        return transform.act_format if transform.act_format is not None else transform.act_bits
 
     @property
-    def is_per_token(self) -> bool:
+    def is_plain(self) -> bool:
         try:
-            self.per_token_bits
+            self.plain_quantization
         except ValueError:
             return False
         return True
@@ -90,9 +89,9 @@ class ActivationQuantizer:
         the producing op. Counts one run. Quantizers of layers that read the same input (q/k/v)
         each call this with the same `op` and arguments; the second and later calls return the
         first one's result instead of computing it again (`_LastFused`)."""
-        bits = self.per_token_bits
+        quantization = self.plain_quantization
         self.calls += 1
-        return _LAST_FUSED.lookup_or_run(quantizing_op(op, bits, compiler), args)
+        return _LAST_FUSED.lookup_or_run(quantizing_op(op, quantization, compiler), args)
 
 
 class _LastFused:
@@ -122,31 +121,33 @@ _LAST_FUSED = _LastFused()
 
 
 @functools.cache
-def quantizing_op(op: Callable, bits: int | None, compiler: Callable | None = None) -> Callable:
-    """`op` followed by per-token `bits`-bit quantization of its (last) output, as one function
-    (None bits: `op` alone), compiled once by `compiler` when given."""
-    if bits is None:
+def quantizing_op(op: Callable, quantization: int | FloatFormat | None, compiler: Callable | None = None) -> Callable:
+    """`op` followed by the quantization of its (last) output -- per-token with `quantization` bits,
+    or in a float format -- as one function (None: `op` alone), compiled once by `compiler` when given."""
+    if quantization is None:
         return compiler(op) if compiler is not None else op
 
     def fn(*args):
         out = op(*args)
         if isinstance(out, tuple):
-            return (*out[:-1], _per_token(out[-1], bits))
-        return _per_token(out, bits)
+            return (*out[:-1], _quantized(out[-1], quantization))
+        return _quantized(out, quantization)
 
     if compiler is None:
         return fn
     # A code object of its own per op and bit width: dynamo keeps its compilations (and their
     # recompile limit) per code object, and every `fn` closure would otherwise share one.
-    name = f"{op.__name__}_then_int{bits}"
+    name = f"{op.__name__}_then_" + (quantization.name if isinstance(quantization, FloatFormat) else f"int{quantization}")
     return compiler(types.FunctionType(fn.__code__.replace(co_name=name, co_qualname=name), fn.__globals__, name,
                                        None, fn.__closure__))
 
 
-def _per_token(x: torch.Tensor, bits: int) -> torch.Tensor:
-    """`fake_quant_activation(x, bits)`, written so that a compiler fusing it into the op that made
-    `x` still quantizes the rounded `x` a hook would see."""
-    return fake_quant_activation(_as_float32(x), bits).to(x.dtype)
+def _quantized(x: torch.Tensor, quantization: int | FloatFormat) -> torch.Tensor:
+    """What the hook's `InputTransform` does to `x`, written so that a compiler fusing it into the op
+    that made `x` still quantizes the rounded `x` a hook would see."""
+    if isinstance(quantization, FloatFormat):
+        return quantization.quantize_activation(_as_float32(x)).to(x.dtype)
+    return fake_quant_activation(_as_float32(x), quantization).to(x.dtype)
 
 
 def _as_float32(x: torch.Tensor) -> torch.Tensor:

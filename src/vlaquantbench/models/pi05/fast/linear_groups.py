@@ -11,8 +11,8 @@ output as the member's hook would, inside the same compiled function, and counts
 
 A group fuses only what it can prove equivalent: members that are plain `nn.Linear` layers with
 floating weights (not packed real-kernel modules), no forward hooks, and either no pre-hooks or
-exactly one `CountingHook` each whose transform is plain per-token quantization (no smoothing or
-clipping vectors, which are per layer; no float format) with the same bit width. Anything else -- a calibrated
+exactly one `CountingHook` each whose transform only quantizes (no smoothing or clipping vectors,
+which are per layer), all alike: per-token integer with one bit width, or one float format. Anything else -- a calibrated
 transform, a wrapped transform, a packed layer -- runs member by member through the modules, hooks
 included.
 
@@ -48,8 +48,8 @@ def _fusable(layers: Sequence[nn.Module]) -> tuple[bool, list[ActivationQuantize
             return False, []
         if pre:
             quantizers.append(pre[0].quantizer)
-    if quantizers and (len(quantizers) != len(layers) or not all(q.is_per_token for q in quantizers)
-                       or len({q.per_token_bits for q in quantizers}) != 1):
+    if quantizers and (len(quantizers) != len(layers) or not all(q.is_plain for q in quantizers)
+                       or len({q.plain_quantization for q in quantizers}) != 1):
         return False, []
     return True, quantizers
 
@@ -73,9 +73,10 @@ class LinearGroup:
                 self.bias = None if biases[0] is None else torch.cat(biases)
 
     @property
-    def act_bits(self) -> int | None:
-        """The per-token quantization the members apply to their input inside the producer (None: none)."""
-        return self.quantizers[0].per_token_bits if self.quantizers else None
+    def input_quantization(self):
+        """The quantization the members apply to their input inside the producer: per-token bits or a
+        float format (None: none)."""
+        return self.quantizers[0].plain_quantization if self.quantizers else None
 
     def input_from(self, op: Callable, args: tuple, compiler: Callable | None = None):
         """`op(*args)`, whose output (the last, if several) is this group's input: quantized by
