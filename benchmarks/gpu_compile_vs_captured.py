@@ -70,7 +70,7 @@ def timed(fn, device, warmup: int, repeats: int) -> tuple[float, float]:
 
 def closeness(actions: torch.Tensor, eager: torch.Tensor) -> dict:
     a, e = actions.double(), eager.double()
-    return {"rel_l2": ((a - e).norm() / e.norm()).item(), "max_abs": (a - e).abs().max().item()}
+    return {"rel_l2": ((a - e).norm() / e.norm()).item(), "max_abs_diff": (a - e).abs().max().item()}
 
 
 def compiled_sampler(model, steps: int, backend: str):
