@@ -15,6 +15,15 @@ include: "rules/rollout.smk"
 include: "rules/replay.smk"
 
 
+onerror:
+    # Each failed job's one-line cause, after Snakemake's report of its inputs and outputs.
+    from vlaquantbench.rule_log import failed_job_causes
+
+    causes = failed_job_causes(log)
+    if causes:
+        print("\nThe run stopped because:\n  " + "\n  ".join(causes), file=sys.stderr)
+
+
 rule all:
     input:
         expand("tables/{table}.tex", table=config["tables"]),

@@ -1,7 +1,9 @@
-# Records -> verified manifest -> summary -> tables and figures (issue: regenerate the paper's tables).
-# Every table waits for `verify_records`: with `manifest` set the records must match it file by file;
-# without one, a manifest is built from the records first.
+# Records -> manifest -> summary, tables and figures (issue: regenerate the paper's tables).
+# Every job that renders records first checks them against the manifest, in the same job: with
+# `manifest` set the records must match it file by file (without one, a manifest is built from the
+# records first). A refused job fails, so Snakemake removes its old output: no stale table survives.
 PAPER_TABLES = WF.table_names()
+MANIFEST = str(WF.manifest) if WF.manifest else "results/records/manifest.tsv"
 
 
 def records_of(refs):
@@ -16,30 +18,23 @@ rule records_manifest:
         "results/records/manifest.tsv",
     params:
         records_root=str(WF.records_root),
+    log:
+        "logs/records_manifest.log",
     script:
         "../workflow/scripts/records_manifest.py"
 
 
-rule verify_records:
-    input:
-        manifest=str(WF.manifest) if WF.manifest else rules.records_manifest.output[0],
-        cells=lambda wc: records_of(WF.cell_refs()),
-    output:
-        "results/records/verified.tsv",
-    params:
-        records_root=str(WF.records_root),
-    script:
-        "../workflow/scripts/verify_records.py"
-
-
 rule summary:
     input:
-        verified=rules.verify_records.output[0],
+        manifest=MANIFEST,
         cells=lambda wc: records_of(WF.cell_refs()),
     output:
         "tables/summary.csv",
     params:
+        records_root=str(WF.records_root),
         refs=lambda wc: WF.cell_refs(),
+    log:
+        "logs/summary.log",
     script:
         "../workflow/scripts/summary.py"
 
@@ -51,7 +46,7 @@ def report_params(target):
 
 rule paper_table:
     input:
-        verified=rules.verify_records.output[0],
+        manifest=MANIFEST,
         cells=lambda wc: records_of(WF.checked_refs(WF.table_record_refs(wc.table), f"tables/{wc.table}.tex")),
         summary=lambda wc: WF.table_summary(wc.table),
         sources=lambda wc: list(WF.table_sources(wc.table).values()),
@@ -64,6 +59,7 @@ rule paper_table:
     wildcard_constraints:
         table="|".join(PAPER_TABLES),
     params:
+        records_root=str(WF.records_root),
         definition=lambda wc: WF.table(wc.table),
         refs=lambda wc: WF.table_record_refs(wc.table) + list(WF.table_sources(wc.table)),
         report=lambda wc: report_params(f"tables/{wc.table}.tex"),
@@ -76,7 +72,7 @@ SCOPE_RECOVERY = "figures/scope_recovery.pdf"
 
 rule scope_recovery_figure:
     input:
-        verified=rules.verify_records.output[0],
+        manifest=MANIFEST,
         cells=lambda wc: records_of(WF.checked_refs(WF.record_refs(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY), SCOPE_RECOVERY)),
         summary=lambda wc: WF.summary_input(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY),
     output:
@@ -84,6 +80,7 @@ rule scope_recovery_figure:
     log:
         "logs/figures/scope_recovery.log",
     params:
+        records_root=str(WF.records_root),
         figure=lambda wc: WF.figure("scope_recovery"),
         refs=lambda wc: WF.record_refs(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY),
         report=lambda wc: report_params(SCOPE_RECOVERY),

@@ -34,6 +34,8 @@ rule download_checkpoint:
         checkpoint="|".join(CHECKPOINTS) or "^$",
     params:
         info=lambda wc: CHECKPOINTS[wc.checkpoint],
+    log:
+        "logs/download_checkpoint/{checkpoint}.log",
     script:
         "../workflow/scripts/download_checkpoint.py"
 
@@ -47,6 +49,9 @@ rule calibrate:
         calibration="|".join(CALIBRATIONS) or "^$",
     params:
         calibration=lambda wc: CALIBRATIONS[wc.calibration],
+        execution=STUDY.get("execution") or {},
+    log:
+        "logs/calibrate/{calibration}.log",
     threads: 2
     resources:
         gpu=lambda wc: int(CALIBRATIONS[wc.calibration]["runner"]["device"].startswith("cuda")),
@@ -65,6 +70,9 @@ rule rollout:
         cell="|".join(CELLS) or "^$",
     params:
         cell=lambda wc: CELLS[wc.cell],
+        execution=STUDY.get("execution") or {},
+    log:
+        "logs/rollout/{cell}.log",
     threads: 2
     resources:
         gpu=lambda wc: int(CELLS[wc.cell]["runner"]["device"].startswith("cuda")),

@@ -48,7 +48,7 @@ def test_slurm_profile_dry_run_puts_rollouts_on_gpus(tmp_path):
     assert len(jobs["calibrate"]) == 1 and len(jobs["download_checkpoint"]) == 1
     for resources in jobs["rollout"] + jobs["calibrate"]:
         assert "slurm_partition=gpu" in resources and "gpu=1" in resources
-    for rule in ("download_checkpoint", "paper_table", "summary", "verify_records", "records_manifest"):
+    for rule in ("download_checkpoint", "paper_table", "summary", "records_manifest"):
         for resources in jobs[rule]:
             assert "slurm_partition=cpu" in resources and "gpu=" not in resources, (rule, resources)
     assert not (checkout / "results" / "cells").exists()  # a dry run submits and writes nothing

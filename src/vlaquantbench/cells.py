@@ -43,6 +43,7 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
 from vlaquantbench.quant.methods import METHODS, registered_methods
 from vlaquantbench.quant.patterns import scope_components
+from vlaquantbench.quant.semantics import QUANT_SEMANTICS
 
 SCOPES = ("ve", "mp", "llm", "ah", "e2e", "ve_mp_llm")
 # Cell methods that are RTN grids in the quantizer: ablate = RTN on a named subset, calib* = RTN after
@@ -292,9 +293,23 @@ def canonical_json(cfg: dict[str, Any]) -> str:
     return json.dumps(cfg, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
 
 
+# A cell's names: two cells that differ only here run the same experiment (`rtn-W4A4-ah` and
+# `ablate-W4A4-ah`, or two subsets with the same patterns) and share one folder and one job.
+NAME_FIELDS = ("ref", "cell", "subset")
+
+
+def hashed_config(cfg: dict[str, Any]) -> dict[str, Any]:
+    """What a config's hash covers: everything that changes its results, i.e. the config without its
+    names, with the cell method as the quantizer method it runs, and the quantization-semantics version."""
+    kept = {k: v for k, v in cfg.items() if k not in NAME_FIELDS}
+    if "method" in kept:
+        kept["method"] = quantizer_method(kept["method"])
+    return {**kept, "quant_semantics": QUANT_SEMANTICS}
+
+
 def config_hash(cfg: dict[str, Any]) -> str:
-    """12 hex digits of the SHA-256 of the canonical JSON of a cell config."""
-    return hashlib.sha256(canonical_json(cfg).encode()).hexdigest()[:12]
+    """12 hex digits of the SHA-256 of the canonical JSON of `hashed_config(cfg)`."""
+    return hashlib.sha256(canonical_json(hashed_config(cfg)).encode()).hexdigest()[:12]
 
 
 def calibration_config(cfg: dict[str, Any]) -> dict[str, Any] | None:

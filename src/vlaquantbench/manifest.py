@@ -167,8 +167,8 @@ def verify_manifest(
     return verified
 
 
-def write_verified(
-    manifest: str | Path, records_dir: str | Path, cells: Iterable[str | Path] | None, output: str | Path
-) -> Path:
-    """Verify, then write the verified rows as a manifest: the workflow's proof that records match."""
-    return _write_rows(verify_manifest(manifest, records_dir, cells), output)
+def verified(manifest: str | Path, records_dir: str | Path, cells: list[str]) -> list[str]:
+    """`cells` (record paths), once every one of their files matches `manifest`: what a rendering job
+    reads, checked in the same job that writes its output."""
+    verify_manifest(manifest, records_dir, cells)
+    return cells

@@ -1,10 +1,9 @@
 """Rule calibrate: activation statistics from unquantized rollouts, shared by the cells that use them."""
+# snakemake is injected by Snakemake's script directive.
+# ruff: noqa: F821
 
 from vlaquantbench.runner.calibration import calibrate
+from vlaquantbench.rule_log import job_log
 
-calibrate(
-    snakemake.params.calibration,  # noqa: F821
-    snakemake.output[0],  # noqa: F821
-    snakemake.input.checkpoint,  # noqa: F821
-    **snakemake.config.get("study", {}).get("execution", {}),  # noqa: F821
-)
+with job_log(snakemake):
+    calibrate(snakemake.params.calibration, snakemake.output[0], snakemake.input.checkpoint, **snakemake.params.execution)

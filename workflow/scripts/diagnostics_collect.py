@@ -1,4 +1,10 @@
-from vlaquantbench.diagnostics.collect import collect
+"""Rule diagnostics_collect: per-layer diagnostics of one scope and preset on the replay recording."""
+# snakemake is injected by Snakemake's script directive.
+# ruff: noqa: F821
 
-collect(snakemake.input[0], snakemake.wildcards.model, snakemake.wildcards.scope, snakemake.wildcards.preset,
-        snakemake.output[0], checkpoint_dir=snakemake.params.checkpoint_dir, log=snakemake.log[0])
+from vlaquantbench.diagnostics.collect import collect
+from vlaquantbench.rule_log import job_log
+
+with job_log(snakemake):
+    collect(snakemake.input[0], snakemake.wildcards.model, snakemake.wildcards.scope, snakemake.wildcards.preset,
+            snakemake.output[0], checkpoint_dir=snakemake.params.checkpoint_dir)

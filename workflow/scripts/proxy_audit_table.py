@@ -1,9 +1,11 @@
 """Rule proxy_audit_table: tables/proxy_audit.tex (+ per-scope CSV and browser page) from the layer diagnostics."""
-
-from pathlib import Path
+# snakemake is injected by Snakemake's script directive.
+# ruff: noqa: F821
 
 from vlaquantbench.diagnostics.proxy_audit import write_proxy_audit
+from vlaquantbench.rule_log import job_log
 
-sm = snakemake  # noqa: F821 (injected by Snakemake)
-write_proxy_audit(sm.params.diagnostics_dir, sm.input.success, sm.output.table, html_output=sm.output.html)
-Path(sm.log[0]).write_text(f"{sm.output.table} from {sm.params.source}\n")
+sm = snakemake
+with job_log(sm):
+    write_proxy_audit(sm.params.diagnostics_dir, sm.input.success, sm.output.table, html_output=sm.output.html)
+    print(f"{sm.output.table} from {sm.params.source}")

@@ -1,10 +1,12 @@
 """Rule replay_composition_table: tables/replay_composition.tex and its browser page from the replay analysis files."""
-
-from pathlib import Path
+# snakemake is injected by Snakemake's script directive.
+# ruff: noqa: F821
 
 from vlaquantbench.replay.tables import write_replay_table
+from vlaquantbench.rule_log import job_log
 
-sm = snakemake  # noqa: F821 (injected by Snakemake)
-write_replay_table("composition", sm.params.analysis_dir, sm.output.tex, study=sm.params.study, formats=sm.params.formats,
-                   html_output=sm.output.html)
-Path(sm.log[0]).write_text(f"{sm.output.tex} from {sm.params.source}\n")
+sm = snakemake
+with job_log(sm):
+    write_replay_table("composition", sm.params.analysis_dir, sm.output.tex, study=sm.params.study, formats=sm.params.formats,
+                       html_output=sm.output.html)
+    print(f"{sm.output.tex} from {sm.params.source}")

@@ -1,4 +1,10 @@
-from vlaquantbench.replay.configuration import replay_to
+"""Rule replay_configuration: one configuration replayed on the recorded trajectories."""
+# snakemake is injected by Snakemake's script directive.
+# ruff: noqa: F821
 
-replay_to(snakemake.input[0], snakemake.params.study, snakemake.wildcards.config, snakemake.params.preset,
-          snakemake.output.summary, snakemake.params.checkpoint_dir, snakemake.log[0])
+from vlaquantbench.replay.configuration import replay_to
+from vlaquantbench.rule_log import job_log
+
+with job_log(snakemake):
+    replay_to(snakemake.input[0], snakemake.params.study, snakemake.wildcards.config, snakemake.params.preset,
+              snakemake.output.summary, snakemake.params.checkpoint_dir)

@@ -1,9 +1,11 @@
 """Rule replay_formats_figure: figures/replay_formats.pdf from the replay analysis files."""
-
-from pathlib import Path
+# snakemake is injected by Snakemake's script directive.
+# ruff: noqa: F821
 
 from vlaquantbench.replay.figure import write_replay_figure
+from vlaquantbench.rule_log import job_log
 
-sm = snakemake  # noqa: F821 (injected by Snakemake)
-write_replay_figure(sm.params.analysis_dir, sm.output[0], study=sm.params.study, formats=sm.params.formats)
-Path(sm.log[0]).write_text(f"{sm.output[0]} from {sm.params.source}\n")
+sm = snakemake
+with job_log(sm):
+    write_replay_figure(sm.params.analysis_dir, sm.output[0], study=sm.params.study, formats=sm.params.formats)
+    print(f"{sm.output[0]} from {sm.params.source}")

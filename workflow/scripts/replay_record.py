@@ -1,3 +1,9 @@
-from vlaquantbench.replay.record import record_to
+"""Rule replay_record: the study's full-precision trajectories in LIBERO (records.json beside them)."""
+# snakemake is injected by Snakemake's script directive.
+# ruff: noqa: F821
 
-record_to(snakemake.params.study, snakemake.params.options, snakemake.output[0], snakemake.log[0])
+from vlaquantbench.replay.record import record_to
+from vlaquantbench.rule_log import job_log
+
+with job_log(snakemake):
+    record_to(snakemake.params.study, snakemake.params.options, snakemake.output[0])

@@ -1,11 +1,18 @@
-"""Rule rollout: one cell's closed-loop episodes -> header.json + episodes.parquet (resumes its journal)."""
+"""Rule rollout: one cell's closed-loop episodes -> header.json + episodes.parquet (resumes the cell's journal,
+which lives beside them and is deliberately not an output: Snakemake removes the outputs of a failed job)."""
+# snakemake is injected by Snakemake's script directive.
+# ruff: noqa: F821
+
+from pathlib import Path
 
 from vlaquantbench.runner.cell import run_cell
+from vlaquantbench.rule_log import job_log
 
-run_cell(
-    snakemake.params.cell,  # noqa: F821
-    snakemake.output.episodes.rsplit("/", 1)[0],  # noqa: F821
-    snakemake.input.checkpoint,  # noqa: F821
-    snakemake.input.calibration[0] if snakemake.input.calibration else None,  # noqa: F821
-    **snakemake.config.get("study", {}).get("execution", {}),  # noqa: F821
-)
+with job_log(snakemake):
+    run_cell(
+        snakemake.params.cell,
+        Path(snakemake.output.header).parent,
+        snakemake.input.checkpoint,
+        snakemake.input.calibration[0] if snakemake.input.calibration else None,
+        **snakemake.params.execution,
+    )

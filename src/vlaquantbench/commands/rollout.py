@@ -4,6 +4,9 @@
     vqb rollout REF --config config/paper.yaml --num-envs 8
     vqb rollout REF --show                                                         # config + hash only
 
+Results go to `<checkout>/results/` (the checkout holding this package, as Snakemake would) unless
+`--results DIR` names another project folder.
+
 Fetches the checkpoint and collects calibration statistics first when the cell needs them; an
 interrupted run resumes from its journal. Ctrl-C prints how many of the cell's episodes are recorded
 and exits 130; the same command resumes the cell. The config file is validated exactly as Snakemake
@@ -17,9 +20,11 @@ import json
 import sys
 from pathlib import Path
 
+import vlaquantbench
 from vlaquantbench.cells import calibration_config, cell_config, checkpoint_key, config_hash
 from vlaquantbench.config import load_workflow_config
 from vlaquantbench.config.study import StudyConfig
+from vlaquantbench.errors import UserError
 from vlaquantbench.workflow import CELLS_DIR
 
 
@@ -29,10 +34,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--config", default="config/config.yaml",
                         help="config whose `study` defines the cell; as with `snakemake --configfile`, it is merged "
                              "over config/config.yaml of the current folder")
-    parser.add_argument("--results", default=".", help="folder holding results/ (default: current folder)")
+    parser.add_argument(
+        "--results",
+        type=Path,
+        help="project folder whose results/ receives the cell (default: the checkout holding this package, "
+        "where `snakemake` writes; required when the package is not run from a checkout)",
+    )
     parser.add_argument("--num-envs", type=int, help="LIBERO worker processes (default: study.execution)")
     parser.add_argument("--show", action="store_true", help="print the canonical cell config and its hash, run nothing")
     parser.set_defaults(func=run)
+
+
+def project_root() -> Path:
+    """The checkout this package runs from (the folder of the Snakefile), so that `vqb rollout` and
+    `snakemake` share results/ wherever the command is typed."""
+    root = Path(vlaquantbench.__file__).resolve().parents[2]
+    if not (root / "Snakefile").is_file():
+        raise UserError(f"vlaquantbench is not running from a project checkout ({root} has no Snakefile): pass --results DIR")
+    return root
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,12 +59,13 @@ def run(args: argparse.Namespace) -> int:
     # registries: a misspelt or unknown key fails here, before any checkpoint or model is touched.
     study = StudyConfig.from_dict(load_workflow_config(args.config).get("study"), args.config)
     cfg = cell_config(args.ref, study)
-    out = Path(args.results) / CELLS_DIR / config_hash(cfg)
+    project = args.results or project_root()
+    out = project / CELLS_DIR / config_hash(cfg)
     if args.show:
         print(json.dumps({"config_hash": config_hash(cfg), "folder": str(out), "config": cfg}, indent=2))
         return 0
     try:
-        return _run(args, study, cfg, out)
+        return _run(args, study, cfg, project)
     except KeyboardInterrupt:
         from vlaquantbench.runner.cell import JOURNAL
         from vlaquantbench.runner.journal import recorded_episodes
@@ -57,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
         return 130
 
 
-def _run(args: argparse.Namespace, study: StudyConfig, cfg: dict, out: Path) -> int:
+def _run(args: argparse.Namespace, study: StudyConfig, cfg: dict, project: Path) -> int:
     from vlaquantbench.runner.calibration import calibrate
     from vlaquantbench.runner.cell import run_cell
     from vlaquantbench.runner.checkpoint import download_checkpoint
@@ -65,14 +85,14 @@ def _run(args: argparse.Namespace, study: StudyConfig, cfg: dict, out: Path) -> 
     execution = study.execution.as_kwargs()
     if args.num_envs:
         execution["num_envs"] = args.num_envs
-    stamp = Path(args.results) / "results" / "checkpoints" / checkpoint_key(cfg) / "checkpoint.json"
+    stamp = project / "results" / "checkpoints" / checkpoint_key(cfg) / "checkpoint.json"
     if not stamp.exists():
         download_checkpoint(**{k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}, stamp=stamp)
     stats = None
     calib = calibration_config(cfg)
     if calib is not None:
-        stats = Path(args.results) / "results" / "calibration" / f"{config_hash(calib)}.pt"
+        stats = project / "results" / "calibration" / f"{config_hash(calib)}.pt"
         if not stats.exists():
             calibrate(calib, stats, stamp, **execution)
-    print(run_cell(cfg, out, stamp, stats, **execution))
+    print(run_cell(cfg, project / CELLS_DIR / config_hash(cfg), stamp, stats, **execution))
     return 0

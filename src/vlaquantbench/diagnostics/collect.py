@@ -22,7 +22,7 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.quant import parse_preset, select_layers
 from vlaquantbench.quant.hooks import InputTransform
-from vlaquantbench.replay.record import load_records, progress_to, recorded_calls
+from vlaquantbench.replay.record import load_records, recorded_calls
 from vlaquantbench.runner.provenance import code_revision, versions
 
 
@@ -69,7 +69,7 @@ class DiagnosticsObserver:
 
 
 def collect(recording: str | Path, model: str, scope: str, preset: str, output: str | Path,
-            checkpoint_dir: str | None = None, log: str | Path | None = None) -> dict:
+            checkpoint_dir: str | None = None) -> dict:
     """Snakemake entry: diagnostics of every layer in `scope` under `preset` on the recording
     (`records.json` or its folder)."""
     meta, trajectories = load_records(recording)
@@ -81,7 +81,7 @@ def collect(recording: str | Path, model: str, scope: str, preset: str, output: 
     adapter.load()
     layers = select_layers(adapter.model, adapter.components, scope).flat()
     torch.set_num_threads(meta["torch_threads"])
-    with progress_to(log), DiagnosticsObserver(layers, preset) as observer, torch.no_grad():
+    with DiagnosticsObserver(layers, preset) as observer, torch.no_grad():
         for rec in tqdm(meta["records"], desc=f"diagnostics {scope} {preset}", unit="trajectory"):
             for _, obs, generator in recorded_calls(adapter, trajectories[rec["record"]], rec["record"]):
                 adapter.act([obs], [generator])

@@ -21,7 +21,7 @@ from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.quant import QuantConfig, get_subset, quantize_
 from vlaquantbench.replay.composition import DOWNPROJ_COLUMNS
 from vlaquantbench.replay.probe import PolicyProbe
-from vlaquantbench.replay.record import load_records, progress_to, recorded_calls
+from vlaquantbench.replay.record import load_records, recorded_calls
 from vlaquantbench.replay.run import ReplayRun
 from vlaquantbench.runner.provenance import code_revision, versions
 
@@ -91,10 +91,9 @@ def _replay_trajectory(adapter, probe: PolicyProbe, data: dict, record: str) -> 
     return {"chunks": np.stack(chunks), "actions": actions, "flow_states": np.stack(states),
             "downproj": np.concatenate(inputs)}, dev
 
-def replay_to(records_json, study: dict, name: str, preset: str, summary_out, checkpoint_dir=None, log=None) -> ReplayRun:
+def replay_to(records_json, study: dict, name: str, preset: str, summary_out, checkpoint_dir=None) -> ReplayRun:
     """Snakemake entry: replay configuration `name` at `preset`; writes `summary_out` and its .npz."""
     summary_out = Path(summary_out)
     if summary_out.stem != name:
         raise UserError(f"replay output {summary_out} must be named after its configuration {name!r}")
-    with progress_to(log):
-        return replay_configuration(records_json, study, name, preset, summary_out.parent, checkpoint_dir)
+    return replay_configuration(records_json, study, name, preset, summary_out.parent, checkpoint_dir)

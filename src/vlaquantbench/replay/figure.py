@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 import matplotlib
@@ -51,7 +52,10 @@ def plot_formats(results: StudyResults, output: str | Path) -> Path:
 
 
 def write_replay_figure(
-    analysis_dir: str | Path, output: str | Path, study: str | Path = "pi05_libero_spatial", formats: list[str] | None = None
+    analyses: str | Path | Mapping[str, str | Path],
+    output: str | Path,
+    study: str | Path = "pi05_libero_spatial",
+    formats: list[str] | None = None,
 ) -> Path:
-    """Snakemake entry: `fig:replay_formats` from `<analysis_dir>/<format>/analysis.json`."""
-    return plot_formats(StudyResults.from_dir(analysis_dir, with_formats(load_study(study), formats)), output)
+    """Snakemake entry: `fig:replay_formats` from `analyses` (format -> analysis.json, or their folder)."""
+    return plot_formats(StudyResults.read(analyses, with_formats(load_study(study), formats)), output)

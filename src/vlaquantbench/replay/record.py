@@ -9,7 +9,6 @@ denoising step, how many of the chunk's actions were executed, and the executed 
 
 from __future__ import annotations
 
-import contextlib
 import json
 import time
 from dataclasses import dataclass
@@ -164,20 +163,9 @@ def load_records(records_dir: str | Path) -> tuple[dict, dict[str, dict[str, np.
     return meta, data
 
 
-def record_to(study: dict, options: dict | None, records_json: str | Path, log: str | Path | None = None) -> dict:
-    """Snakemake entry: record the study's trajectories beside `records_json` (progress to `log`)."""
-    settings = RecordSettings.from_study(study, options)
-    with progress_to(log):
-        return record(settings, Path(records_json).parent)
-
-
-@contextlib.contextmanager
-def progress_to(log: str | Path | None):
-    if log is None:
-        yield
-        return
-    with open(log, "w") as stream, contextlib.redirect_stderr(stream):
-        yield
+def record_to(study: dict, options: dict | None, records_json: str | Path) -> dict:
+    """Snakemake entry: record the study's trajectories beside `records_json`."""
+    return record(RecordSettings.from_study(study, options), Path(records_json).parent)
 
 
 def recorded_calls(adapter, data: dict[str, np.ndarray], record: str):

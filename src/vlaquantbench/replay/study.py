@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -61,6 +62,13 @@ class StudyResults:
     def from_dir(cls, analysis_dir: str | Path, study: dict) -> "StudyResults":
         """Read `<analysis_dir>/<format>/analysis.json` for every format of the study."""
         return cls.from_files({f: Path(analysis_dir) / f / "analysis.json" for f in study["formats"]}, study)
+
+    @classmethod
+    def read(cls, analyses: str | Path | Mapping[str, str | Path], study: dict) -> "StudyResults":
+        """From a mapping format -> analysis.json (what a rule's input declares) or a folder of them."""
+        if isinstance(analyses, Mapping):
+            return cls.from_files(dict(analyses), study)
+        return cls.from_dir(analyses, study)
 
     @classmethod
     def from_files(cls, paths: dict[str, str | Path], study: dict) -> "StudyResults":

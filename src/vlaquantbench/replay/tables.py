@@ -3,6 +3,7 @@ rendered from per-format `analysis.json` files."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 from vlaquantbench.replay.study import StudyResults, load_study, success_rates, with_formats
@@ -80,7 +81,7 @@ def bias_table(results: StudyResults) -> Booktabs:
 
 def write_replay_table(
     table: str,
-    analysis_dir: str | Path,
+    analyses: str | Path | Mapping[str, str | Path],
     output: str | Path,
     study: str | Path = "pi05_libero_spatial",
     success_summary: str | Path | None = None,
@@ -88,8 +89,9 @@ def write_replay_table(
     html_output: str | Path | None = None,
 ) -> str:
     """Snakemake entry: render one replay table (`composition`, `all_formats` or `bias`) to `output`
-    (and its browser page to `html_output`); returns the LaTeX."""
-    results = StudyResults.from_dir(analysis_dir, with_formats(load_study(study), formats))
+    from `analyses` (format -> analysis.json, or a folder of `<format>/analysis.json`), and its browser
+    page to `html_output`; returns the LaTeX."""
+    results = StudyResults.read(analyses, with_formats(load_study(study), formats))
     renderers = {
         "composition": lambda: composition_table(results),
         "all_formats": lambda: all_formats_table(results, success_rates(success_summary)),

@@ -28,7 +28,9 @@ from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.records import write_cell
 from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal
 from vlaquantbench.runner.loop import run_episodes
+from vlaquantbench.quant.semantics import QUANT_SEMANTICS
 from vlaquantbench.runner.provenance import code_revision, versions
+from vlaquantbench.software_env import activate, environment_for
 
 JOURNAL = "journal.jsonl"
 
@@ -87,6 +89,8 @@ class CellRun:
         self.calibration_stats = calibration_stats
         self.num_envs = num_envs
         self.progress = progress
+        self.environment = environment_for(cfg["model"])
+        activate(self.environment)  # before anything imports MuJoCo: LIBERO and its workers run on its pin
         if torch_threads:
             torch.set_num_threads(torch_threads)
         if cfg["benchmark"] != "libero":
@@ -140,6 +144,8 @@ class CellRun:
             "inference": inference,
             "max_steps": self.max_steps,
             "versions": {**versions(), **{k: v for k, v in self.simulator.items() if k != "mujoco"}},
+            "environment": self.environment.describe(),
+            "quant_semantics": QUANT_SEMANTICS,
             "code_revision": code_revision(),
         })
 

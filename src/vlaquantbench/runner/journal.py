@@ -17,10 +17,23 @@ from typing import Any
 from vlaquantbench.errors import UserError
 
 EPISODE_KEY = ("task_id", "episode", "seed")
+# Header fields a rerun may change and still resume: the code revision (the arithmetic is versioned by
+# `quant_semantics`, which must match) and the cell's names (cells that run the same experiment under
+# different names share one folder; see `cells.hashed_config`).
+RESUMABLE_CHANGES = ("code_revision", "ref", "cell", "subset", "method")
+
+
+def _compared(header: dict[str, Any]) -> dict[str, Any]:
+    kept = {k: v for k, v in header.items() if k not in RESUMABLE_CHANGES}
+    if isinstance(kept.get("config"), dict):
+        kept["config"] = {k: v for k, v in kept["config"].items() if k not in RESUMABLE_CHANGES}
+    return kept
 
 
 def header_differences(recorded: dict[str, Any], current: dict[str, Any]) -> list[str]:
-    """Lines `key: recorded=... current=...` for every top-level field that differs."""
+    """Lines `key: recorded=... current=...` for every top-level field that differs, apart from the
+    fields a resumed cell may change (`RESUMABLE_CHANGES`)."""
+    recorded, current = _compared(recorded), _compared(current)
     lines = []
     for key in sorted(set(recorded) | set(current)):
         if recorded.get(key) != current.get(key):

@@ -17,6 +17,7 @@ import hashlib
 import importlib.metadata
 import importlib.util
 import os
+import sys
 import tempfile
 from pathlib import Path
 from types import ModuleType
@@ -139,4 +140,13 @@ def load_libero() -> ModuleType:
     # hf-libero's get_assets_path() returns this cache when it is set; otherwise it looks beside its
     # own code and then downloads from the hub.
     libero._assets_path_cache = str(assets_dir())
+    import mujoco
+
+    # MuJoCo's default handler appends warnings to MUJOCO_LOG.TXT in the working folder; send them to
+    # stderr instead, which a workflow job redirects into its rule's log.
+    mujoco.set_mju_user_warning(_mujoco_warning)
     return libero
+
+
+def _mujoco_warning(message: str) -> None:
+    print(f"MuJoCo warning: {message}", file=sys.stderr, flush=True)

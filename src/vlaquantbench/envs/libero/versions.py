@@ -12,26 +12,29 @@ import warnings
 
 from vlaquantbench.errors import UserError
 
-PINNED_MUJOCO = "3.3.2"
+PINNED_MUJOCO = "3.3.2"  # the main environment's (envs/main.lock.txt); X-VLA's overlay pins 3.1.6
 
 
 def simulator_versions(allow_mujoco_mismatch: bool = False) -> dict[str, str | bool]:
-    """Versions for a cell header; raises UserError if MuJoCo is not the pinned version."""
+    """Versions for a cell header; raises UserError if MuJoCo is not the version the process's
+    software environment pins (`vlaquantbench.software_env.active()`)."""
     import mujoco
 
-    found = mujoco.__version__
-    if found != PINNED_MUJOCO:
+    from vlaquantbench.software_env import active
+
+    found, pinned = mujoco.__version__, active().mujoco
+    if found != pinned:
         message = (
-            f"MuJoCo {found} is installed but LIBERO results are only comparable on MuJoCo {PINNED_MUJOCO} "
+            f"MuJoCo {found} is installed but LIBERO results are only comparable on MuJoCo {pinned} "
             f"(newer versions change box-box collisions and how init states settle)"
         )
         if not allow_mujoco_mismatch:
-            raise UserError(f"{message}: pip install mujoco=={PINNED_MUJOCO}, or pass allow_mujoco_mismatch=True")
+            raise UserError(f"{message}: pip install mujoco=={pinned}, or pass allow_mujoco_mismatch=True")
         warnings.warn(f"{message}; continuing because allow_mujoco_mismatch=True", stacklevel=2)
     return {
         "mujoco": found,
-        "mujoco_pinned": PINNED_MUJOCO,
-        "mujoco_pin_overridden": found != PINNED_MUJOCO,
+        "mujoco_pinned": pinned,
+        "mujoco_pin_overridden": found != pinned,
         "robosuite": importlib.metadata.version("robosuite"),
         "hf_libero": importlib.metadata.version("hf-libero"),
     }

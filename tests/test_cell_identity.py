@@ -1,0 +1,48 @@
+"""What a cell's folder and resume check cover: results-changing fields and the quantization-semantics
+version, not the code revision nor the cell's name."""
+
+import pytest
+
+from vlaquantbench import cells
+from vlaquantbench.cells import cell_config, config_hash, study_cells
+from vlaquantbench.errors import UserError
+from vlaquantbench.quant.semantics import QUANT_SEMANTICS
+from vlaquantbench.runner.journal import CellJournal
+
+STUDY = {"models": {"pi05": {"variant": "demo"}}, "tasks": 1, "episodes_per_task": 2}
+RTN, ABLATE = "libero/libero_spatial/pi05/rtn-W4A4-ah", "libero/libero_spatial/pi05/ablate-W4A4-ah"
+EPISODE = {"suite": "libero_spatial", "task_id": 0, "episode": 0, "seed": 0, "init_state_id": 0, "success": False,
+           "steps": 30}  # fmt: skip
+
+
+def header(ref, **changes):
+    cfg = cell_config(ref, STUDY)
+    return {"config_hash": config_hash(cfg), "ref": ref, "cell": cfg["cell"], "method": cfg["method"], "config": cfg,
+            "quant_semantics": QUANT_SEMANTICS, "code_revision": "1a2b3c4", **changes}  # fmt: skip
+
+
+def test_one_experiment_under_two_names_is_one_folder_and_one_job():
+    assert config_hash(cell_config(RTN, STUDY)) == config_hash(cell_config(ABLATE, STUDY))
+    assert len(study_cells([RTN, ABLATE], STUDY)) == 1
+    other = ["libero/libero_spatial/pi05/calib_ah-W4A4-ah", "libero/libero_spatial/pi05/rtn-W4A8-ah"]
+    assert len({config_hash(cell_config(ref, STUDY)) for ref in [RTN, *other]}) == 3
+
+
+def test_the_semantics_version_enters_every_hash(monkeypatch):
+    before = config_hash(cell_config(RTN, STUDY))
+    monkeypatch.setattr(cells, "QUANT_SEMANTICS", QUANT_SEMANTICS + 1)
+    assert config_hash(cell_config(RTN, STUDY)) != before
+
+
+def test_a_killed_cell_resumes_after_a_commit_and_under_its_other_name(tmp_path):
+    path = tmp_path / "journal.jsonl"
+    CellJournal(path, header(RTN)).record([EPISODE], fired=set())
+    resumed = CellJournal(path, header(ABLATE, code_revision="9f8e7d6-dirty"))
+    assert resumed.done_keys() == {(0, 0, 0)}
+
+
+def test_a_killed_cell_is_not_resumed_by_other_quantization_semantics(tmp_path):
+    path = tmp_path / "journal.jsonl"
+    CellJournal(path, header(RTN)).record([EPISODE], fired=set())
+    with pytest.raises(UserError, match=f"quant_semantics: recorded={QUANT_SEMANTICS} current={QUANT_SEMANTICS + 1}"):
+        CellJournal(path, header(RTN, quant_semantics=QUANT_SEMANTICS + 1))
