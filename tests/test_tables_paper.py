@@ -130,3 +130,14 @@ def test_demo_cells_are_flagged_in_the_caption(cells):
     ref = definition.rows[0]["cell"]
     demo[ref] = replace(cells[ref], header={**cells[ref].header, "variant": "demo"})
     assert r"\caption{\textbf{Demo policy with random weights" in render_latex(definition, demo)
+
+
+def test_a_table_mixing_quantization_semantics_versions_says_so(cells, caplog):
+    definition = load_table(ROOT / "config" / "tables" / "lattice.yaml")
+    assert "quantization-semantics" not in render_latex(definition, cells)  # the authors' cells: one (no) version
+    mixed = dict(cells)
+    ref = definition.rows[0]["cell"]
+    mixed[ref] = replace(cells[ref], header={**cells[ref].header, "quant_semantics": 2})
+    text = render_latex(definition, mixed)
+    assert "different quantization-semantics versions (unversioned, version 2)" in text
+    assert "table mixes cells of quantization-semantics unversioned, version 2" in caplog.text

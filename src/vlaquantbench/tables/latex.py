@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from collections import Counter
 from dataclasses import dataclass
 from functools import partial
@@ -198,6 +199,17 @@ def episode_counts(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
     return ", ".join([phrase, *exceptions])
 
 
+def semantics_note(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
+    """A caption sentence, and a warning in the log, when the table's recorded cells were quantized under
+    different quantization-semantics versions (header `quant_semantics`; none: records from before it)."""
+    versions = {cells[ref].header.get("quant_semantics") for ref in refs if isinstance(cells.get(ref), Cell)}
+    if len(versions) < 2:
+        return ""
+    named = ", ".join(sorted("unversioned" if v is None else f"version {v}" for v in versions))
+    logging.getLogger(__name__).warning("table mixes cells of quantization-semantics %s", named)
+    return f" Note: these cells were quantized under different quantization-semantics versions ({named})."
+
+
 def caption(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> str:
     refs = definition.refs()
     demo = any(getattr(cells.get(ref), "header", {}).get("variant") == "demo" for ref in refs)
@@ -213,7 +225,7 @@ def caption(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> str:
     unavailable = [row for row in definition.rows if "unavailable" in row]
     for row in unavailable:
         text += f" {_labels(row)[0]}: {UNAVAILABLE}, {row['unavailable']}."
-    return f"{DEMO_NOTE if demo else ''}{text}"
+    return f"{DEMO_NOTE if demo else ''}{text}{semantics_note(refs, cells)}"
 
 
 def booktabs(definition: TableDefinition, cells: Mapping[str, AnyCell], notes: list[str] | None = None) -> Booktabs:
