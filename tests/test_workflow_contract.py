@@ -74,7 +74,7 @@ def test_refused_run_leads_with_its_cause_and_removes_the_stale_table(tmp_path):
     # ... and again as the last words of the run, with the log that holds the traceback.
     tail = console[console.index("The run stopped because:"):]
     assert "paper_table: record" in tail and cause in tail and "(log: logs/tables/lattice.log)" in tail
-    log = (workdir / "logs" / "paper_table" / "lattice.log").read_text()
+    log = (workdir / "logs" / "tables" / "lattice.log").read_text()
     assert "Traceback" in log and log.splitlines()[-1].startswith("error: record") and "Traceback" not in console
     assert not table.exists()  # refused: the earlier run's table is not left looking current
 
