@@ -49,7 +49,7 @@ rule calibrate:
         calibration="|".join(CALIBRATIONS) or "^$",
     params:
         calibration=lambda wc: CALIBRATIONS[wc.calibration],
-        execution=STUDY.get("execution") or {},
+        execution=lambda wc: WF.study.execution.as_kwargs(),
     log:
         "logs/calibrate/{calibration}.log",
     threads: 2
@@ -70,7 +70,7 @@ rule rollout:
         cell="|".join(CELLS) or "^$",
     params:
         cell=lambda wc: CELLS[wc.cell],
-        execution=STUDY.get("execution") or {},
+        execution=lambda wc: WF.study.execution.as_kwargs(),
     log:
         "logs/rollout/{cell}.log",
     threads: 2
