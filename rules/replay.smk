@@ -25,7 +25,7 @@ rule replay_record:
         study=lambda wc: load_study(wc.study),
         options=REPLAY_OPTIONS,
     log:
-        "results/replay/{study}/records/record.log",
+        "logs/replay_record/{study}.log",
     script:
         "../workflow/scripts/replay_record.py"
 
@@ -43,7 +43,7 @@ rule replay_configuration:
         preset=lambda wc: "BASELINE" if wc.replay_format == "fp" else wc.replay_format,
         checkpoint_dir=REPLAY_OPTIONS.get("checkpoint_dir"),
     log:
-        "results/replay/{study}/{replay_format}/{config}.log",
+        "logs/replay_configuration/{study}/{replay_format}/{config}.log",
     script:
         "../workflow/scripts/replay_configuration.py"
 
@@ -60,6 +60,8 @@ rule replay_analyze:
         "results/replay/{study}/{replay_format}/analysis.json",
     params:
         study=lambda wc: load_study(wc.study),
+    log:
+        "logs/replay_analyze/{study}/{replay_format}.log",
     script:
         "../workflow/scripts/replay_analyze.py"
 
@@ -152,7 +154,7 @@ rule diagnostics_collect:
     params:
         checkpoint_dir=REPLAY_OPTIONS.get("checkpoint_dir"),
     log:
-        "results/diagnostics/{model}-{scope}-{preset}.log",
+        "logs/diagnostics_collect/{model}-{scope}-{preset}.log",
     script:
         "../workflow/scripts/diagnostics_collect.py"
 

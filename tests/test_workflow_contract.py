@@ -63,12 +63,17 @@ def test_refused_run_leads_with_its_cause_and_removes_the_stale_table(tmp_path):
     assert table.is_file()
 
     lines = (ROOT / "manifests" / "reference.tsv").read_text().splitlines()
-    changed = "libero/libero_spatial/pi05/rtn-W4A4-ah.jsonl"
+    changed = "libero/libero_spatial/pi05/ablate-W4A4-ah-attn_adarms.jsonl"  # a record tab:lattice reads
     bad = tmp_path / "bad.tsv"
-    bad.write_text("\n".join(line[:-64] + "0" * 64 if line.startswith(changed) else line for line in lines) + "\n")
+    def with_zero_sha(line: str) -> str:
+        fields = line.split("\t")
+        fields[3] = "0" * 64  # path, episodes, successes, sha256, ...
+        return "\t".join(fields)
+
+    bad.write_text("\n".join(with_zero_sha(line) if line.startswith(changed) else line for line in lines) + "\n")
     run = snakemake(workdir, "tables/lattice.tex", config, "--config", f"manifest={bad}")
     assert run.returncode != 0
-    cause = f"{changed} does not match manifest {bad} (SHA-256 differs)"
+    cause = f"{changed} does not match manifest {bad} (SHA-256 differs"
     console = run.stderr
     assert f"paper_table failed: record ../shared/reference/records/{cause}" in console
     # ... and again as the last words of the run, with the log that holds the traceback.
