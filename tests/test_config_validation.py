@@ -43,7 +43,7 @@ def test_every_committed_yaml_satisfies_its_schema(kind):
 
 BROKEN = [  # (schema, file content, the field path and problem the error must name)
     ("config", {"tables": ["lattice"], "study": {"runner": {"max_step": 3}}},
-     r"study.runner: unknown key 'max_step'; allowed keys: camera_size, device, dtype, executed_chunk, flow_steps, max_steps"),
+     r"study.runner: unknown key 'max_step'; allowed keys: camera_size, control_mode, device, dtype, executed_chunk, flow_steps, max_steps, mujoco"),
     ("table", {"caption": "c", "align": "lr", "header": [["a"]], "values": [{"stat": "rate", "cell": "c"}],
                "rows": [{"label": "x", "c": "libero/libero_spatial/pi05/rtn-W4A4-ah"}], "enviroment": "tabular"},
      r"\(top level\): unknown key 'enviroment'; allowed keys: align, bootstrap, caption, cells, environment"),
@@ -82,7 +82,7 @@ def test_defaults_live_in_the_dataclasses_and_the_schema_allows_exactly_their_fi
     assert set(study["properties"]["runner"]["properties"]) == {f.name for f in dataclasses.fields(RunnerConfig)}
     # The Snakefile validates with the same file: workflow/schemas links to the package's schema.
     assert (ROOT / "workflow/schemas/config.schema.yaml").resolve() == (PACKAGE / "config/schemas/config.schema.yaml")
-    assert StudyConfig.from_dict({}).runner == RunnerConfig() and StudyConfig.from_dict({}).episodes_per_task == 20
+    assert StudyConfig.from_dict({}).runner == RunnerConfig() and StudyConfig.from_dict({}).episodes_per_task is None  # each model's client
     with pytest.raises(UserError, match=r"^where: study.tasks: 0 is not valid"):
         validate({"tasks": 0}, "config", "where", subschema=("study",))
 
@@ -106,8 +106,8 @@ def demo_config(tmp_path: Path, edit) -> Path:
 
 MISSPELT = [
     (lambda c: c["study"].update(episodes_per_tsak=2), "study: unknown key 'episodes_per_tsak'; allowed keys: calibration, episodes_per_task"),
-    (lambda c: c["study"]["runner"].update(max_step=3), "study.runner: unknown key 'max_step'; allowed keys: camera_size, device"),
-    (lambda c: c["study"]["models"]["pi05"].update(varient="full"), "study.models.pi05: unknown key 'varient'; allowed keys: checkpoint, revision, variant"),
+    (lambda c: c["study"]["runner"].update(max_step=3), "study.runner: unknown key 'max_step'; allowed keys: camera_size, control_mode, device"),
+    (lambda c: c["study"]["models"]["pi05"].update(varient="full"), "study.models.pi05: unknown key 'varient'; allowed keys: checkpoint, episodes_per_task, revision, runner, variant"),
     (lambda c: c.update(stduy={}), r"\(top level\): unknown key 'stduy'; allowed keys: diagnostics_dir, manifest"),
     (lambda c: c["study"].update(episodes_per_task=0), "study.episodes_per_task: 0 is less than the minimum of 1"),
     (lambda c: c["study"]["models"]["pi05"].update(variant="ful"), "study.models.pi05.variant: 'ful' is not allowed; allowed values: full, demo, random"),

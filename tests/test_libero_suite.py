@@ -60,16 +60,16 @@ def test_missing_asset_package_is_named(monkeypatch):
 @pytest.mark.parametrize(
     ("name", "limits"),
     [
-        ("libero_spatial", (280, 220)),
-        ("libero_object", (280, 280)),
-        ("libero_goal", (300, 300)),
-        ("libero_10", (520, 520)),
+        ("libero_spatial", (280, 220, 800)),
+        ("libero_object", (280, 280, 800)),
+        ("libero_goal", (300, 300, 800)),
+        ("libero_10", (520, 520, 900)),
     ],
 )
 def test_suites_have_ten_tasks_fifty_init_states_and_the_authors_step_limits(name, limits):
     suite = LiberoSuite(name)
     assert suite.n_tasks == 10
-    assert (suite.max_steps("pi05"), suite.max_steps("openvla_oft")) == limits
+    assert (suite.max_steps("pi05"), suite.max_steps("openvla_oft"), suite.max_steps("xvla")) == limits
     assert suite.max_steps("pi0") == suite.max_steps("pi") == limits[0]
     states = suite.init_states(9)
     assert states.ndim == 2 and len(states) == 50
@@ -96,8 +96,8 @@ def test_bad_names_and_indices_are_user_errors(spatial):
         spatial.episodes(episodes_per_task=51, task_ids=[0])
     with pytest.raises(UserError, match="task_id 10 is out of range"):
         spatial.task(10)
-    with pytest.raises(UserError, match="no LIBERO step limit for model 'xvla'"):
-        spatial.max_steps("xvla")
+    with pytest.raises(UserError, match="no LIBERO step limit for model 'octo'"):
+        spatial.max_steps("octo")
     with pytest.raises(UserError, match="num_envs"):
         LiberoVectorEnv(spatial, num_envs=0)
 
@@ -107,6 +107,9 @@ def test_other_mujoco_versions_are_refused_unless_overridden(spatial, monkeypatc
     monkeypatch.setattr(mujoco, "__version__", "3.4.0")
     with pytest.raises(UserError, match=r"MuJoCo 3\.4\.0 is installed .* pip install mujoco==3\.3\.2"):
         LiberoVectorEnv(spatial, num_envs=1)
+    # X-VLA's client pins 3.1.6: the same check against its pin.
+    with pytest.raises(UserError, match=r"only comparable on MuJoCo 3\.1\.6"):
+        simulator_versions(pinned="3.1.6")
     with pytest.warns(UserWarning, match="allow_mujoco_mismatch=True"):
         versions = simulator_versions(allow_mujoco_mismatch=True)
     assert versions["mujoco"] == "3.4.0" and versions["mujoco_pin_overridden"] is True

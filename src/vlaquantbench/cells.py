@@ -40,6 +40,7 @@ from typing import Any
 from vlaquantbench.config.study import RunnerConfig, StudyConfig
 from vlaquantbench.envs import BENCHMARK_SUITES
 from vlaquantbench.errors import UserError
+from vlaquantbench.models.client import client_conventions
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
 from vlaquantbench.quant.methods import METHODS, registered_methods
 from vlaquantbench.quant.patterns import scope_components
@@ -153,6 +154,10 @@ class CellConfig:
     tasks: tuple[int, ...]
     episodes_per_task: int
     runner: RunnerConfig = field(default_factory=RunnerConfig)
+    # The model's released client conventions (`models.client`) and every value of this cell that
+    # differs from them ({key: {client, cell}}): recorded, never silent.
+    client: dict[str, Any] = field(default_factory=dict)
+    overrides: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
     def from_ref(cls, ref: str, study: StudyConfig) -> CellConfig:
@@ -163,9 +168,9 @@ class CellConfig:
         if model not in study.models:
             raise UserError(f"cell {ref!r}: model {model!r} is not in study.models ({', '.join(study.models) or 'none'})")
         weights = study.models[model]
-        runner = study.runner
-        if fields["flow_steps"] is not None:
-            runner = RunnerConfig(**{**asdict(runner), "flow_steps": fields["flow_steps"]})
+        client = client_conventions(model)
+        runner = _runner(study.runner, weights.runner, client, fields["flow_steps"])
+        episodes = weights.episodes_per_task or study.episodes_per_task or client.episodes_per_task
         only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
         seed = study.seed + fields["seed_offset"]
         return cls(
@@ -186,8 +191,10 @@ class CellConfig:
             calibration=_calibration(ref, fields, study, seed),
             seed=seed,
             tasks=tuple(study.task_ids),
-            episodes_per_task=study.episodes_per_task,
+            episodes_per_task=episodes,
             runner=runner,
+            client=client.as_dict(),
+            overrides=_overrides(client, runner, episodes),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -211,6 +218,26 @@ class CellConfig:
     @property
     def config_hash(self) -> str:
         return config_hash(self.to_dict())
+
+
+def _runner(study: RunnerConfig, model: dict[str, Any], client, flow_steps: int | None) -> RunnerConfig:
+    """The study's runner, then the model's own settings, then the client's conventions where unset."""
+    values = {**asdict(study), **model}
+    for key, value in client.runner().items():
+        if values[key] is None:
+            values[key] = value
+    if flow_steps is not None:
+        values["flow_steps"] = flow_steps
+    return RunnerConfig(**values)
+
+
+def _overrides(client, runner: RunnerConfig, episodes: int) -> dict[str, dict[str, Any]]:
+    """The cell values that differ from the model's released client: {key: {client, cell}}."""
+    cell = {**{k: getattr(runner, k) for k in client.runner()}, "episodes_per_task": episodes}
+    released = {**client.runner(), "episodes_per_task": client.episodes_per_task}
+    if runner.max_steps is not None:
+        cell["max_steps"], released["max_steps"] = runner.max_steps, "suite limit"
+    return {k: {"client": released[k], "cell": cell[k]} for k in cell if cell[k] != released[k]}
 
 
 def _check_registries(ref: str, benchmark: str, suite: str, model: str, preset: str, method: str) -> None:

@@ -21,6 +21,10 @@ class ModelWeights:
     variant: str
     checkpoint: str | None = None
     revision: str | None = None  # pinned commit of the checkpoint (40 hex digits)
+    # This model's own settings over the study's (values that differ from its released client's
+    # conventions, `models.client`, are recorded as overrides in each cell)
+    episodes_per_task: int | None = None
+    runner: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -29,7 +33,8 @@ class RunnerConfig:
 
     device: str = "cpu"
     dtype: str = "float32"
-    executed_chunk: int = 10  # actions executed per predicted chunk (pi: 10 of 50)
+    # None: the model's released client (`models.client`): pi 10 of 50, OpenVLA-OFT 8 of 8, X-VLA 30 of 30
+    executed_chunk: int | None = None
     flow_steps: int = 10  # flow-matching integration steps (cell prefix steps<N> overrides)
     max_steps: int | None = None  # None: the suite's step limit for the model family
     camera_size: int = 256
@@ -37,6 +42,10 @@ class RunnerConfig:
     # auto | captured | eager (`models.adapter.resolve_sampler`); hashed because the captured and
     # eager samplers order floating-point operations differently, so actions can differ in the last bits.
     sampler: str = "auto"
+    # LIBERO's arm controller ("delta" | "absolute") and the MuJoCo version the cell must run on;
+    # None: the model's released client (X-VLA absolute and 3.1.6, the others delta and 3.3.2)
+    control_mode: str | None = None
+    mujoco: str | None = None
 
 
 @dataclass(frozen=True)
@@ -68,7 +77,8 @@ class ExecutionConfig:
 class StudyConfig:
     models: dict[str, ModelWeights] = field(default_factory=dict)
     tasks: int | tuple[int, ...] = 10  # a count (tasks 0..N-1) or task ids
-    episodes_per_task: int = 20  # episode i of a task starts from init state i
+    # episode i of a task starts from init state i; None: the model's client (20, X-VLA 19)
+    episodes_per_task: int | None = None
     seed: int = 0  # run seed added to every episode seed (1009*task + episode)
     runner: RunnerConfig = field(default_factory=RunnerConfig)
     calibration: CalibrationProtocol = field(default_factory=CalibrationProtocol)

@@ -11,6 +11,7 @@ cell fails if the adapter's executed length differs from the cell config (paper 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -36,9 +37,10 @@ class AdapterConfig:
     checkpoint: str | None = None
     revision: str | None = None  # the revision the cell pins (full variant)
     checkpoint_dir: str | None = None  # local snapshot of `checkpoint` (full variant)
+    suite: str | None = None  # the LIBERO suite (OpenVLA-OFT's statistics are per suite)
     device: str = RunnerConfig.device
     dtype: str = RunnerConfig.dtype
-    executed_chunk: int = RunnerConfig.executed_chunk
+    executed_chunk: int | None = RunnerConfig.executed_chunk  # None: the model's released client
     flow_steps: int = RunnerConfig.flow_steps
     seed: int = 0  # demo and random weights
     # "captured" or "eager" (`resolve_sampler`). Eager unless a cell resolves otherwise: the replay
@@ -54,6 +56,7 @@ class AdapterConfig:
             checkpoint=cfg["checkpoint"],
             revision=cfg["revision"],
             checkpoint_dir=checkpoint_dir,
+            suite=cfg.get("suite"),
             device=runner["device"],
             dtype=runner["dtype"],
             executed_chunk=runner["executed_chunk"],
@@ -71,6 +74,9 @@ class PolicyAdapter(Protocol):
     # Set by `load`: the header's `tokenizer` and `normalization` records (what the policy's
     # prompts were tokenized with and its actions unnormalized with, with file hashes).
     checkpoint_provenance: dict
+    control_mode: str  # "delta" or "absolute" end-effector actions (the LIBERO controller's mode)
+    # Glob patterns of scoped linear layers the policy never calls (their hooks cannot fire)
+    idle_layers: tuple[str, ...]
 
     @property
     def components(self) -> dict: ...
@@ -92,6 +98,56 @@ class PolicyAdapter(Protocol):
     def act(self, observations: Sequence[dict], generators: Sequence[torch.Generator]) -> np.ndarray:
         """Action chunks `[n, predicted_chunk, 7]` in environment units for n observations."""
         ...
+
+
+class AdapterBase:
+    """What every adapter shares: its config, the model spec's components, per-episode streams and
+    the executed-chunk bounds check. Subclasses set `name` and implement `load` and `act`."""
+
+    name: str
+    supports_captured_sampler = False  # `AdapterConfig.sampler` "captured" (see `resolve_sampler`)
+    control_mode = "delta"  # actions are end-effector pose deltas
+    idle_layers: tuple[str, ...] = ()
+
+    def __init__(self, config: AdapterConfig):
+        self.config = config
+        self.model: nn.Module | None = None
+        self.predicted_chunk = 0
+        if config.executed_chunk is None:  # the released client's (cells always set it)
+            from vlaquantbench.models.client import client_conventions
+
+            config = dataclasses.replace(config, executed_chunk=client_conventions(self.name).executed_chunk)
+            self.config = config
+        self.executed_chunk = config.executed_chunk
+        self._device = torch.device(config.device)
+
+    @property
+    def components(self) -> dict:
+        from vlaquantbench.models.registry import get_model_spec
+
+        return get_model_spec(self.name).components
+
+    def prepare_inference(self, report) -> dict:
+        return {"sampler": "eager"}
+
+    def fast_path_probe(self) -> dict | None:
+        return None
+
+    def reset(self, seed: int) -> torch.Generator:
+        return episode_generator(seed)
+
+    def _start_chunk(self, observations: Sequence, generators: Sequence) -> None:
+        if len(observations) != len(generators):
+            raise ValueError(f"{len(observations)} observations but {len(generators)} generators")
+        invariance = getattr(self, "_invariance", None)
+        if invariance is not None:
+            invariance.batch_size = len(observations)
+
+    def _check_chunk(self) -> None:
+        if not 0 < self.executed_chunk <= self.predicted_chunk:
+            raise UserError(
+                f"{self.name}: executed chunk {self.executed_chunk} must lie in 1..{self.predicted_chunk} (predicted)"
+            )
 
 
 def make_adapter(config: AdapterConfig) -> PolicyAdapter:

@@ -17,7 +17,7 @@ from unittest import mock
 import torch
 from torch import nn
 
-from vlaquantbench.models.registry import Component, seeded_build
+from vlaquantbench.models.registry import Component, randomize_linears, seeded_build
 
 _VLM = "paligemma_with_expert.paligemma.model"
 _EXPERT = "paligemma_with_expert.gemma_expert"
@@ -99,15 +99,3 @@ def checkpoint_widths(modeling: types.ModuleType, folder: str | Path):
         return contextlib.nullcontext()
     return reduced_widths(modeling, json.loads(marker.read_text()))
 
-
-def randomize_linears(model: nn.Module, seed: int) -> None:
-    """Give every linear layer seeded random weights, including those lerobot zero-initialises
-    (the adaRMS `dense` modulations), so every selectable layer affects the demo's output."""
-    generator = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for module in model.modules():
-            if isinstance(module, nn.Linear):
-                std = module.in_features**-0.5
-                module.weight.copy_(torch.randn(module.weight.shape, generator=generator) * std)
-                if module.bias is not None:
-                    module.bias.copy_(torch.randn(module.bias.shape, generator=generator) * 0.02)

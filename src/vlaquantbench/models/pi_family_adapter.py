@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from vlaquantbench.errors import UserError
-from vlaquantbench.models.adapter import AdapterConfig, BatchInvariantLinears, episode_generator
+from vlaquantbench.models.adapter import AdapterBase, BatchInvariantLinears
 from vlaquantbench.models.paligemma_family import REDUCED_WIDTHS_FILE, checkpoint_widths
 from vlaquantbench.models.registry import get_model_spec
 
@@ -76,7 +76,7 @@ def offline_byte_tokenizer():
     return PreTrainedTokenizerFast(tokenizer_object=tokenizer, pad_token="<pad>", unk_token="<unk>")
 
 
-class PiFamilyAdapter:
+class PiFamilyAdapter(AdapterBase):
     """Base of the pi0/pi0.5 adapters; subclasses name the lerobot classes and the model call."""
 
     name: str
@@ -85,18 +85,7 @@ class PiFamilyAdapter:
     config_class: str  # e.g. "PI05Config"
     # Rollout calibration smooths VE, LLM and AH; both pi models leave the one-layer MP uncalibrated.
     calibrated_components = ("ve", "llm", "ah")
-    supports_captured_sampler = False  # `AdapterConfig.sampler` "captured" (see `resolve_sampler`)
 
-    def __init__(self, config: AdapterConfig):
-        self.config = config
-        self.model: nn.Module | None = None
-        self.predicted_chunk = 0
-        self.executed_chunk = config.executed_chunk
-        self._device = torch.device(config.device)
-
-    @property
-    def components(self) -> dict:
-        return get_model_spec(self.name).components
 
     # -- loading ---------------------------------------------------------------------------
     def load(self) -> None:
@@ -118,10 +107,7 @@ class PiFamilyAdapter:
         self._invariance = BatchInvariantLinears(self.model) if eager_cpu else None
         self.predicted_chunk = int(self.policy_config.chunk_size)
         self.image_keys = list(self.policy_config.image_features)
-        if not 0 < self.executed_chunk <= self.predicted_chunk:
-            raise UserError(
-                f"{self.name}: executed chunk {self.executed_chunk} must lie in 1..{self.predicted_chunk} (predicted)"
-            )
+        self._check_chunk()
 
     def _load_checkpoint(self) -> None:
         """The released checkpoint through lerobot's own loaders, after the checks lerobot's loaders
@@ -219,22 +205,10 @@ class PiFamilyAdapter:
         """The policy's preprocessing steps in lerobot's order (`make_<policy>_pre_post_processors`)."""
         raise NotImplementedError
 
-    def prepare_inference(self, report) -> dict:
-        return {"sampler": "eager"}
-
-    def fast_path_probe(self) -> dict | None:
-        return None
-
     # -- episodes --------------------------------------------------------------------------
-    def reset(self, seed: int) -> torch.Generator:
-        return episode_generator(seed)
-
     @torch.no_grad()
     def act(self, observations: Sequence[dict[str, Any]], generators: Sequence[torch.Generator]) -> np.ndarray:
-        if len(observations) != len(generators):
-            raise ValueError(f"{len(observations)} observations but {len(generators)} generators")
-        if self._invariance is not None:
-            self._invariance.batch_size = len(observations)
+        self._start_chunk(observations, generators)
         batch = self.preprocessor(self._lerobot_batch(observations))
         images, image_masks = self._images(batch)
         shape = (self.predicted_chunk, int(self.policy_config.max_action_dim))

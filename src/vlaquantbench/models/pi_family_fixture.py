@@ -20,7 +20,8 @@ import numpy as np
 import torch
 
 from vlaquantbench.hub.tokenizer import REPO_ID as PALIGEMMA_TOKENIZER
-from vlaquantbench.models.paligemma_family import DEMO_WIDTHS, REDUCED_WIDTHS_FILE, randomize_linears, reduced_widths
+from vlaquantbench.models.paligemma_family import DEMO_WIDTHS, REDUCED_WIDTHS_FILE, reduced_widths
+from vlaquantbench.models.registry import randomize_linears
 from vlaquantbench.models.registry import seeded_build
 
 # LIBERO's observation and action layout as the released LIBERO checkpoints declare it.

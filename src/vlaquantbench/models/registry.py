@@ -25,7 +25,7 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.quant.patterns import COMPONENT_NAMES
 
 __all__ = ["COMPONENT_NAMES", "Component", "ModelSpec", "adapter_class", "get_model_spec", "model_names",
-           "rollout_models", "seeded_build"]
+           "randomize_linears", "rollout_models", "seeded_build"]
 
 if TYPE_CHECKING:
     import torch
@@ -117,3 +117,19 @@ def seeded_build(construct: Callable[[], nn.Module], device: torch.device, seed:
         torch.manual_seed(seed)
         with device:
             return construct()
+
+
+def randomize_linears(model: "nn.Module", seed: int) -> None:
+    """Give every linear layer seeded random weights, including those a library zero-initialises
+    (pi0.5's adaRMS `dense` modulations), so every selectable layer affects a demo model's output."""
+    import torch
+    from torch import nn
+
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for module in model.modules():
+            if isinstance(module, nn.Linear):
+                std = module.in_features**-0.5
+                module.weight.copy_(torch.randn(module.weight.shape, generator=generator) * std)
+                if module.bias is not None:
+                    module.bias.copy_(torch.randn(module.bias.shape, generator=generator) * 0.02)

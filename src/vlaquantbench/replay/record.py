@@ -39,7 +39,7 @@ class RecordSettings:
     revision: str | None = None
     checkpoint_dir: str | None = None
     max_steps: int | None = None  # default: the suite's step limit for the model
-    executed_chunk: int = RunnerConfig.executed_chunk
+    executed_chunk: int | None = RunnerConfig.executed_chunk  # None: the model's released client
     flow_steps: int = RunnerConfig.flow_steps
     run_seed: int = 0
     device: str = RunnerConfig.device

@@ -58,7 +58,8 @@ def calibrate(
     max_steps = runner["max_steps"] or suite.max_steps(calib["model"])
     with observe(layers, quantile=settings.quantile, sample_rows=settings.sample_rows) as observer:
         with LiberoVectorEnv(
-            suite, min(num_envs, len(specs)), camera_size=runner["camera_size"], settle_steps=runner["settle_steps"]
+            suite, min(num_envs, len(specs)), camera_size=runner["camera_size"], settle_steps=runner["settle_steps"],
+            control_mode=runner["control_mode"], mujoco=runner["mujoco"],
         ) as env:
             with tqdm(total=len(specs), desc=f"calibrate {calib['model']} {calib['suite']}", unit="ep",
                       disable=not progress) as bar:

@@ -12,6 +12,7 @@ until then they live in the journal, which survives any kill.
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import sys
 from pathlib import Path
@@ -54,6 +55,12 @@ def load_policy(cfg: dict[str, Any], stamp: str | Path | None):
         raise CellFailed(
             f"{cfg.get('ref', cfg['model'])}: adapter executes {adapter.executed_chunk} actions per chunk but the cell config "
             f"says {expected} (predicted {adapter.predicted_chunk})"
+        )
+    mode = cfg["runner"]["control_mode"]
+    if adapter.control_mode != mode:
+        raise CellFailed(
+            f"{cfg.get('ref', cfg['model'])}: the policy's actions are {adapter.control_mode} end-effector poses but the "
+            f"cell config runs LIBERO's controller in {mode!r} mode"
         )
     return adapter
 
@@ -105,7 +112,7 @@ class CellRun:
         from vlaquantbench.quant import QuantConfig, quantize_
 
         cfg = self.cfg
-        self.simulator = simulator_versions()
+        self.simulator = simulator_versions(pinned=cfg["runner"]["mujoco"])
         self.adapter = load_policy(cfg, self.checkpoint_stamp)
         calibration, stats = self._calibration()
         quant = QuantConfig.from_preset(
@@ -134,6 +141,9 @@ class CellRun:
             **{k: cfg[k] for k in ("model", "checkpoint", "revision", "benchmark", "suite", "preset", "scope")},
             **{k: cfg[k] for k in ("only", "exclude", "method", "seed", "episodes_per_task", "calibration")},
             "variant": cfg["variant"],
+            # The model's released client conventions and every value this cell sets differently.
+            "client": cfg["client"],
+            "overrides": cfg["overrides"],
             **{k: getattr(self.adapter, "checkpoint_provenance", {}).get(k) for k in ("tokenizer", "normalization", "widths")},
             "config": cfg,
             "quant_report": quantized["quant_report"],
@@ -186,7 +196,8 @@ class CellRun:
             num_envs = max(1, min(self.num_envs, len(missing)))
             runner = self.cfg["runner"]
             env = LiberoVectorEnv(
-                self.suite, num_envs, camera_size=runner["camera_size"], settle_steps=runner["settle_steps"]
+                self.suite, num_envs, camera_size=runner["camera_size"], settle_steps=runner["settle_steps"],
+                control_mode=runner["control_mode"], mujoco=runner["mujoco"],
             )
             with env:
                 run_episodes(self.adapter, env, missing, self.max_steps, finished)
@@ -194,7 +205,10 @@ class CellRun:
         return self._finish(journal)
 
     def _finish(self, journal: CellJournal) -> Path:
-        selected = set(self.report.result.hooks)
+        # Layers the policy never calls (OFT's SigLIP attention-pool head) keep their quantized weights
+        # and their scope count, but no activation hook can fire on them: reported, not required.
+        idle = {n for n in self.report.result.hooks if any(fnmatch.fnmatchcase(n, p) for p in self.adapter.idle_layers)}
+        selected = set(self.report.result.hooks) - idle
         unfired = sorted(selected - journal.fired)
         if unfired:
             raise CellFailed(
@@ -203,7 +217,7 @@ class CellRun:
             )
         header = {
             **self.header,
-            "hooks": {"selected": len(selected), "fired": len(selected & journal.fired)},
+            "hooks": {"selected": len(selected), "fired": len(selected & journal.fired), "idle": sorted(idle)},
             "nonfinite_episodes": sum(bool(e.get("nonfinite_action")) for e in journal.episodes),
         }
         order = {tuple(getattr(s, k) for k in EPISODE_KEY): n for n, s in enumerate(self.specs)}

@@ -33,7 +33,7 @@ import vlaquantbench
 from vlaquantbench.envs.libero.offline import config_dir
 from vlaquantbench.envs.libero.suite import EpisodeSpec, LiberoSuite
 from vlaquantbench.envs.libero.versions import simulator_versions
-from vlaquantbench.envs.libero.worker import EpisodeStart
+from vlaquantbench.envs.libero.worker import CONTROL_MODES, EpisodeStart
 from vlaquantbench.errors import UserError
 
 ACTION_DIM = 7
@@ -106,6 +106,8 @@ class LiberoVectorEnv:
         *,
         camera_size: int = CAMERA_SIZE,
         settle_steps: int = SETTLE_STEPS,
+        control_mode: str = "delta",
+        mujoco: str | None = None,  # None: the active software environment's pin
         allow_mujoco_mismatch: bool = False,
     ):
         if num_envs < 1:
@@ -114,10 +116,13 @@ class LiberoVectorEnv:
             raise UserError(f"camera_size must be a positive number of pixels, got {camera_size}")
         if settle_steps < 0:
             raise UserError(f"settle_steps must not be negative, got {settle_steps}")
+        if control_mode not in CONTROL_MODES:
+            raise UserError(f"control_mode must be one of {', '.join(CONTROL_MODES)}, got {control_mode!r}")
         self.suite = suite if isinstance(suite, LiberoSuite) else LiberoSuite(suite)
-        self.versions = simulator_versions(allow_mujoco_mismatch)
+        self.versions = simulator_versions(allow_mujoco_mismatch, pinned=mujoco)
         self.camera_size = camera_size
         self.settle_steps = settle_steps
+        self.control_mode = control_mode
         config_dir()  # the workers inherit LIBERO_CONFIG_PATH and MUJOCO_GL
         self._slots: list[_Slot] = []
         self._finalizer = weakref.finalize(self, _close_slots, self._slots)
@@ -280,7 +285,7 @@ class LiberoVectorEnv:
     def _launch(self) -> _Slot:
         ours, theirs = socket.socketpair()
         with theirs:
-            args = [str(theirs.fileno()), str(self.camera_size), str(self.settle_steps)]
+            args = [str(theirs.fileno()), str(self.camera_size), str(self.settle_steps), self.control_mode]
             command = [sys.executable, "-c", _WORKER_MAIN, *args]
             process = subprocess.Popen(command, pass_fds=(theirs.fileno(),), env=_worker_environment())
         return _Slot(process, Connection(ours.detach()))

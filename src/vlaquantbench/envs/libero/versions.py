@@ -15,14 +15,14 @@ from vlaquantbench.errors import UserError
 PINNED_MUJOCO = "3.3.2"  # the main environment's (envs/main.lock.txt); X-VLA's overlay pins 3.1.6
 
 
-def simulator_versions(allow_mujoco_mismatch: bool = False) -> dict[str, str | bool]:
+def simulator_versions(allow_mujoco_mismatch: bool = False, pinned: str | None = None) -> dict[str, str | bool]:
     """Versions for a cell header; raises UserError if MuJoCo is not the version the process's
-    software environment pins (`vlaquantbench.software_env.active()`)."""
+    software environment pins (`vlaquantbench.software_env.active()`), or `pinned` (a cell's `runner.mujoco`)."""
     import mujoco
 
     from vlaquantbench.software_env import active
 
-    found, pinned = mujoco.__version__, active().mujoco
+    found, pinned = mujoco.__version__, pinned or active().mujoco
     if found != pinned:
         message = (
             f"MuJoCo {found} is installed but LIBERO results are only comparable on MuJoCo {pinned} "

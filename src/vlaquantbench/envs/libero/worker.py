@@ -1,6 +1,6 @@
 """One LIBERO environment in its own interpreter, driven by LiberoVectorEnv over a socket.
 
-LiberoVectorEnv starts it as `main([FD, CAMERA_SIZE, SETTLE_STEPS])` in a fresh interpreter. Requests are
+LiberoVectorEnv starts it as `main([FD, CAMERA_SIZE, SETTLE_STEPS, CONTROL_MODE])` in a fresh interpreter. Requests are
 `(command, payload)` pairs; every request gets one reply, `("ok", result)` or `("error", traceback)`.
 `reset` starts an episode, `step` applies one action, `chunk` applies a sequence of actions here, in
 the worker, and replies once with the observation after the last one: a chunk costs one round trip
@@ -22,6 +22,9 @@ from vlaquantbench.envs.libero.suite import EpisodeSpec
 # LIBERO's no-op: arm still (zero delta pose), gripper open (-1). Used to let objects settle after an
 # init state is loaded, as lerobot's LiberoEnv (num_steps_wait=10) and openpi's LIBERO client do.
 DUMMY_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)
+# "delta": actions are end-effector pose deltas (LIBERO's default); "absolute": absolute targets, the
+# controller switched to `use_delta=False` after the settle steps, as X-VLA's client does.
+CONTROL_MODES = ("delta", "absolute")
 
 
 @dataclass(frozen=True)
@@ -57,9 +60,10 @@ def format_observation(raw: dict, instruction: str) -> dict:
 class SlotSimulator:
     """The env of one slot; rebuilt only when the next episode belongs to another task."""
 
-    def __init__(self, camera_size: int, settle_steps: int):
+    def __init__(self, camera_size: int, settle_steps: int, control_mode: str = "delta"):
         self.camera_size = camera_size
         self.settle_steps = settle_steps
+        self.control_mode = control_mode
         self._env = None
         self._bddl_file: str | None = None
         self._instruction = ""
@@ -82,6 +86,8 @@ class SlotSimulator:
         raw = self._env.set_init_state(start.init_state)
         for _ in range(self.settle_steps):
             raw, _, _, _ = self._env.step(DUMMY_ACTION)
+        for robot in self._env.env.robots:  # the settle no-ops are deltas in every mode
+            robot.controller.use_delta = self.control_mode == "delta"
         return format_observation(raw, self._instruction)
 
     def step(self, action: np.ndarray) -> tuple[dict, bool]:
@@ -108,14 +114,14 @@ class SlotSimulator:
         self._bddl_file = None
 
 
-def serve(conn: Connection, camera_size: int, settle_steps: int) -> None:
+def serve(conn: Connection, camera_size: int, settle_steps: int, control_mode: str = "delta") -> None:
     try:
         load_libero()
         import libero.libero.envs  # noqa: F401  (robosuite and MuJoCo load before the start-up reply)
     except Exception:
         conn.send(("error", traceback.format_exc()))
         return
-    simulator = SlotSimulator(camera_size, settle_steps)
+    simulator = SlotSimulator(camera_size, settle_steps, control_mode)
     handlers = {"reset": simulator.start, "step": simulator.step, "chunk": simulator.chunk}
     conn.send(("ok", None))
     try:
@@ -141,5 +147,5 @@ def serve(conn: Connection, camera_size: int, settle_steps: int) -> None:
 def main(argv: list[str]) -> None:
     # Ctrl-C reaches the whole process group; the parent decides and closes its workers.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    fd, camera_size, settle_steps = (int(arg) for arg in argv)
-    serve(Connection(fd), camera_size, settle_steps)
+    fd, camera_size, settle_steps = (int(arg) for arg in argv[:3])
+    serve(Connection(fd), camera_size, settle_steps, argv[3])

@@ -5,8 +5,15 @@ attention-pooling head too: the policy never runs it, which is why the paper obs
 209 VE layers during calibration and why hook accounting reports those 5 as unfired.
 """
 
-from vlaquantbench.models.openvla_oft.architecture import OpenVLAOFT
-from vlaquantbench.models.registry import Component, ModelSpec, seeded_build
+from vlaquantbench.models.openvla_oft.architecture import DEMO, OpenVLAOFT
+from vlaquantbench.models.registry import Component, ModelSpec, randomize_linears, seeded_build
+
+
+def _demo(device, seed):
+    model = seeded_build(lambda: OpenVLAOFT(DEMO), device, seed)
+    randomize_linears(model, seed)
+    return model.eval()
+
 
 SPEC = ModelSpec(
     name="openvla_oft",
@@ -16,5 +23,5 @@ SPEC = ModelSpec(
         "llm": Component(roots=("language_model",), never=("language_model.lm_head",)),
         "ah": Component(roots=("action_head",)),
     },
-    builders={"full": lambda device, seed: seeded_build(OpenVLAOFT, device, seed)},
+    builders={"full": lambda device, seed: seeded_build(OpenVLAOFT, device, seed), "demo": _demo},
 )

@@ -5,12 +5,18 @@ a 24-block soft-prompted transformer as its action head. It has no separate MP s
 checkpoint projects image features with a raw parameter matrix, not a linear layer, so the native
 `multi_modal_projector.image_projection` that lerobot builds in its place belongs to no component.
 The domain-aware action encoder/decoder are embedding lookups, not `nn.Linear`, so never selected.
+
+The demo build keeps every depth (DaViT stages 1/1/9/1, 12 encoder layers, 24 head blocks), the
+window size and the patch layout, so layer names and subset counts equal the full model's; only
+widths and head counts shrink.
 """
+
+import copy
 
 from lerobot.policies.xvla.configuration_xvla import XVLAConfig
 from lerobot.policies.xvla.modeling_xvla import XVLAModel
 
-from vlaquantbench.models.registry import Component, ModelSpec, seeded_build
+from vlaquantbench.models.registry import Component, ModelSpec, randomize_linears, seeded_build
 
 # Florence-2-large as stored with `2toINF/X-VLA-Libero` (remote-code field names; lerobot translates).
 FLORENCE_LARGE = {
@@ -40,12 +46,41 @@ FLORENCE_LARGE = {
     },
 }
 PROPRIO_DIM = 20  # X-VLA-Libero's ee6d state: two 10-D end-effector poses
+CHUNK = 30  # X-VLA-Libero predicts 30 actions (`num_actions` of the release)
+FULL_HEAD = dict(hidden_size=1024, depth=24, num_heads=16)
 
 
-def _build(device, seed):
-    config = XVLAConfig(florence_config=FLORENCE_LARGE, hidden_size=1024, depth=24, num_heads=16, device="cpu")
+def _demo_florence() -> dict:
+    florence = copy.deepcopy(FLORENCE_LARGE)
+    florence["vision_config"].update(dim_embed=[16, 32, 64, 128], num_heads=[1, 2, 4, 8], num_groups=[1, 2, 4, 8],
+                                     projection_dim=64)
+    florence["text_config"].update(d_model=64, encoder_attention_heads=4, decoder_attention_heads=4,
+                                   encoder_ffn_dim=128, decoder_ffn_dim=128)
+    return florence
+
+
+DEMO_FLORENCE = _demo_florence()
+DEMO_HEAD = dict(hidden_size=64, depth=24, num_heads=4)
+
+
+def policy_config(florence: dict, head: dict, **fields) -> XVLAConfig:
+    """lerobot's X-VLA config with X-VLA-Libero's chunk, executed whole as its client does."""
+    return XVLAConfig(florence_config=florence, chunk_size=CHUNK, n_action_steps=CHUNK, **head, **fields)
+
+
+def _build(config: XVLAConfig, device, seed):
     florence = config.get_florence_config()
     return seeded_build(lambda: XVLAModel(config, florence, proprio_dim=PROPRIO_DIM), device, seed)
+
+
+def _full(device, seed):
+    return _build(policy_config(FLORENCE_LARGE, FULL_HEAD, device="cpu"), device, seed)
+
+
+def _demo(device, seed):
+    model = _build(policy_config(DEMO_FLORENCE, DEMO_HEAD, device="cpu"), device, seed)
+    randomize_linears(model, seed)
+    return model.eval()
 
 
 SPEC = ModelSpec(
@@ -55,5 +90,5 @@ SPEC = ModelSpec(
         "llm": Component(roots=("vlm.language_model.encoder",)),
         "ah": Component(roots=("transformer",)),
     },
-    builders={"full": _build},
+    builders={"full": _full, "demo": _demo},
 )

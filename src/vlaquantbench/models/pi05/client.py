@@ -1,0 +1,7 @@
+"""pi0.5's LIBERO client conventions (lerobot's LIBERO evaluation, as the authors ran it)."""
+
+from vlaquantbench.models.client import ClientConventions
+
+# 10 of the 50 predicted actions (paper Sec. 5: executing all 50 lowers success).
+CLIENT = ClientConventions(executed_chunk=10, episodes_per_task=20, control_mode="delta", mujoco="3.3.2",
+                           source="lerobot LIBERO evaluation; paper Sec. 5 and the authors' records")

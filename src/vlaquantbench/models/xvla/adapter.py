@@ -1,0 +1,148 @@
+"""X-VLA adapter (lerobot 0.6.1 `XVLAModel`), driven like X-VLA's released LIBERO client.
+
+Observation -> the primary (agentview) view as LIBERO renders it rotated 180 degrees, the wrist
+view unrotated (the client flips only the primary view; the environment rotates both, so the
+wrist view is turned back), each resized to `IMAGE_SIZE` and ImageNet-normalized -> the proprio
+vector: end-effector position, the first two columns of its rotation matrix (6-D rotation), a zero,
+then ten zeros (the client's 20-D ee6d layout) -> the instruction tokenized to 64 tokens -> domain
+id 3 (LIBERO) -> flow matching over `flow_steps` steps from noise drawn from each episode's own
+generator -> per action: absolute target position, the 6-D rotation as axis-angle, the gripper
+thresholded at 0.5 to +1/-1. The environment runs its controller with absolute targets
+(`control_mode = "absolute"`) and the whole 30-action chunk is executed before the next query.
+
+Full variant: `XVLAPolicy.from_pretrained` on the local snapshot of `2toINF/X-VLA-Libero` (lerobot
+remaps its remote-code Florence-2 weights) and the snapshot's BART tokenizer. Demo variant: the
+reduced-width random-weight model of the model spec and an offline byte-level tokenizer (see
+`pi_family_adapter.offline_byte_tokenizer`). Random variant: the full-size architecture, seeded.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from vlaquantbench.errors import UserError
+from vlaquantbench.models.adapter import AdapterBase, BatchInvariantLinears
+from vlaquantbench.models.registry import get_model_spec
+
+IMAGE_SIZE = 224
+TOKENS = 64  # lerobot's `tokenizer_max_length` for X-VLA
+LIBERO_DOMAIN = 3  # X-VLA's domain id of LIBERO (its client's `domain_id`)
+_IMAGENET_MEAN = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+_IMAGENET_STD = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+
+
+def axis_angle_to_rotate6d(axis_angle: np.ndarray) -> np.ndarray:
+    """[n, 3] axis-angle -> [n, 6]: the first two columns of the rotation matrix."""
+    from scipy.spatial.transform import Rotation
+
+    matrices = Rotation.from_rotvec(axis_angle).as_matrix()
+    return np.concatenate([matrices[:, :, 0], matrices[:, :, 1]], axis=-1)
+
+
+def rotate6d_to_axis_angle(r6d: np.ndarray) -> np.ndarray:
+    """[n, 6] -> [n, 3]: Gram-Schmidt on the two columns, the third by cross product, as axis-angle."""
+    from scipy.spatial.transform import Rotation
+
+    a1, a2 = r6d[:, :3], r6d[:, 3:6]
+    b1 = a1 / (np.linalg.norm(a1, axis=-1, keepdims=True) + 1e-6)
+    b2 = a2 - np.sum(b1 * a2, axis=-1, keepdims=True) * b1
+    b2 = b2 / (np.linalg.norm(b2, axis=-1, keepdims=True) + 1e-6)
+    matrices = np.stack([b1, b2, np.cross(b1, b2)], axis=-1)
+    return Rotation.from_matrix(matrices).as_rotvec()
+
+
+class XVLAAdapter(AdapterBase):
+    name = "xvla"
+    calibrated_components = ("ve", "llm", "ah")  # X-VLA has no MP scope
+    control_mode = "absolute"  # actions are absolute end-effector targets
+
+
+    def load(self) -> None:
+        from vlaquantbench.models.pi_family_adapter import offline_byte_tokenizer
+
+        spec = get_model_spec(self.name)
+        if self.config.variant == "full":
+            self._load_checkpoint()
+        elif self.config.variant in ("demo", "random"):
+            if self.config.variant == "random" and self.config.dtype not in ("float32", "bfloat16"):
+                raise UserError(f"xvla: variant 'random' runs in float32 or bfloat16, not {self.config.dtype!r}")
+            build = "demo" if self.config.variant == "demo" else "full"
+            self.model = spec.build(variant=build, device=self._device, seed=self.config.seed)
+            if self.config.variant == "random" and self.config.dtype == "bfloat16":
+                self.model.to(torch.bfloat16)
+            self.tokenizer = offline_byte_tokenizer()
+        else:
+            raise UserError(f"xvla has no variant {self.config.variant!r}; choose full, demo or random")
+        self.model.eval()
+        eager_cpu = self._device.type == "cpu" and self.config.sampler == "eager"
+        self._invariance = BatchInvariantLinears(self.model) if eager_cpu else None
+        self.predicted_chunk = int(self.model.chunk_size)
+        self._check_chunk()
+
+    def _load_checkpoint(self) -> None:
+        from lerobot.policies.xvla.configuration_xvla import XVLAConfig
+        from lerobot.policies.xvla.modeling_xvla import XVLAPolicy
+        from transformers import AutoTokenizer
+
+        if not self.config.checkpoint_dir:
+            raise UserError(f"xvla: checkpoint {self.config.checkpoint} has no local snapshot; run its download rule")
+        policy_config = XVLAConfig.from_pretrained(self.config.checkpoint_dir, local_files_only=True)
+        policy_config.device = self.config.device
+        policy_config.dtype = self.config.dtype
+        policy = XVLAPolicy.from_pretrained(self.config.checkpoint_dir, config=policy_config, local_files_only=True)
+        self.model = policy.model.to(self._device)
+        self.tokenizer = AutoTokenizer.from_pretrained(self.config.checkpoint_dir, local_files_only=True)
+
+    @torch.no_grad()
+    def act(self, observations: Sequence[dict[str, Any]], generators: Sequence[torch.Generator]) -> np.ndarray:
+        self._start_chunk(observations, generators)
+        model, n = self.model, len(observations)
+        dtype = next(model.parameters()).dtype
+        images = torch.stack([self._view(observations, "agentview"), self._view(observations, "wrist")], dim=1)
+        mask = torch.ones(n, 2, dtype=torch.bool, device=self._device)
+        tokens = self.tokenizer([obs["instruction"] for obs in observations], max_length=TOKENS,
+                                padding="max_length", truncation=True, return_tensors="pt")["input_ids"]
+        proprio = torch.from_numpy(self._proprio(observations)).to(self._device, dtype)
+        domain = torch.full((n,), LIBERO_DOMAIN, dtype=torch.long, device=self._device)
+        enc = model.forward_vlm(tokens.to(self._device), images.to(dtype), mask)
+        # `XVLAModel.generate_actions`, with the starting noise from each episode's own stream.
+        shape = (self.predicted_chunk, model.dim_action)
+        noise = torch.stack([torch.randn(shape, generator=g) for g in generators]).to(self._device, dtype)
+        action = torch.zeros_like(noise)
+        steps = max(1, int(self.config.flow_steps))
+        for i in range(steps, 0, -1):
+            t = torch.full((n,), i / steps, device=self._device, dtype=dtype)
+            x_t = noise * t.view(-1, 1, 1) + action * (1 - t).view(-1, 1, 1)
+            proprio_m, x_t_m = model.action_space.preprocess(proprio, x_t)
+            action = model.transformer(domain_id=domain, action_with_noise=x_t_m, proprio=proprio_m, t=t, **enc)
+        return self._environment_actions(model.action_space.postprocess(action).float().cpu().numpy())
+
+    def _view(self, observations, view: str) -> torch.Tensor:
+        pixels = np.stack([obs[view] for obs in observations])  # n x H x W x 3, rotated 180 by the env
+        if view == "wrist":
+            pixels = pixels[:, ::-1, ::-1]
+        img = torch.from_numpy(np.ascontiguousarray(pixels)).permute(0, 3, 1, 2).float().div(255.0).to(self._device)
+        if tuple(img.shape[2:]) != (IMAGE_SIZE, IMAGE_SIZE):
+            img = torch.nn.functional.interpolate(img, size=(IMAGE_SIZE, IMAGE_SIZE), mode="bilinear", align_corners=False)
+        return (img - _IMAGENET_MEAN.to(img.device)) / _IMAGENET_STD.to(img.device)
+
+    def _proprio(self, observations) -> np.ndarray:
+        state = np.stack([obs["state"] for obs in observations]).astype(np.float64)  # pos, axis-angle, gripper qpos
+        pose = np.concatenate([state[:, :3], axis_angle_to_rotate6d(state[:, 3:6]), np.zeros((len(state), 1))], axis=-1)
+        return np.concatenate([pose, np.zeros_like(pose)], axis=-1).astype(np.float32)
+
+    @staticmethod
+    def _environment_actions(actions: np.ndarray) -> np.ndarray:
+        """[n, chunk, 20] ee6d -> [n, chunk, 7]: target position, axis-angle, gripper +1/-1."""
+        n, chunk, _ = actions.shape
+        flat = actions.reshape(n * chunk, -1)
+        rotation = rotate6d_to_axis_angle(flat[:, 3:9].astype(np.float64))
+        gripper = np.where(flat[:, 9:10] > 0.5, 1.0, -1.0)
+        return np.concatenate([flat[:, :3], rotation, gripper], axis=-1).reshape(n, chunk, 7).astype(np.float32)
+
+
+ADAPTER = XVLAAdapter

@@ -1,0 +1,16 @@
+"""X-VLA's LIBERO client conventions (`evaluation/libero/libero_client.py` of the X-VLA release).
+
+The client executes the whole predicted chunk (30 actions) before querying again; actions are
+absolute end-effector targets (position, 6-D rotation converted to axis-angle, gripper thresholded
+at 0.5), so the arm controller runs with `use_delta=False` after the settle steps. The authors ran
+19 episodes per task under this client (190 per suite). Its environment pins MuJoCo 3.1.6, which
+predates the box-box collision change (paper Sec. "Evaluation-Stack Checks"). Step limits
+800/800/800/900: `envs.libero.suite`.
+"""
+
+from vlaquantbench.models.client import ClientConventions
+
+CHUNK = 30
+
+CLIENT = ClientConventions(executed_chunk=CHUNK, episodes_per_task=19, control_mode="absolute", mujoco="3.1.6",
+                           source="X-VLA libero_client.py; paper app. on benchmarks; the authors' records")
