@@ -1,0 +1,15 @@
+"""Paper `tab:vla_params` regenerated from the model builders on the meta device, compared with the paper's .tex."""
+
+from test_tables_paper import PAPER, latex_rows, paper_rows
+
+from vlaquantbench.tables.vla_params import vla_params_table
+
+
+def test_vla_params_prints_the_papers_rows_and_caption(tmp_path):
+    table = vla_params_table()
+    out = table.write(tmp_path / "vla_params.tex", tmp_path / "vla_params.html")
+    tex = out.read_text()
+    assert latex_rows(tex) == paper_rows("tab:vla_params")
+    caption = tex.split(r"\caption{", 1)[1].split(r"}\label", 1)[0]
+    assert " ".join(caption.split()) in " ".join(PAPER.read_text().split())
+    assert "tab:vla_params" in (tmp_path / "vla_params.html").read_text()
