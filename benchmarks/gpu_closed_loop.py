@@ -148,6 +148,9 @@ def main() -> None:
     parser.add_argument("--min-episodes", type=int, default=2)
     parser.add_argument("--max-steps", type=int, default=None, help="default: the suite's limit for pi0.5")
     parser.add_argument("--camera-size", type=int, default=256)
+    parser.add_argument("--captures", type=int, nargs="*", default=None,
+                        help="batch sizes to capture (default: powers of two up to the largest N; each graph keeps "
+                             "its own memory pool, and 1..64 together exceed an H200's 140 GiB)")
     parser.add_argument("--out", default="benchmarks/results/closed_loop_gpu.json")
     args = parser.parse_args()
 
@@ -167,7 +170,8 @@ def main() -> None:
         quant_header = report.to_header()["quant_report"]
     inference = adapter.prepare_inference(report)
     largest = max(args.num_envs)
-    sizes = sorted({*(1 << k for k in range(largest.bit_length()) if 1 << k <= largest), *args.num_envs})
+    powers = {1 << k for k in range(largest.bit_length())}
+    sizes = sorted({*(powers if args.captures is None else args.captures), *args.num_envs})
     warmups = {b: round(warm_up(adapter, suite, args.camera_size, b), 2) for b in sizes}
     print(f"policy load {load_s:.1f} s, first chunk per batch size (capture) {warmups}", flush=True)
     zero_cost = ZeroCostPolicy(adapter.executed_chunk, adapter.predicted_chunk)
