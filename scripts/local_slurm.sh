@@ -1,0 +1,81 @@
+#!/usr/bin/env bash
+# A single-node SLURM cluster on this machine, for tests and for trying the cluster path by hand.
+#   bash scripts/local_slurm.sh install   # Debian's slurm-wlm and munge (as root)
+#   bash scripts/local_slurm.sh start     # writes /etc/slurm/slurm.conf, starts munged, slurmctld, slurmd
+#   bash scripts/local_slurm.sh stop
+# Partitions `cpu` and `gpu` both map to this node (it has no GPU: the test profile asks for none).
+# No accounting daemon: `sacct` answers nothing, so Snakemake needs `--slurm-status-command squeue`
+# (profiles/slurm-local sets it). srun inside jobs reads only /etc/slurm/slurm.conf, hence that path.
+set -euo pipefail
+STATE=${VQB_SLURM_STATE:-/var/spool/vqb-slurm}
+
+install() {
+    command -v slurmctld >/dev/null && command -v munged >/dev/null && return 0
+    apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq slurm-wlm munge >/dev/null
+}
+
+start() {
+    local node cpus mem
+    node=$(hostname -s)
+    cpus=$(nproc)
+    mem=$(( $(awk '/MemTotal/{print $2}' /proc/meminfo) / 1024 - 1024 ))
+    mkdir -p "$STATE/ctld" "$STATE/d" /etc/slurm /run/munge /var/log/munge /var/lib/munge
+    cat > /etc/slurm/slurm.conf <<CONF
+ClusterName=vqb-local
+SlurmctldHost=$node
+SlurmUser=root
+SlurmdUser=root
+AuthType=auth/munge
+StateSaveLocation=$STATE/ctld
+SlurmdSpoolDir=$STATE/d
+SlurmctldPidFile=$STATE/slurmctld.pid
+SlurmdPidFile=$STATE/slurmd.pid
+SlurmctldLogFile=$STATE/slurmctld.log
+SlurmdLogFile=$STATE/slurmd.log
+ProctrackType=proctrack/linuxproc
+TaskPlugin=task/none
+AccountingStorageType=accounting_storage/none
+JobAcctGatherType=jobacct_gather/none
+JobCompType=jobcomp/none
+MpiDefault=none
+SchedulerType=sched/backfill
+SelectType=select/cons_tres
+SelectTypeParameters=CR_Core_Memory
+ReturnToService=2
+JobRequeue=1
+KillWait=5
+MinJobAge=300
+NodeName=$node CPUs=$cpus RealMemory=$mem State=UNKNOWN
+PartitionName=cpu Nodes=$node Default=YES MaxTime=INFINITE State=UP OverSubscribe=NO
+PartitionName=gpu Nodes=$node MaxTime=INFINITE State=UP
+CONF
+    if [ ! -s /etc/munge/munge.key ]; then
+        dd if=/dev/urandom bs=1 count=1024 of=/etc/munge/munge.key 2>/dev/null
+    fi
+    chown munge:munge /etc/munge/munge.key /run/munge /var/log/munge /var/lib/munge
+    chmod 400 /etc/munge/munge.key
+    pgrep -x munged >/dev/null || runuser -u munge -- /usr/sbin/munged
+    pgrep -x slurmctld >/dev/null || slurmctld -c
+    pgrep -x slurmd >/dev/null || slurmd
+    for _ in $(seq 60); do
+        if sinfo -h -o '%T' 2>/dev/null | grep -qE '^(idle|mixed|allocated)'; then
+            echo "local_slurm: cluster up on $node ($cpus CPUs, $mem MB)"
+            return 0
+        fi
+        sleep 1
+    done
+    echo "local_slurm: node did not become idle; see $STATE/slurmctld.log and $STATE/slurmd.log" >&2
+    sinfo >&2 || true
+    return 1
+}
+
+stop() {
+    scancel --full --quiet --user=root 2>/dev/null || true
+    pkill -x slurmd 2>/dev/null || true
+    pkill -x slurmctld 2>/dev/null || true
+    for _ in $(seq 20); do pgrep -x 'slurmd|slurmctld' >/dev/null || break; sleep 0.5; done
+    echo "local_slurm: stopped"
+}
+
+"${1:?usage: local_slurm.sh install|start|stop}"
