@@ -46,3 +46,14 @@ def test_a_killed_cell_is_not_resumed_by_other_quantization_semantics(tmp_path):
     CellJournal(path, header(RTN)).record([EPISODE], fired=set())
     with pytest.raises(UserError, match=f"quant_semantics: recorded={QUANT_SEMANTICS} current={QUANT_SEMANTICS + 1}"):
         CellJournal(path, header(RTN, quant_semantics=QUANT_SEMANTICS + 1))
+
+
+def test_a_resumed_cell_may_measure_its_fast_path_probe_anew_but_not_change_its_bound(tmp_path):
+    path = tmp_path / "journal.jsonl"
+    probe = {"path": "captured", "device": "cuda", "max_abs_diff": 0.012, "rel_l2": 3.1e-3, "bound": 0.05, "passed": True}
+    CellJournal(path, header(RTN, inference={"sampler": "captured", "fast_path_probe": probe})).record([EPISODE], fired=set())
+    remeasured = {**probe, "max_abs_diff": 0.013, "rel_l2": 3.4e-3}
+    resumed = CellJournal(path, header(RTN, inference={"sampler": "captured", "fast_path_probe": remeasured}))
+    assert resumed.done_keys() == {(0, 0, 0)}
+    with pytest.raises(UserError, match="inference: recorded="):
+        CellJournal(path, header(RTN, inference={"sampler": "captured", "fast_path_probe": {**probe, "bound": 0.1}}))

@@ -21,12 +21,19 @@ EPISODE_KEY = ("task_id", "episode", "seed")
 # `quant_semantics`, which must match) and the cell's names (cells that run the same experiment under
 # different names share one folder; see `cells.hashed_config`).
 RESUMABLE_CHANGES = ("code_revision", "ref", "cell", "subset", "method")
+# What the fast-vs-eager probe measured: on CUDA a rerun's first chunk may differ in the last bits, so
+# only the probe's path, device and bound must match (a rerun that fails the bound is refused anyway).
+PROBE_MEASUREMENTS = ("max_abs_diff", "rel_l2")
 
 
 def _compared(header: dict[str, Any]) -> dict[str, Any]:
     kept = {k: v for k, v in header.items() if k not in RESUMABLE_CHANGES}
     if isinstance(kept.get("config"), dict):
         kept["config"] = {k: v for k, v in kept["config"].items() if k not in RESUMABLE_CHANGES}
+    probe = (kept.get("inference") or {}).get("fast_path_probe")
+    if isinstance(probe, dict):
+        probe = {k: v for k, v in probe.items() if k not in PROBE_MEASUREMENTS}
+        kept["inference"] = {**kept["inference"], "fast_path_probe": probe}
     return kept
 
 
