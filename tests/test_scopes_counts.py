@@ -7,6 +7,7 @@ import json
 
 import pytest
 
+from vlaquantbench.cells import quantized_counts
 from vlaquantbench.cli import main as vqb
 from vlaquantbench.errors import UserError
 from vlaquantbench.models import get_model_spec
@@ -90,7 +91,8 @@ def reference_cells():
 @pytest.mark.skipif(not LIBERO_RECORDS.is_dir(), reason="reference records not beside the checkout")
 @pytest.mark.parametrize("path, header", list(reference_cells()) if LIBERO_RECORDS.is_dir() else [])
 def test_authors_recorded_counts_are_reproduced(path, header):
-    """Each reference cell's quant_report (layers and parameters per component) from its name."""
+    """Each reference cell's quant_report (layers and parameters per component) from its name: on the built
+    architecture, and in total on the committed layer index, as the tables count cells known only from a summary."""
     model, scope = header["model"], header["scope"]
     parts = path.stem.split("-")
     subset = get_subset(model, parts[3]) if len(parts) > 3 else None
@@ -98,6 +100,8 @@ def test_authors_recorded_counts_are_reproduced(path, header):
     recorded = {c: {"layers": v["layers"], "params": v["params"]}
                 for c, v in header["quant_report"].items() if c != "act_calib"}
     assert got == recorded
+    ref = "/".join(path.relative_to(RECORDS).with_suffix("").parts)
+    assert quantized_counts(ref) == {key: sum(v[key] for v in recorded.values()) for key in ("layers", "params")}
 
 
 def run_cli(capsys, *argv):
@@ -156,14 +160,17 @@ def test_oft_vision_forward_leaves_exactly_the_attention_pool_unfired():
 
 @pytest.mark.parametrize("model", sorted(PAPER))
 def test_committed_layer_index_is_the_real_architecture(model):
-    """The workflow checks subset patterns against `models/<model>/linears.json` without torch; it must be
-    what the real builders give (regenerate with `vqb scopes --write-index`), for every variant."""
-    from vlaquantbench.models.layer_index import linear_names
+    """The workflow checks subset patterns against `models/<model>/linears.json` without torch, and the tables
+    count #L and Params of summary-only cells on it; it must be what the real builders give (regenerate with
+    `vqb scopes --write-index`): every layer's weight parameters on the full architecture, the same names
+    for every variant."""
+    from vlaquantbench.models.layer_index import linear_names, linear_params
     from vlaquantbench.quant.scope import eligible_linears
 
     spec = get_model_spec(model)
+    built = eligible_linears(meta_model(model), spec.components)
+    assert {c: {n: layer.weight.numel() for n, layer in g.items()} for c, g in built.items()} == linear_params(model)
     index = linear_names(model)
-    assert {c: list(g) for c, g in eligible_linears(meta_model(model), spec.components).items()} == index
     for variant in set(spec.builders) - {"full"}:
         built = eligible_linears(spec.build(variant, device="meta"), spec.components)
         assert {c: list(g) for c, g in built.items()} == index, variant

@@ -108,6 +108,9 @@ GOOD_TABLE = {"caption": "c", "align": "lr", "header": [["a", "b"]], "values": [
         ({"rows": [{"label": "x"}]}, "rows.0 \\(x\\) names no cell 'a'"),
         ({"rows": [{"label": "x", "a": "rtn-W4A4-ah"}]}, "rows.0.a: 'rtn-W4A4-ah' does not match"),
         ({"captoin": "c"}, "unknown key 'captoin'; allowed keys: align, bootstrap, caption, cells, environment, header"),
+        ({"rows": [{"label": "x", "a": "libero/libero_spatial/pi05/rtn-W4A4-ah", "override": {"params": {"bold": True}}}]},
+         r"rows.0 \(x\) overrides no column of stat params"),
+        ({"rows": [{"section": "baseline {rate}"}]}, r"rows.0: the section prints \{rate\} but names no cell"),
     ],
 )
 def test_bad_table_definitions_are_named(tmp_path, change, message):

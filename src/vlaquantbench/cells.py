@@ -277,6 +277,27 @@ def _subset_patterns(ref: str, model: str, scope: str, subset: str | None) -> tu
     return only, exclude
 
 
+def quantized_counts(ref: str) -> dict[str, int]:
+    """Layers and weight parameters the cell `ref` quantizes: its scope and subset on the model's committed
+    layer index (the architecture built on the meta device; no torch, no records). What a cell known only
+    from a summary row, which has no run header, still says about its #L and Params."""
+    from vlaquantbench.models.layer_index import selected_counts
+    from vlaquantbench.quant.presets import parse_preset
+
+    _, _, model, name = parse_ref(ref)
+    fields = parse_cell_name(name, ref)
+    try:
+        model_package(model)
+        baseline = parse_preset(fields["preset"]).is_baseline
+    except UserError as err:
+        raise UserError(f"cell {ref!r}: {err}") from None
+    if baseline:
+        return {"layers": 0, "params": 0}
+    only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
+    counts = selected_counts(model, fields["scope"], only, exclude).values()
+    return {key: sum(component[key] for component in counts) for key in ("layers", "params")}
+
+
 def _calibration(ref: str, fields: dict[str, Any], study: StudyConfig, seed: int) -> CellCalibration | None:
     parsed = fields["calibration"]
     statistics = METHODS[fields["method"]].statistics if fields["method"] in METHODS else None

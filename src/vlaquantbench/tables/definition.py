@@ -19,6 +19,8 @@ rows:
   - {midrule: true}
   - {label: SIMPLER-VM, unavailable: 'needs per-episode records that are not published'}
   - {label: BF16, cell: 'latency:openvla_oft/baseline.jsonl'}   # `<source>:<path>`: a file of config `sources`
+  - {section: '\\emph{OpenVLA-OFT, baseline {rate}\\%}', cell: ...}  # {rate}: the cell's success rate
+  - {label: fc2, cell: ..., override: {params: {bold: true, digits: 0}}}  # column options (bold, digits, key, wrap) for this row, by stat
 bootstrap: {draws: 5000, seed: 0, stream: shared}   # optional; for `bootstrap` columns
 ```
 A row names its cells under its own keys (they override `cells`); a null cell prints `--`.
@@ -54,8 +56,12 @@ STATS = {
     "max": ("cell", "field"),  # maximum over episodes (a session's peak memory: each episode logs the peak so far)
     "value": ("cell", "key"),  # a number from a .json measurement file: dotted `key` ({name} filled from the row's `fill`),
     # `index` into a list, times `scale`, `signed` for a leading +
+    "params": ("cell",),  # weight parameters of the layers the cell quantizes (its scope and subset on the model's
+    # layer index, built from the architecture on the meta device), as 28.7K / 117.4M / 7.44B; `--` for none
+    "text": ("cell", "key"),  # a string: dotted `key` of a .json measurement file, or a field of the cell's run
+    # header or summary row (`checkpoint`); `wrap: path|texttt`
 }
-DEFAULT_DIGITS = {"median_ms": 1, "max": 2, "value": 2}
+DEFAULT_DIGITS = {"median_ms": 1, "max": 2, "value": 2, "params": 1}
 ROW_KINDS = ("label", "section", "midrule")
 
 
@@ -82,6 +88,7 @@ class ColumnSpec:
     scale: float = 1.0  # value: printed multiplied by this
     digits: int | None = None  # decimals printed (median_ms 1, max 2, value 2 unless given)
     signed: bool = False  # value: print a leading + for positive numbers
+    wrap: str = ""  # text: printed inside \\path{} or \\texttt{}
 
     def keys(self) -> list[str]:
         """The row keys naming this column's cells."""
@@ -122,7 +129,7 @@ class TableDefinition:
                            labels=tuple(str(label) for label in spec.get("labels") or ()), within_pp=spec.get("within_pp"),
                            field=spec.get("field", ""), key=spec.get("key", ""), index=spec.get("index"),
                            scale=float(spec.get("scale", 1.0)), digits=spec.get("digits", DEFAULT_DIGITS.get(stat)),
-                           signed=bool(spec.get("signed")))
+                           signed=bool(spec.get("signed")), wrap=spec.get("wrap", ""))
             )
         shared = raw.get("cells") or {}
         rows = []
@@ -130,9 +137,14 @@ class TableDefinition:
             kinds = [kind for kind in ROW_KINDS if kind in row]
             if len(kinds) != 1:
                 raise UserError(f"{where}: rows.{index} needs exactly one of {', '.join(ROW_KINDS)}, got {sorted(row)}")
+            if "{rate}" in row.get("section", "") and not row.get("cell"):
+                raise UserError(f"{where}: rows.{index}: the section prints {{rate}} but names no cell")
             if kinds[0] != "label" or "unavailable" in row:
                 rows.append(dict(row))
                 continue
+            unknown = sorted(set(row.get("override", {})) - {spec.stat for spec in values})
+            if unknown:
+                raise UserError(f"{where}: rows.{index} ({row['label']}) overrides no column of stat {', '.join(unknown)}")
             merged = {**shared, **row}
             for spec in values:
                 for key in spec.keys():
@@ -151,7 +163,8 @@ class TableDefinition:
     def refs(self) -> list[str]:
         """Every cell reference the table reads, sorted: the workflow's inputs for this table."""
         keys = {key for spec in self.values for key in spec.keys()}
-        return sorted({row[key] for row in self.cell_rows() for key in keys if row[key]})
+        sections = {row["cell"] for row in self.rows if "section" in row and row.get("cell")}
+        return sorted({row[key] for row in self.cell_rows() for key in keys if row[key]} | sections)
 
 
 def load_table(path: str | Path) -> TableDefinition:

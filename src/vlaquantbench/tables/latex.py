@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 import logging
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Callable, Mapping
 
 import numpy as np
 
+from vlaquantbench.cells import quantized_counts
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import Cell, read_cell
 from vlaquantbench.records.summary import SummaryCell, read_summary
@@ -40,8 +41,12 @@ class MeasurementFile:
         except (OSError, json.JSONDecodeError) as err:
             raise UserError(f"cell {ref}: {path} is not a readable JSON file ({err})") from err
 
-    def get(self, key: str, index: int | None):
+    def get(self, key: str, index: int | None = None):
         """The number at dotted `key` (e.g. `configs.attention.executed_action_mae`), element `index` of a list."""
+        return float(self.lookup(key, index))
+
+    def lookup(self, key: str, index: int | None = None):
+        """What the file holds at dotted `key`, element `index` of a list."""
         value = self.values
         for part in key.split("."):
             if not isinstance(value, dict) or part not in value:
@@ -51,7 +56,7 @@ class MeasurementFile:
             if not isinstance(value, list) or not -len(value) <= index < len(value):
                 raise UserError(f"cell {self.ref}: {self.path}: {key!r} has no element {index}")
             value = value[index]
-        return float(value)
+        return value
 
 
 AnyCell = Cell | SummaryCell | MeasurementFile
@@ -60,6 +65,24 @@ AnyCell = Cell | SummaryCell | MeasurementFile
 def _signed(value: float) -> str:
     # Adding 0.0 turns a rounded -0.0 into +0.0, as the paper prints no-change contrasts.
     return f"{round(value, 1) + 0.0:+.1f}"
+
+
+# Parameter counts as the paper prints them: 28.7K, 117.4M, 7.44B.
+SI_PREFIXES = ((1e9, "B"), (1e6, "M"), (1e3, "K"))
+
+
+def _si(count: int, digits: int) -> str:
+    scale, prefix = next(((scale, prefix) for scale, prefix in SI_PREFIXES if count >= scale), (1, ""))
+    return f"{count / scale:.{digits}f}{prefix}"
+
+
+def _text(cell: AnyCell, key: str, ref: str) -> str:
+    """A string of the cell: at `key` of a .json measurement file, else a field of its run header or summary row."""
+    if isinstance(cell, MeasurementFile):
+        return str(cell.lookup(key))
+    if not cell.header.get(key):
+        raise UserError(f"cell {ref}: {cell.path} records no {key}")
+    return str(cell.header[key])
 
 
 def _rate(cell: AnyCell) -> float:
@@ -125,8 +148,14 @@ def _format(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell], bootstrap
     elif spec.stat == "rate_ci":
         low, high = wilson_interval(cell.n_successes, cell.n_episodes)
         text = f"{_rate(cell):.1f} [{low:.0f},{high:.0f}]"
-    elif spec.stat == "layers":
-        text = str(cell.quantized_layers)
+    elif spec.stat == "layers":  # a summary row has no run header: counted on the model's layer index
+        text = str(quantized_counts(ref)["layers"] if isinstance(cell, SummaryCell) else cell.quantized_layers)
+    elif spec.stat == "params":
+        params = quantized_counts(ref)["params"]
+        text = _si(params, spec.digits) if params else MISSING
+    elif spec.stat == "text":
+        text = _text(cell, spec.key, ref)
+        text = rf"\{spec.wrap}{{{text}}}" if spec.wrap else text
     elif spec.stat == "nonfinite":
         text = MISSING if cell.n_nonfinite is None else str(cell.n_nonfinite)
     elif spec.stat == "delta":
@@ -149,6 +178,12 @@ def bootstrapper(spec: BootstrapSpec) -> Callable:
     return partial(task_clustered_bootstrap, draws=spec.draws, seed=spec.seed, rng=shared)
 
 
+def _section(row: dict, cells: Mapping[str, AnyCell]) -> str:
+    """A full-width line; `{rate}` in it is the success rate of the row's `cell` (e.g. a block's baseline)."""
+    text = row["section"]
+    return text.replace("{rate}", f"{_rate(cells[row['cell']]):.1f}") if "{rate}" in text else text
+
+
 def _labels(row: dict) -> list[str]:
     label = row["label"]
     return list(label) if isinstance(label, list) else [label]
@@ -164,11 +199,12 @@ def table_rows(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> lis
         if "midrule" in row:
             rows.append(MIDRULE)
         elif "section" in row:
-            rows.append([rf"\multicolumn{{{width}}}{{l}}{{{row['section']}}}"])
+            rows.append([rf"\multicolumn{{{width}}}{{l}}{{{_section(row, cells)}}}"])
         elif "unavailable" in row:
             rows.append([*_labels(row), *[UNAVAILABLE] * len(definition.values)])
         else:
-            rows.append([*_labels(row), *(format_value(spec, row, cells, bootstrap) for spec in definition.values)])
+            specs = [replace(spec, **row.get("override", {}).get(spec.stat, {})) for spec in definition.values]
+            rows.append([*_labels(row), *(format_value(spec, row, cells, bootstrap) for spec in specs)])
     return rows
 
 
@@ -180,6 +216,12 @@ DEMO_NOTE = (
 
 def _escape(text: str) -> str:
     return text.replace("_", r"\_")
+
+
+def _short_names(refs: list[str]) -> list[str]:
+    """`<model>/<cell>` of each reference, or `<suite>/<model>/<cell>` where that alone would repeat a name."""
+    short = [ref.split("/", 2)[-1] for ref in refs]
+    return short if len(set(short)) == len(set(refs)) else [ref.split("/", 1)[-1] for ref in refs]
 
 
 def episode_counts(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
@@ -219,7 +261,7 @@ def caption(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> str:
         from_summary = [ref for ref in refs if isinstance(cells.get(ref), SummaryCell)]
         which = "All cells" if len(from_summary) == len([r for r in refs if r in cells]) else (
             f"{len(from_summary)} of {len([r for r in refs if r in cells])} cells ("
-            + ", ".join(_escape(ref.split("/", 2)[-1]) for ref in from_summary) + ")"
+            + ", ".join(_escape(name) for name in _short_names(from_summary)) + ")"
         )
         text += f" {which} come from the authors' per-cell summary ({_escape(', '.join(summary))}), not from episode records."
     unavailable = [row for row in definition.rows if "unavailable" in row]
