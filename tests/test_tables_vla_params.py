@@ -1,4 +1,5 @@
-"""Paper `tab:vla_params` regenerated from the model builders on the meta device, compared with the paper's .tex."""
+"""Paper `tab:vla_params` regenerated from the models' layer index (the architectures built on the meta device;
+tests/test_scopes_counts.py checks the index against the builders), compared with the paper's .tex."""
 
 from test_tables_paper import PAPER, latex_rows, paper_rows
 

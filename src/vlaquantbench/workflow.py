@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 from vlaquantbench.errors import UserError
 
@@ -94,10 +94,21 @@ class WorkflowConfig:
             return self.basedir / study_dir
         return self.basedir / "config" / "tables"
 
+    @cached_property
+    def _definitions(self) -> dict[Path, Any]:
+        return {}
+
+    def _definition(self, path: Path, load: Callable[[Path], Any]) -> Any:
+        """A table or figure definition, read and validated once per workflow parse: the rules' input
+        functions ask for each many times while the DAG is built."""
+        if path not in self._definitions:
+            self._definitions[path] = load(path)
+        return self._definitions[path]
+
     def table(self, name: str) -> "TableDefinition":
         from vlaquantbench.tables import load_table
 
-        return load_table(self.tables_dir / f"{name}.yaml")
+        return self._definition(self.tables_dir / f"{name}.yaml", load_table)
 
     def table_names(self) -> list[str]:
         """Tables defined by a `<tables_dir>/<name>.yaml` (the paper tables built from records)."""
@@ -106,7 +117,7 @@ class WorkflowConfig:
     def figure(self, name: str) -> "ScopeRecoveryFigure":
         from vlaquantbench.figures import load_figure
 
-        return load_figure(self.basedir / "config" / "figures" / f"{name}.yaml")
+        return self._definition(self.basedir / "config" / "figures" / f"{name}.yaml", load_figure)
 
     @property
     def success_summary(self) -> Path | None:

@@ -16,11 +16,18 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from typing import TYPE_CHECKING
+
 import yaml
-from jsonschema import Draft202012Validator
-from jsonschema.exceptions import ValidationError
 
 from vlaquantbench.errors import UserError
+
+if TYPE_CHECKING:
+    from jsonschema.exceptions import ValidationError
+
+# libyaml's parser where PyYAML was built with it: the workflow parses every table definition while it
+# builds the DAG, and the pure-Python parser made that several seconds.
+YAML_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 SCHEMAS = ("config", "table", "figure", "scopes", "cohort", "replay_study")
 # The Snakefile's `configfile:`; `snakemake --configfile FILE` merges FILE over it.
@@ -36,18 +43,27 @@ def schema_path(name: str) -> Path:
 
 @functools.cache
 def schema(name: str) -> dict[str, Any]:
-    loaded = yaml.safe_load(schema_path(name).read_text())
+    from jsonschema import Draft202012Validator  # here, not at import: a workflow job that only renders skips it
+
+    loaded = yaml.load(schema_path(name).read_text(), Loader=YAML_LOADER)
     Draft202012Validator.check_schema(loaded)
     return loaded
+
+
+@functools.cache
+def _validator(name: str, subschema: tuple[str, ...]):
+    from jsonschema import Draft202012Validator
+
+    rules = schema(name)
+    for key in subschema:
+        rules = rules["properties"][key]
+    return Draft202012Validator(rules)
 
 
 def validate(data: Any, schema_name: str, where: str, subschema: tuple[str, ...] = ()) -> Any:
     """`data` if it satisfies schema `schema_name` (or the part of it at the property path `subschema`,
     e.g. ("study",)); else UserError `<where>: <field.path>: <problem>` for every violation."""
-    rules = schema(schema_name)
-    for key in subschema:
-        rules = rules["properties"][key]
-    errors = sorted(Draft202012Validator(rules).iter_errors(data), key=lambda e: [str(p) for p in e.absolute_path])
+    errors = sorted(_validator(schema_name, tuple(subschema)).iter_errors(data), key=lambda e: [str(p) for p in e.absolute_path])
     if errors:
         lines = [_describe(error, subschema) for error in errors]
         raise UserError(f"{where}: " + ("\n  ".join([""] + lines) if len(lines) > 1 else lines[0]))
@@ -64,7 +80,7 @@ def _parse(path: str | Path) -> Any:
     if not path.is_file():
         raise UserError(f"{path}: no such file")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.load(path.read_text(), Loader=YAML_LOADER)
     except yaml.YAMLError as err:
         raise UserError(f"{path}: not valid YAML ({err})") from None
     return {} if data is None else data

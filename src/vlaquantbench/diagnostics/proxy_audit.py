@@ -8,7 +8,6 @@ import math
 from pathlib import Path
 
 import pandas as pd
-from scipy.stats import spearmanr
 
 from vlaquantbench.atomic import atomic_write
 from vlaquantbench.diagnostics.files import DIAGNOSTICS, Diagnostics
@@ -62,6 +61,8 @@ def _rate(rates: dict[str, float], ref: str) -> float:
 
 def correlations(scopes: pd.DataFrame) -> pd.DataFrame:
     """Spearman rho (average ranks) between each diagnostic and success loss, per model."""
+    from scipy.stats import spearmanr  # here, not at import: the workflow loads the cohort while it builds the DAG
+
     out = []
     for model, group in scopes.groupby("model", sort=False):
         row = {"model": model, "scopes": len(group)}

@@ -6,17 +6,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from vlaquantbench.atomic import atomic_write  # noqa: E402
-from vlaquantbench.config import load_yaml  # noqa: E402
-from vlaquantbench.errors import UserError  # noqa: E402
-from vlaquantbench.records import Cell  # noqa: E402
-from vlaquantbench.stats import wilson_interval  # noqa: E402
-from vlaquantbench.tables.latex import read_cells  # noqa: E402
+from vlaquantbench.atomic import atomic_write
+from vlaquantbench.config import load_yaml
+from vlaquantbench.errors import UserError
+from vlaquantbench.records import Cell
+from vlaquantbench.stats import wilson_interval
+from vlaquantbench.tables.latex import read_cells
 
 
 @dataclass(frozen=True)
@@ -47,6 +42,12 @@ def plot_scope_recovery(
 ) -> Path:
     """Draw the figure from its cells' records (`cell_paths`); cells without records (the seed-1/2 repeats of
     the reference data) come from `summary`."""
+    # matplotlib here, not at import: the workflow loads the figure's definition while it builds the DAG.
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     cells = read_cells(figure.refs(), cell_paths, summary, "figure scope_recovery")
     baseline = _rate(cells[figure.baseline])
     fig, (left, right) = plt.subplots(1, 2, figsize=(7.5, 2.8), constrained_layout=True)
