@@ -12,7 +12,6 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from vlaquantbench.cells import quantized_counts
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import Cell, read_cell
 from vlaquantbench.records.summary import SummaryCell, read_summary
@@ -74,6 +73,14 @@ SI_PREFIXES = ((1e9, "B"), (1e6, "M"), (1e3, "K"))
 def _si(count: int, digits: int) -> str:
     scale, prefix = next(((scale, prefix) for scale, prefix in SI_PREFIXES if count >= scale), (1, ""))
     return f"{count / scale:.{digits}f}{prefix}"
+
+
+def _counted(ref: str) -> dict[str, int]:
+    # cells (the cell-name grammar and its registries) only where a table counts layers: every other table job
+    # skips importing it.
+    from vlaquantbench.cells import quantized_counts
+
+    return quantized_counts(ref)
 
 
 def _text(cell: AnyCell, key: str, ref: str) -> str:
@@ -149,9 +156,9 @@ def _format(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell], bootstrap
         low, high = wilson_interval(cell.n_successes, cell.n_episodes)
         text = f"{_rate(cell):.1f} [{low:.0f},{high:.0f}]"
     elif spec.stat == "layers":  # a summary row has no run header: counted on the model's layer index
-        text = str(quantized_counts(ref)["layers"] if isinstance(cell, SummaryCell) else cell.quantized_layers)
+        text = str(_counted(ref)["layers"] if isinstance(cell, SummaryCell) else cell.quantized_layers)
     elif spec.stat == "params":
-        params = quantized_counts(ref)["params"]
+        params = _counted(ref)["params"]
         text = _si(params, spec.digits) if params else MISSING
     elif spec.stat == "text":
         text = _text(cell, spec.key, ref)
