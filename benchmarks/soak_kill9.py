@@ -2,18 +2,40 @@
 count lost and duplicated episodes and check the resumed records against an uninterrupted run.
 
     .venv/bin/python benchmarks/soak_kill9.py --kills 20 --out benchmarks/results/soak_kill9_cpu.json
-    .venv/bin/python benchmarks/soak_kill9.py --kills 2 --tasks 0 --episodes-per-task 3 --max-steps 10  # CI's
+    .venv/bin/python benchmarks/soak_kill9.py --kills 2 --write-kills 1 --tasks 0 --episodes-per-task 3 \
+        --max-steps 10 --window 4 --startup-window 8 --anchor-p 0 0 1  # CI's (tests/test_runner_soak.py)
 
-Each attempt runs `runner.cell.run_cell` in a fresh process group (the runner and its LIBERO
-workers). A seeded RNG picks, per attempt, when the whole group gets SIGKILL: with probability
-`--startup-kill-p` at a uniform moment of the first `--startup-window` seconds after launch (policy
-load, quantization, worker start-up), otherwise at a uniform moment of the `--window` seconds after
-the attempt's first new journal line (mid-episode, mid-reset, mid-append). After the last kill the
-cell runs to completion. Reported: kills that landed, episodes lost (in the uninterrupted run but
-not in the resumed one) and duplicated (journal lines for an episode already recorded), whether
-`episodes.parquet` ever appeared before the cell was complete, and whether every episode's outcome,
-step count and action digest and the records themselves (timing columns aside) equal the
-uninterrupted run's.
+The cell first runs uninterrupted in one folder (the reference), then, in another, through the
+kills. Each attempt runs `runner.cell.run_cell` in a fresh process group (the runner and its LIBERO
+workers), and a kill is SIGKILL to the whole group. A seeded RNG times the first
+`kills - write_kills` kills from one of three anchors, chosen with probabilities `--anchor-p`:
+
+    startup   launch (policy load, quantization): uniform in the reference's start-up time
+    episodes  the LIBERO workers' appearance (the runner starts them once the policy is ready; env
+              construction, resets, mid-episode): uniform in `--window` s
+    append    the attempt's first new journal line (right after an append, mid-episode of the
+              other slots and of the next ones): uniform in `--window` s
+
+`--window` defaults to one round of episodes of the reference run (its running time over
+episodes / envs). Only `append` kills are sure to make progress, so the cell outlives its kills.
+
+The last `--write-kills` kills land while the records are being written: the soak watches the cell
+folder (every `--poll` s) for the atomic writer's temporary files (`.header.json.*.tmp`,
+`.episodes.parquet.*.tmp`) and kills the group the moment one appears. The first such attempt runs
+the cell's remaining episodes and is killed in its final write; later ones find every episode in
+the journal and are killed while they rewrite the records. An attempt whose write ends before the
+soak sees it is a miss (counted, not a kill).
+
+A journal append is one `write()` of whole lines, which SIGKILL cannot cut, so `journal_torn` (a
+last line without its newline after a kill) is reported rather than expected; tests/
+test_runner_journal.py covers a torn line directly.
+
+Reported: kills that landed, per phase; episodes lost (in the uninterrupted run, or journaled by some
+attempt, but not in the resumed records) and duplicated (journal lines for an episode already
+recorded); whether `episodes.parquet` ever existed while the journal was incomplete, or ever failed
+to read as the whole cell; temporary files left behind; and whether every episode's outcome, step
+count and action digest, the records (timing columns aside) and the header equal the uninterrupted
+run's. Exit status 1 if anything but 0 lost / 0 duplicated / exact resume was measured.
 """
 
 from __future__ import annotations
@@ -21,6 +43,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import os
 import platform
 import random
@@ -33,13 +56,17 @@ from collections import Counter
 from pathlib import Path
 
 from vlaquantbench.cells import cell_config
+from vlaquantbench.errors import UserError
 from vlaquantbench.records import read_cell
+from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE
 from vlaquantbench.runner.cell import JOURNAL
 
 RUN_CELL = ("import json, sys; from vlaquantbench.runner.cell import run_cell; "
             "run_cell(json.loads(sys.argv[1]), sys.argv[2], num_envs=int(sys.argv[3]), progress=False)")
 TIMING = ["wall_time_s", "policy_batch_latency_mean_s"]
 KEY = ("task_id", "episode", "seed")
+ANCHORS = ("startup", "episodes", "append")
+WRITES = (f".{HEADER_FILE}.", f".{EPISODES_FILE}.")  # the atomic writer's temporary files: `.<name>.<...>.tmp`
 
 
 def journal_lines(folder: Path) -> list[dict]:
@@ -53,62 +80,154 @@ def journal_episodes(folder: Path) -> list[dict]:
     return [r for r in journal_lines(folder) if r["kind"] == "episode"]
 
 
-def launch(cfg: dict, folder: Path, num_envs: int) -> subprocess.Popen:
+def episode_key(record: dict) -> tuple:
+    return tuple(record[k] for k in KEY)
+
+
+def temporary_files(folder: Path) -> list[str]:
+    if not folder.is_dir():
+        return []
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith(WRITES) and p.name.endswith(".tmp"))
+
+
+def launch(cfg: dict, folder: Path, num_envs: int, stderr=subprocess.DEVNULL) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-c", RUN_CELL, json.dumps(cfg), str(folder), str(num_envs)],
-                            start_new_session=True, stderr=subprocess.DEVNULL)
+                            start_new_session=True, stderr=stderr)
 
 
-def complete(cfg: dict, folder: Path, num_envs: int) -> float:
+def complete(cfg: dict, folder: Path, num_envs: int) -> dict:
+    """Run the cell to the end; its wall time and start-up time (launch to the journal's first line,
+    which the runner writes once the policy is loaded and quantized; None if the journal existed)."""
     began = time.monotonic()
-    process = launch(cfg, folder, num_envs)
-    if process.wait():
-        raise RuntimeError(f"the cell in {folder} failed (exit {process.returncode})")
-    return time.monotonic() - began
+    fresh = not (folder / JOURNAL).exists()
+    startup = None
+    with tempfile.TemporaryFile() as stderr:
+        process = launch(cfg, folder, num_envs, stderr=stderr)
+        while process.poll() is None:
+            if fresh and startup is None and (folder / JOURNAL).exists():
+                startup = time.monotonic() - began
+            time.sleep(0.05)
+        if process.returncode:
+            stderr.seek(0)
+            tail = stderr.read().decode(errors="replace")[-3000:]
+            raise RuntimeError(f"the cell in {folder} failed (exit {process.returncode}):\n{tail}")
+    return {"total_s": time.monotonic() - began, "startup_s": startup}
 
 
-def soak(cfg: dict, folder: Path, args: argparse.Namespace) -> list[dict]:
+def kill_group(process: subprocess.Popen) -> None:
+    os.killpg(process.pid, signal.SIGKILL)
+    process.wait()
+
+
+def workers_up(process: subprocess.Popen) -> bool:
+    """Whether the attempt's LIBERO workers run yet (processes of its group started as env workers)."""
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            if os.getpgid(int(proc.name)) == process.pid and b"envs.libero.worker" in (proc / "cmdline").read_bytes():
+                return True
+        except (ProcessLookupError, FileNotFoundError, PermissionError):
+            continue
+    return False
+
+
+def timed_kill(cfg: dict, folder: Path, args: argparse.Namespace, rng: random.Random) -> dict:
+    """One attempt killed at a moment the RNG picks after one of the anchors (see the module doc)."""
+    anchor = rng.choices(ANCHORS, weights=args.anchor_p)[0]
+    delay = rng.uniform(0, args.startup_window if anchor == "startup" else args.window)
+    launched = time.monotonic()
+    lines = len(journal_lines(folder))
+    process = launch(cfg, folder, args.num_envs)
+    reached = {"startup": lambda: True, "episodes": lambda: workers_up(process),
+               "append": lambda: len(journal_lines(folder)) > lines}[anchor]
+    while not reached() and process.poll() is None:
+        time.sleep(0.05)
+    anchored = time.monotonic()
+    time.sleep(delay)
+    if process.poll() is not None:
+        raise RuntimeError("the cell finished before its kills were done: give it more episodes or a shorter --window")
+    kill_group(process)
+    now = time.monotonic()
+    return {"phase": anchor, "at_s": round(now - launched, 2), "after_anchor_s": round(now - anchored, 2)}
+
+
+def write_kill(cfg: dict, folder: Path, args: argparse.Namespace) -> dict | None:
+    """One attempt killed the moment a temporary file of the record writer appears; None on a miss."""
+    launched = time.monotonic()
+    process = launch(cfg, folder, args.num_envs)
+    while process.poll() is None:
+        if seen := temporary_files(folder):
+            kill_group(process)
+            return {"phase": "write", "at_s": round(time.monotonic() - launched, 2), "seen": seen}
+        time.sleep(args.poll)
+    if process.returncode:
+        raise RuntimeError(f"the cell in {folder} failed (exit {process.returncode}) during a write-phase attempt")
+    return None
+
+
+def after_kill(folder: Path) -> dict:
+    """What a kill left in the folder: journal progress, torn tail, temporary files, readable records."""
+    raw = (folder / JOURNAL).read_bytes() if (folder / JOURNAL).exists() else b""
+    state = {
+        "episodes_journaled": len(journal_episodes(folder)),
+        "journal_torn": bool(raw) and not raw.endswith(b"\n"),
+        "temporary_files": temporary_files(folder),
+        "parquet_present": (folder / EPISODES_FILE).exists(),
+    }
+    if state["parquet_present"]:
+        try:
+            state["parquet_rows"] = len(read_cell(folder).episodes)
+        except (UserError, OSError, ValueError) as err:  # a half-written record file would land here
+            state["parquet_rows"] = None
+            state["parquet_error"] = str(err)[:300]
+    return state
+
+
+def soak(cfg: dict, folder: Path, args: argparse.Namespace) -> tuple[list[dict], int, set]:
+    """The kills, their misses, and every episode key some attempt journaled."""
     rng = random.Random(args.seed)
-    kills = []
+    kills, misses, journaled = [], 0, set()
     while len(kills) < args.kills:
         before = len(journal_episodes(folder))
-        during_startup = rng.random() < args.startup_kill_p
-        delay = rng.uniform(0, args.startup_window if during_startup else args.window)
-        launched = time.monotonic()
-        process = launch(cfg, folder, args.num_envs)
-        if not during_startup:  # count from the attempt's first new journal line (the header, at first)
-            lines = len(journal_lines(folder))
-            while len(journal_lines(folder)) == lines and process.poll() is None:
-                time.sleep(0.05)
-        time.sleep(max(0.0, launched + delay - time.monotonic()) if during_startup else delay)
-        if process.poll() is not None:
-            raise RuntimeError("the cell finished before its kills were done: give it more episodes")
-        os.killpg(process.pid, signal.SIGKILL)
-        process.wait()
-        kills.append({
-            "phase": "startup" if during_startup else "running",
-            "at_s": round(time.monotonic() - launched, 2),
-            "episodes_before": before,
-            "episodes_after": len(journal_episodes(folder)),
-            "parquet_present": (folder / "episodes.parquet").exists(),
-        })
+        if len(kills) < args.kills - args.write_kills:
+            kill = timed_kill(cfg, folder, args, rng)
+        else:
+            kill = write_kill(cfg, folder, args)
+            if kill is None:
+                misses += 1
+                print(f"write-phase attempt ended before a temporary file was seen (miss {misses})", flush=True)
+                if misses > args.max_write_misses:
+                    raise RuntimeError(f"{misses} write-phase attempts missed: try a smaller --poll")
+                continue
+        kills.append({**kill, "episodes_before": before, **after_kill(folder)})
+        journaled |= {episode_key(r) for r in journal_episodes(folder)}
         print(f"kill {len(kills)}/{args.kills}: {kills[-1]}", flush=True)
-    return kills
+    return kills, misses, journaled
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ref", default="libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn")
-    parser.add_argument("--tasks", type=int, nargs="+", default=[0, 1, 2, 3])
-    parser.add_argument("--episodes-per-task", type=int, default=10)
+    parser.add_argument("--tasks", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--episodes-per-task", type=int, default=8)
     parser.add_argument("--max-steps", type=int, default=20)
     parser.add_argument("--num-envs", type=int, default=2)
     parser.add_argument("--kills", type=int, default=20)
+    parser.add_argument("--write-kills", type=int, default=3, help="how many of the kills land during record writes")
     parser.add_argument("--seed", type=int, default=0, help="the RNG that times the kills")
-    parser.add_argument("--window", type=float, default=15.0, help="seconds after an attempt's first new episode")
-    parser.add_argument("--startup-window", type=float, default=20.0, help="seconds after launch")
-    parser.add_argument("--startup-kill-p", type=float, default=0.2)
+    parser.add_argument("--window", type=float, default=None,
+                        help="seconds after the episodes/append anchors (default: one round of the reference run)")
+    parser.add_argument("--startup-window", type=float, default=None,
+                        help="seconds after launch (default: the reference run's start-up time)")
+    parser.add_argument("--anchor-p", type=float, nargs=3, default=[0.2, 0.4, 0.4], metavar=("STARTUP", "EPISODES", "APPEND"),
+                        help="how often a timed kill counts from each anchor")
+    parser.add_argument("--poll", type=float, default=0.002, help="seconds between looks for the writer's temporary files")
+    parser.add_argument("--max-write-misses", type=int, default=10)
     parser.add_argument("--out", default=None, help="JSON result (default: print only)")
     args = parser.parse_args()
+    if not 0 <= args.write_kills <= args.kills:
+        parser.error(f"--write-kills must be between 0 and --kills ({args.kills}), not {args.write_kills}")
 
     study = {
         "models": {"pi05": {"variant": "demo", "checkpoint": "lerobot/pi05_libero_finetuned_v044"}},
@@ -117,40 +236,59 @@ def main() -> None:
         "runner": {"max_steps": args.max_steps, "camera_size": 64, "flow_steps": 2},
     }
     cfg = cell_config(args.ref, study)
+    episodes = len(args.tasks) * args.episodes_per_task
     with tempfile.TemporaryDirectory(prefix="vqb-soak-") as tmp:
         reference, killed = Path(tmp) / "reference", Path(tmp) / "killed"
-        reference_s = complete(cfg, reference, args.num_envs)
+        uninterrupted_run = complete(cfg, reference, args.num_envs)
+        startup_s = uninterrupted_run["startup_s"]
+        round_s = (uninterrupted_run["total_s"] - startup_s) / math.ceil(episodes / args.num_envs)
+        args.window = round(round_s, 2) if args.window is None else args.window
+        args.startup_window = round(startup_s, 2) if args.startup_window is None else args.startup_window
+        print(f"reference: {uninterrupted_run['total_s']:.1f} s, start-up {startup_s:.1f} s, round {round_s:.2f} s; "
+              f"window {args.window} s, start-up window {args.startup_window} s", flush=True)
+
         began = time.monotonic()
-        kills = soak(cfg, killed, args)
-        final_s = complete(cfg, killed, args.num_envs)
+        kills, misses, journaled = soak(cfg, killed, args)
+        try:
+            final_s, final_error = complete(cfg, killed, args.num_envs)["total_s"], None
+        except RuntimeError as err:  # e.g. a duplicated episode refused by the journal: still counted below
+            final_s, final_error = None, str(err)
         soak_s = time.monotonic() - began
 
         lines = journal_episodes(killed)
-        outcome = {tuple(r[k] for k in KEY): (r["success"], r["steps"], r["actions_sha256"]) for r in lines}
-        expected = {tuple(r[k] for k in KEY): (r["success"], r["steps"], r["actions_sha256"])
-                    for r in journal_episodes(reference)}
-        counts = Counter(tuple(r[k] for k in KEY) for r in lines)
-        resumed, uninterrupted = read_cell(killed), read_cell(reference)
-        records_equal = resumed.episodes.drop(columns=TIMING).equals(uninterrupted.episodes.drop(columns=TIMING))
+        outcome = {episode_key(r): (r["success"], r["steps"], r["actions_sha256"]) for r in lines}
+        expected = {episode_key(r): (r["success"], r["steps"], r["actions_sha256"]) for r in journal_episodes(reference)}
+        counts = Counter(episode_key(r) for r in lines)
+        uninterrupted = read_cell(reference)
+        resumed = read_cell(killed) if final_error is None else None
+        records_equal = resumed is not None and resumed.episodes.drop(columns=TIMING).equals(
+            uninterrupted.episodes.drop(columns=TIMING))
+        recorded = set(resumed.episodes[list(KEY)].itertuples(index=False, name=None)) if resumed is not None else set()
         result = {
             "cell": args.ref,
             "episodes": len(expected),
             "kills": len(kills),
-            "kills_running": sum(k["phase"] == "running" for k in kills),
-            "kills_startup": sum(k["phase"] == "startup" for k in kills),
-            "lost_episodes": len(expected.keys() - outcome.keys()),
+            "kills_by_phase": dict(Counter(k["phase"] for k in kills)),
+            "write_phase_misses": misses,
+            "lost_episodes": len((expected.keys() | journaled) - recorded),
             "duplicated_episodes": sum(n - 1 for n in counts.values()),
-            "parquet_before_complete": any(k["parquet_present"] for k in kills),
+            "journal_torn_after_kills": sum(k["journal_torn"] for k in kills),
+            "parquet_before_complete": any(k["parquet_present"] and k["episodes_journaled"] < episodes for k in kills),
+            "parquet_unreadable_or_partial": any(k["parquet_present"] and k.get("parquet_rows") != episodes for k in kills),
+            "temporary_files_left": temporary_files(killed),
+            "final_run_error": final_error,
             "outcomes_and_digests_equal": outcome == expected,
             "records_equal_but_timing": bool(records_equal),
-            "headers_equal": resumed.header == uninterrupted.header,
-            "reference_s": round(reference_s, 1),
+            "headers_equal": resumed is not None and resumed.header == uninterrupted.header,
+            "reference_s": round(uninterrupted_run["total_s"], 1),
+            "reference_startup_s": round(startup_s, 1),
             "soak_s": round(soak_s, 1),
-            "final_resume_s": round(final_s, 1),
+            "final_resume_s": None if final_s is None else round(final_s, 1),
             "settings": {k: v for k, v in vars(args).items() if k != "out"},
             "kill_log": kills,
             "machine": {
                 "cpus": os.cpu_count(),
+                "load_average": [round(x, 2) for x in os.getloadavg()],
                 "platform": platform.platform(),
                 "date_utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
             },
@@ -159,6 +297,11 @@ def main() -> None:
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
+    clean = (result["lost_episodes"] == 0 and result["duplicated_episodes"] == 0 and not final_error
+             and not result["temporary_files_left"]
+             and not result["parquet_before_complete"] and not result["parquet_unreadable_or_partial"]
+             and result["outcomes_and_digests_equal"] and result["records_equal_but_timing"] and result["headers_equal"])
+    sys.exit(0 if clean else 1)
 
 
 if __name__ == "__main__":
