@@ -1,13 +1,16 @@
 """Run one cell: load the policy, quantize it, run the missing episodes, check, write the records.
 
     run = CellRun(cfg, out_dir, checkpoint_stamp, calibration_stats)
+    run.start_env() # optional: LIBERO workers start while the policy loads
     run.prepare()   # load + quantize; the header is known from here on
     run.run()       # journal-backed episodes; header.json + episodes.parquet when all exist
 
 The protocol checks of the paper (Sec. 5) are enforced here: the adapter must execute the cell's
 chunk length, every selected activation hook must have fired, and the MuJoCo pin is checked when
 the simulator versions are read. Records are only written when every configured episode exists;
-until then they live in the journal, which survives any kill.
+until then they live in the journal, which survives any kill. `run_cell` starts the LIBERO workers,
+which build the envs of the first episodes to run, in a thread while `prepare` loads the policy:
+both take seconds of CPU, each mostly on one core.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from __future__ import annotations
 import fnmatch
 import json
 import sys
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +31,7 @@ from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv, simulator_ve
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.records import write_cell
-from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal
+from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal, recorded_keys
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.quant.semantics import QUANT_SEMANTICS
 from vlaquantbench.runner.provenance import code_revision, versions
@@ -107,6 +111,46 @@ class CellRun:
             self.suite.episode_spec(t, e, cfg["seed"]) for t in cfg["tasks"] for e in range(cfg["episodes_per_task"])
         ]
         self.max_steps = cfg["runner"]["max_steps"] or self.suite.max_steps(cfg["model"])
+        self._env: Future | None = None  # the LIBERO workers, once started
+
+    def start_env(self) -> None:
+        """Start the LIBERO workers for the episodes the journal lacks, in a thread that also builds
+        each slot's first env, so that `prepare` loads the policy meanwhile; `run` uses them (or
+        starts its own), and `close_env` stops them. The journal is read unchecked here: `run`
+        verifies its header before any episode runs."""
+        self._env = self._start_env([s for s in self.specs if _key(s) not in recorded_keys(self.out_dir / JOURNAL)])
+
+    def _start_env(self, missing: list) -> Future | None:
+        if not missing:
+            return None
+        runner = self.cfg["runner"]
+        num_envs = max(1, min(self.num_envs, len(missing)))
+
+        def start() -> LiberoVectorEnv:
+            env = LiberoVectorEnv(
+                self.suite, num_envs, camera_size=runner["camera_size"], settle_steps=runner["settle_steps"],
+                control_mode=runner["control_mode"], mujoco=runner["mujoco"],
+            )
+            try:
+                env.preload([spec.task_id for spec in missing[:num_envs]])
+            except BaseException:
+                env.close()
+                raise
+            return env
+
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="libero-start")
+        future = pool.submit(start)
+        pool.shutdown(wait=False)
+        return future
+
+    def close_env(self) -> None:
+        """Stop the LIBERO workers, waiting for a start-up in progress to end first."""
+        if self._env is not None:
+            future, self._env = self._env, None
+            try:
+                future.result().close()
+            except Exception:  # a start-up failure is moot once the cell has failed otherwise
+                pass
 
     def prepare(self) -> None:
         from vlaquantbench.quant import QuantConfig, quantize_
@@ -171,10 +215,16 @@ class CellRun:
 
     def missing(self, journal: CellJournal) -> list:
         done = journal.done_keys()
-        return [s for s in self.specs if tuple(getattr(s, k) for k in EPISODE_KEY) not in done]
+        return [s for s in self.specs if _key(s) not in done]
 
     def run(self) -> Path:
         """Run the missing episodes, check hook coverage, write the records; returns the episodes file."""
+        try:
+            return self._run()
+        finally:
+            self.close_env()
+
+    def _run(self) -> Path:
         journal = CellJournal(self.out_dir / JOURNAL, self.header)
         missing = self.missing(journal)
         bar = tqdm(
@@ -193,13 +243,9 @@ class CellRun:
             bar.set_postfix(successes=sum(e["success"] for e in journal.episodes))
 
         if missing:
-            num_envs = max(1, min(self.num_envs, len(missing)))
-            runner = self.cfg["runner"]
-            env = LiberoVectorEnv(
-                self.suite, num_envs, camera_size=runner["camera_size"], settle_steps=runner["settle_steps"],
-                control_mode=runner["control_mode"], mujoco=runner["mujoco"],
-            )
-            with env:
+            if self._env is None:  # no `start_env`, or it found the journal complete
+                self._env = self._start_env(missing)
+            with self._env.result() as env:
                 run_episodes(self.adapter, env, missing, self.max_steps, finished)
         bar.close()
         return self._finish(journal)
@@ -231,7 +277,16 @@ class CellRun:
         return self.out_dir / "episodes.parquet"
 
 
+def _key(spec) -> tuple:
+    return tuple(getattr(spec, k) for k in EPISODE_KEY)
+
+
 def run_cell(cfg: dict[str, Any], out_dir: str | Path, checkpoint_stamp=None, calibration_stats=None, **options) -> Path:
     run = CellRun(cfg, out_dir, checkpoint_stamp, calibration_stats, **options)
-    run.prepare()
+    run.start_env()
+    try:
+        run.prepare()
+    except BaseException:
+        run.close_env()
+        raise
     return run.run()

@@ -48,12 +48,23 @@ def header_differences(recorded: dict[str, Any], current: dict[str, Any]) -> lis
     return lines
 
 
+def _episode_lines(path: Path) -> list[dict[str, Any]]:
+    """The journal's episode lines, unchecked (no header comparison); a torn last line does not count."""
+    if not Path(path).exists():
+        return []
+    complete = Path(path).read_bytes().split(b"\n")[:-1]
+    return [r for r in (json.loads(line) for line in complete if line.strip()) if r.get("kind") == "episode"]
+
+
 def recorded_episodes(path: Path) -> int:
     """Episodes a journal holds (0 if there is none); a torn last line does not count."""
-    if not Path(path).exists():
-        return 0
-    complete = Path(path).read_bytes().split(b"\n")[:-1]
-    return sum(json.loads(line).get("kind") == "episode" for line in complete if line.strip())
+    return len(_episode_lines(path))
+
+
+def recorded_keys(path: Path) -> set[tuple]:
+    """The EPISODE_KEYs of a journal's episodes, for planning only: the header is not checked
+    (`CellJournal` does that before anything is recorded)."""
+    return {tuple(r[k] for k in EPISODE_KEY) for r in _episode_lines(path)}
 
 
 class CellJournal:

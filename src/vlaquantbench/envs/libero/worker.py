@@ -68,17 +68,22 @@ class SlotSimulator:
         self._bddl_file: str | None = None
         self._instruction = ""
 
-    def start(self, start: EpisodeStart) -> dict:
-        if start.bddl_file != self._bddl_file:
+    def load(self, bddl_file: str) -> None:
+        """Build the env of a task (unless it is the one built): what `start` does first, so that a
+        runner can have it done while it loads its policy. Building takes no seed or state."""
+        if bddl_file != self._bddl_file:
             self.close()
             from libero.libero.envs import OffScreenRenderEnv
 
             self._env = OffScreenRenderEnv(
-                bddl_file_name=start.bddl_file,
+                bddl_file_name=bddl_file,
                 camera_heights=self.camera_size,
                 camera_widths=self.camera_size,
             )
-            self._bddl_file = start.bddl_file
+            self._bddl_file = bddl_file
+
+    def start(self, start: EpisodeStart) -> dict:
+        self.load(start.bddl_file)
         self._instruction = start.instruction
         # Seed first, then load the indexed init state: the seed never picks a different init state.
         self._env.seed(start.spec.seed)
@@ -122,7 +127,7 @@ def serve(conn: Connection, camera_size: int, settle_steps: int, control_mode: s
         conn.send(("error", traceback.format_exc()))
         return
     simulator = SlotSimulator(camera_size, settle_steps, control_mode)
-    handlers = {"reset": simulator.start, "step": simulator.step, "chunk": simulator.chunk}
+    handlers = {"load": simulator.load, "reset": simulator.start, "step": simulator.step, "chunk": simulator.chunk}
     conn.send(("ok", None))
     try:
         while True:
