@@ -135,6 +135,16 @@ def test_demo_cells_are_flagged_in_the_caption(cells):
     assert r"\caption{\textbf{Demo policy with random weights" in render_latex(definition, demo)
 
 
+def test_step_limits_in_a_caption_come_from_the_headers(cells):
+    definition = replace(load_table(ROOT / "config" / "tables" / "lattice.yaml"), caption="Demo ({episodes}, {steps}).")
+    assert "(200 episodes per cell, step limits not recorded)." in render_latex(definition, cells)  # the authors' records
+    limited = {ref: replace(cell, header={**cell.header, "max_steps": 30}) for ref, cell in cells.items()}
+    ref = definition.rows[0]["cell"]
+    limited[ref] = replace(cells[ref], header={**cells[ref].header, "max_steps": 20})
+    short = ref.split("/", 2)[-1].replace("_", "\\_")
+    assert f"(200 episodes per cell, at most 30 steps per episode, 20 for {short})." in render_latex(definition, limited)
+
+
 def test_a_table_mixing_quantization_semantics_versions_says_so(cells, caplog):
     definition = load_table(ROOT / "config" / "tables" / "lattice.yaml")
     assert "quantization-semantics" not in render_latex(definition, cells)  # the authors' cells: one (no) version

@@ -231,21 +231,29 @@ def _short_names(refs: list[str]) -> list[str]:
     return short if len(set(short)) == len(set(refs)) else [ref.split("/", 1)[-1] for ref in refs]
 
 
-def episode_counts(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
-    """The cells' episode counts as a caption phrase, from the data: the common count and the exceptions."""
-    counts = {ref: cells[ref].n_episodes for ref in refs if ref in cells and not isinstance(cells[ref], MeasurementFile)}
-    if not counts:
-        return "no episodes"
-    common, _ = Counter(counts.values()).most_common(1)[0]
-    phrase = f"{common} episodes per cell"
-    others = sorted({n for n in counts.values() if n != common})
+def _per_cell(values: dict[str, int], unit: str) -> str:
+    """`<common> <unit>, <n> for <cells>, ...`: the most common value and the exceptions."""
+    common, _ = Counter(values.values()).most_common(1)[0]
     exceptions = []
-    for n in others:
-        names = sorted(ref.split("/", 2)[-1] for ref, count in counts.items() if count == n)
+    for n in sorted({n for n in values.values() if n != common}):
+        names = sorted(ref.split("/", 2)[-1] for ref, value in values.items() if value == n)
         if len(names) > 3:  # many cells: name their models
             names = sorted({name.split("/")[0] + " cells" for name in names})
         exceptions.append(f"{n} for {', '.join(_escape(name) for name in names)}")
-    return ", ".join([phrase, *exceptions])
+    return ", ".join([f"{common} {unit}", *exceptions])
+
+
+def episode_counts(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
+    """The cells' episode counts as a caption phrase, from the data: the common count and the exceptions."""
+    counts = {ref: cells[ref].n_episodes for ref in refs if ref in cells and not isinstance(cells[ref], MeasurementFile)}
+    return _per_cell(counts, "episodes per cell") if counts else "no episodes"
+
+
+def step_limits(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
+    """The cells' step limits (header `max_steps`) as a caption phrase, from the data."""
+    limits = {ref: cells[ref].header["max_steps"] for ref in refs
+              if isinstance(cells.get(ref), Cell) and cells[ref].header.get("max_steps")}
+    return "at most " + _per_cell(limits, "steps per episode") if limits else "step limits not recorded"
 
 
 def semantics_note(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
@@ -262,7 +270,7 @@ def semantics_note(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
 def caption(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> str:
     refs = definition.refs()
     demo = any(getattr(cells.get(ref), "header", {}).get("variant") == "demo" for ref in refs)
-    text = definition.caption.replace("{episodes}", episode_counts(refs, cells))
+    text = definition.caption.replace("{episodes}", episode_counts(refs, cells)).replace("{steps}", step_limits(refs, cells))
     summary = sorted({cells[ref].path.name for ref in refs if isinstance(cells.get(ref), SummaryCell)})
     if summary:
         from_summary = [ref for ref in refs if isinstance(cells.get(ref), SummaryCell)]
