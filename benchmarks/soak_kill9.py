@@ -210,8 +210,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ref", default="libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn")
     parser.add_argument("--tasks", type=int, nargs="+", default=[0, 1])
-    parser.add_argument("--episodes-per-task", type=int, default=8)
-    parser.add_argument("--max-steps", type=int, default=20)
+    parser.add_argument("--episodes-per-task", type=int, default=6)
+    parser.add_argument("--max-steps", type=int, default=10)
     parser.add_argument("--num-envs", type=int, default=2)
     parser.add_argument("--kills", type=int, default=20)
     parser.add_argument("--write-kills", type=int, default=3, help="how many of the kills land during record writes")
@@ -220,7 +220,7 @@ def main() -> None:
                         help="seconds after the episodes/append anchors (default: one round of the reference run)")
     parser.add_argument("--startup-window", type=float, default=None,
                         help="seconds after launch (default: the reference run's start-up time)")
-    parser.add_argument("--anchor-p", type=float, nargs=3, default=[0.2, 0.4, 0.4], metavar=("STARTUP", "EPISODES", "APPEND"),
+    parser.add_argument("--anchor-p", type=float, nargs=3, default=[0.3, 0.5, 0.2], metavar=("STARTUP", "EPISODES", "APPEND"),
                         help="how often a timed kill counts from each anchor")
     parser.add_argument("--poll", type=float, default=0.002, help="seconds between looks for the writer's temporary files")
     parser.add_argument("--max-write-misses", type=int, default=10)
@@ -286,6 +286,8 @@ def main() -> None:
             "final_resume_s": None if final_s is None else round(final_s, 1),
             "settings": {k: v for k, v in vars(args).items() if k != "out"},
             "kill_log": kills,
+            "code_commit": subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True,
+                                          text=True).stdout.strip() or None,
             "machine": {
                 "cpus": os.cpu_count(),
                 "load_average": [round(x, 2) for x in os.getloadavg()],
