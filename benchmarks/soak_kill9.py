@@ -10,14 +10,17 @@ kills. Each attempt runs `runner.cell.run_cell` in a fresh process group (the ru
 workers), and a kill is SIGKILL to the whole group. A seeded RNG times the first
 `kills - write_kills` kills from one of three anchors, chosen with probabilities `--anchor-p`:
 
-    startup   launch (policy load, quantization): uniform in the reference's start-up time
-    episodes  the LIBERO workers' appearance (the runner starts them once the policy is ready; env
-              construction, resets, mid-episode): uniform in `--window` s
+    startup   launch: uniform in the reference's start-up time (policy load and quantization, while
+              the LIBERO workers start and build their first envs)
+    running   launch + the reference's start-up time (the policy ready, first resets and
+              episodes): uniform in `--window` s
     append    the attempt's first new journal line (right after an append, mid-episode of the
               other slots and of the next ones): uniform in `--window` s
 
-`--window` defaults to one round of episodes of the reference run (its running time over
-episodes / envs). Only `append` kills are sure to make progress, so the cell outlives its kills.
+`--startup-window` defaults to the reference's start-up time (launch to its journal's header line),
+`--window` to half a round of its episodes (a round: its running time over episodes / envs), so
+that a kill lands within the episodes in flight. Only `append` kills are sure to make progress; the
+defaults leave the cell episodes to spare.
 
 The last `--write-kills` kills land while the records are being written: the soak watches the cell
 folder (every `--poll` s) for the atomic writer's temporary files (`.header.json.*.tmp`,
@@ -65,7 +68,7 @@ RUN_CELL = ("import json, sys; from vlaquantbench.runner.cell import run_cell; "
             "run_cell(json.loads(sys.argv[1]), sys.argv[2], num_envs=int(sys.argv[3]), progress=False)")
 TIMING = ["wall_time_s", "policy_batch_latency_mean_s"]
 KEY = ("task_id", "episode", "seed")
-ANCHORS = ("startup", "episodes", "append")
+ANCHORS = ("startup", "running", "append")
 WRITES = (f".{HEADER_FILE}.", f".{EPISODES_FILE}.")  # the atomic writer's temporary files: `.<name>.<...>.tmp`
 
 
@@ -119,19 +122,6 @@ def kill_group(process: subprocess.Popen) -> None:
     process.wait()
 
 
-def workers_up(process: subprocess.Popen) -> bool:
-    """Whether the attempt's LIBERO workers run yet (processes of its group started as env workers)."""
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit():
-            continue
-        try:
-            if os.getpgid(int(proc.name)) == process.pid and b"envs.libero.worker" in (proc / "cmdline").read_bytes():
-                return True
-        except (ProcessLookupError, FileNotFoundError, PermissionError):
-            continue
-    return False
-
-
 def timed_kill(cfg: dict, folder: Path, args: argparse.Namespace, rng: random.Random) -> dict:
     """One attempt killed at a moment the RNG picks after one of the anchors (see the module doc)."""
     anchor = rng.choices(ANCHORS, weights=args.anchor_p)[0]
@@ -139,7 +129,7 @@ def timed_kill(cfg: dict, folder: Path, args: argparse.Namespace, rng: random.Ra
     launched = time.monotonic()
     lines = len(journal_lines(folder))
     process = launch(cfg, folder, args.num_envs)
-    reached = {"startup": lambda: True, "episodes": lambda: workers_up(process),
+    reached = {"startup": lambda: True, "running": lambda: time.monotonic() >= launched + args.startup_window,
                "append": lambda: len(journal_lines(folder)) > lines}[anchor]
     while not reached() and process.poll() is None:
         time.sleep(0.05)
@@ -210,17 +200,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ref", default="libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn")
     parser.add_argument("--tasks", type=int, nargs="+", default=[0, 1])
-    parser.add_argument("--episodes-per-task", type=int, default=6)
+    parser.add_argument("--episodes-per-task", type=int, default=7)
     parser.add_argument("--max-steps", type=int, default=10)
     parser.add_argument("--num-envs", type=int, default=2)
     parser.add_argument("--kills", type=int, default=20)
     parser.add_argument("--write-kills", type=int, default=3, help="how many of the kills land during record writes")
     parser.add_argument("--seed", type=int, default=0, help="the RNG that times the kills")
     parser.add_argument("--window", type=float, default=None,
-                        help="seconds after the episodes/append anchors (default: one round of the reference run)")
+                        help="seconds after the running/append anchors (default: half a round of the reference run)")
     parser.add_argument("--startup-window", type=float, default=None,
                         help="seconds after launch (default: the reference run's start-up time)")
-    parser.add_argument("--anchor-p", type=float, nargs=3, default=[0.3, 0.5, 0.2], metavar=("STARTUP", "EPISODES", "APPEND"),
+    parser.add_argument("--anchor-p", type=float, nargs=3, default=[0.3, 0.5, 0.2], metavar=("STARTUP", "RUNNING", "APPEND"),
                         help="how often a timed kill counts from each anchor")
     parser.add_argument("--poll", type=float, default=0.002, help="seconds between looks for the writer's temporary files")
     parser.add_argument("--max-write-misses", type=int, default=10)
@@ -242,7 +232,7 @@ def main() -> None:
         uninterrupted_run = complete(cfg, reference, args.num_envs)
         startup_s = uninterrupted_run["startup_s"]
         round_s = (uninterrupted_run["total_s"] - startup_s) / math.ceil(episodes / args.num_envs)
-        args.window = round(round_s, 2) if args.window is None else args.window
+        args.window = round(round_s / 2, 2) if args.window is None else args.window
         args.startup_window = round(startup_s, 2) if args.startup_window is None else args.startup_window
         print(f"reference: {uninterrupted_run['total_s']:.1f} s, start-up {startup_s:.1f} s, round {round_s:.2f} s; "
               f"window {args.window} s, start-up window {args.startup_window} s", flush=True)
