@@ -103,7 +103,7 @@ def _html_row(cells: list[str], tag: str) -> str:
 
 _SYMBOLS = {r"\pi": "π", r"\alpha": "α", r"\Delta": "Δ", r"\rightarrow": "→", r"\times": "×", r"\pm": "±",
             r"\cup": "∪", r"\|": "‖", r"\leq": "≤", r"\geq": "≥"}  # fmt: skip
-_WRAPPERS = {"textbf": "b", "texttt": "code", "emph": "i", "textit": "i", "mathrm": "span", "text": "span"}
+_WRAPPERS = {"textbf": "b", "texttt": "code", "path": "code", "emph": "i", "textit": "i", "mathrm": "span", "text": "span"}
 
 
 def _text(latex: str) -> str:
