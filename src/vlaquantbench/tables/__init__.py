@@ -1,16 +1,26 @@
-"""The paper's tables as data: definitions from YAML, numbers from records, booktabs LaTeX out."""
+"""The paper's tables as data: definitions from YAML, numbers from records, booktabs LaTeX out.
 
-from vlaquantbench.tables.definition import TableDefinition, load_table
-from vlaquantbench.tables.latex import render_latex, table_rows, write_table
-from vlaquantbench.tables.summary import SUMMARY_COLUMNS, summarize, write_summary
+Names are imported on first access (PEP 562), so a job that only needs the LaTeX writer (`tables.booktabs`,
+e.g. tab:vla_params) does not import pandas through the record readers.
+"""
 
-__all__ = [
-    "SUMMARY_COLUMNS",
-    "TableDefinition",
-    "load_table",
-    "render_latex",
-    "summarize",
-    "table_rows",
-    "write_summary",
-    "write_table",
-]
+import importlib
+
+_EXPORTS = {
+    "SUMMARY_COLUMNS": "summary",
+    "TableDefinition": "definition",
+    "load_table": "definition",
+    "render_latex": "latex",
+    "summarize": "summary",
+    "table_rows": "latex",
+    "write_summary": "summary",
+    "write_table": "latex",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
