@@ -158,6 +158,20 @@ def test_mx_scale_follows_the_ocp_rule():
     assert fake_quant_mx(block, E2M1)[:2].tolist() == [12.0, 4.0]
 
 
+@pytest.mark.parametrize("element", [E4M3, E5M2, E3M2, E2M3, E2M1], ids=lambda e: e.name)
+def test_mx_fake_quant_traces_as_one_graph(element):
+    """MX's scale exponent comes from Python constants, not a tensor read on the host: dynamo traces
+    the whole transform without a graph break (so it compiles and records into a CUDA graph), and the
+    traced function gives the same values."""
+    assert isinstance(element.emax, int)
+    x = torch.randn(4, 96) * 10
+    explanation = torch._dynamo.explain(fake_quant_mx)(x, element)
+    assert explanation.graph_break_count == 0 and explanation.graph_count == 1
+    traced = torch.compile(fake_quant_mx, backend="eager", fullgraph=True)
+    assert torch.equal(traced(x, element), fake_quant_mx(x, element))
+    torch._dynamo.reset()
+
+
 def test_mx_smallest_scale_is_two_to_minus_127():
     # E8M0 code 0 encodes 2^-127 (the spec); torchao raises it to 2^-126 to avoid a subnormal, so
     # this corner is checked against the spec by hand instead.

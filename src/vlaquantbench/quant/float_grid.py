@@ -33,6 +33,7 @@ computed over the values it has (equivalently: zero-padded to a full block).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -62,8 +63,10 @@ class FloatElement:
 
     @property
     def emax(self) -> int:
-        """Exponent of the largest normal (MX's emax_elem)."""
-        return int(torch.tensor(self.max_normal).log2().floor())
+        """Exponent of the largest normal (MX's emax_elem), as a Python int: computed on the host from
+        the format's constants, never from a tensor, so MX quantization records into a CUDA graph and
+        compiles without a graph break or device sync. frexp's exponent is exact: floor(log2 m) = e - 1."""
+        return math.frexp(self.max_normal)[1] - 1
 
 
 E4M3 = FloatElement("E4M3", 4, 3, 448.0)
