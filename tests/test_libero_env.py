@@ -141,3 +141,35 @@ def test_bad_requests_fail_before_any_work_and_worker_errors_name_the_episode(su
         assert observations == [None] and success == [False]
     with pytest.raises(RuntimeError, match="closed"):
         env.step(np.zeros((1, 7)))
+
+
+def test_a_chunk_renders_only_its_last_steps_and_observes_as_stepping_each_action(suite, episodes):
+    """The worker's chunk skips the camera renders whose images no observation carries; every chunk's
+    final observation still equals stepping the same actions one by one with rendering on."""
+    from vlaquantbench.envs.libero.offline import load_libero
+    from vlaquantbench.envs.libero.worker import RENDERED_TAIL, EpisodeStart, SlotSimulator
+
+    load_libero()
+    episode, chunk = episodes[0], 10
+    task = suite.task(episode.task_id)
+    start = EpisodeStart(episode, str(task.bddl_file), task.instruction,
+                         suite.init_state(episode.task_id, episode.init_state_id))
+    actions = np.random.default_rng(0).uniform(-0.3, 0.3, (2 * chunk, 7))
+    actions[:, 6] = -1.0
+    simulator = SlotSimulator(CAMERA, settle_steps=10)
+    try:
+        simulator.start(start)
+        stepped = [simulator.step(action)[0] for action in actions]
+        simulator.start(start)  # same task: the environment is kept, the episode restarts
+        mj_sim = simulator._env.env.sim
+        renders, render = [], mj_sim.render
+        mj_sim.render = lambda *args, **kwargs: renders.append(kwargs["camera_name"]) or render(*args, **kwargs)
+        chunked = [simulator.chunk(actions[i : i + chunk]) for i in range(0, len(actions), chunk)]
+    finally:
+        simulator.close()
+    for k, (observation, applied, success) in enumerate(chunked):
+        assert (applied, success) == (chunk, False)
+        reference = stepped[(k + 1) * chunk - 1]
+        for key in ("agentview", "wrist", "state"):
+            np.testing.assert_array_equal(observation[key], reference[key])
+    assert len(renders) == 2 * RENDERED_TAIL * len(chunked)  # two cameras, the last steps of each chunk

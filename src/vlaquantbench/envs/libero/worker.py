@@ -4,11 +4,13 @@ LiberoVectorEnv starts it as `main([FD, CAMERA_SIZE, SETTLE_STEPS, CONTROL_MODE]
 `(command, payload)` pairs; every request gets one reply, `("ok", result)` or `("error", traceback)`.
 `reset` starts an episode, `step` applies one action, `chunk` applies a sequence of actions here, in
 the worker, and replies once with the observation after the last one: a chunk costs one round trip
-instead of one per action, and no intermediate observation crosses the socket.
+instead of one per action, no intermediate observation crosses the socket, and the cameras render
+only in the chunk's last `RENDERED_TAIL` steps (`SlotSimulator.chunk`).
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import traceback
 from dataclasses import dataclass
@@ -25,6 +27,12 @@ DUMMY_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)
 # "delta": actions are end-effector pose deltas (LIBERO's default); "absolute": absolute targets, the
 # controller switched to `use_delta=False` after the settle steps, as X-VLA's client does.
 CONTROL_MODES = ("delta", "absolute")
+# robosuite samples every observable once per sampling period (LIBERO: the control period of 25
+# physics substeps), in the substep after its timer wraps; float drift of that timer can stretch a
+# period to 26 substeps, so the image in a step's observation was rendered during that step or the
+# one before. Rendering in a chunk's last two steps therefore produces every image its final
+# observation can carry; the earlier steps' renders would be overwritten unseen.
+RENDERED_TAIL = 2
 
 
 @dataclass(frozen=True)
@@ -67,6 +75,7 @@ class SlotSimulator:
         self._env = None
         self._bddl_file: str | None = None
         self._instruction = ""
+        self._render = True  # False: camera sensors return their last image instead of rendering
 
     def load(self, bddl_file: str) -> None:
         """Build the env of a task (unless it is the one built): what `start` does first, so that a
@@ -88,6 +97,7 @@ class SlotSimulator:
         # Seed first, then load the indexed init state: the seed never picks a different init state.
         self._env.seed(start.spec.seed)
         self._env.reset()
+        self._gate_camera_renders()  # a hard reset re-creates the sensors
         raw = self._env.set_init_state(start.init_state)
         for _ in range(self.settle_steps):
             raw, _, _, _ = self._env.step(DUMMY_ACTION)
@@ -101,16 +111,40 @@ class SlotSimulator:
         return format_observation(raw, self._instruction), bool(done)
 
     def chunk(self, actions: np.ndarray) -> tuple[dict, int, bool]:
-        """Apply `actions` in order, stopping early on success: (observation, actions applied, success)."""
+        """Apply `actions` in order, stopping early on success: (observation, actions applied, success).
+
+        The cameras render only during the last `RENDERED_TAIL` actions, so the observation equals
+        stepping every action with rendering on; after an early success its images may be an earlier
+        step's (the episode is over: no policy sees them)."""
         if len(actions) == 0:
             raise ValueError("a chunk needs at least one action")
         applied, done = 0, False
-        for action in actions:
-            raw, _, done, _ = self._env.step(action)
-            applied += 1
-            if done:
-                break
+        try:
+            for index, action in enumerate(actions):
+                self._render = index >= len(actions) - RENDERED_TAIL
+                raw, _, done, _ = self._env.step(action)
+                applied += 1
+                if done:
+                    break
+        finally:
+            self._render = True
         return format_observation(raw, self._instruction), applied, bool(done)
+
+    def _gate_camera_renders(self) -> None:
+        """Wrap each camera sensor: it renders while `_render` is set, else returns its cached image."""
+        from robosuite.utils.observables import sensor
+
+        robosuite_env = self._env.env
+        for name, observable in robosuite_env._observables.items():
+            if observable.modality != "image":
+                continue
+            render = observable._sensor
+
+            @sensor(modality="image")
+            def gated(obs_cache, name=name, render=render):
+                return render(obs_cache) if self._render or name not in obs_cache else obs_cache[name]
+
+            robosuite_env.modify_observable(name, "sensor", gated)
 
     def close(self) -> None:
         if self._env is not None:
@@ -149,8 +183,17 @@ def serve(conn: Connection, camera_size: int, settle_steps: int, control_mode: s
         simulator.close()
 
 
+# Workers yield the CPU to the process that drives them: with more workers than cores, the closed-loop
+# runner's main process (which feeds the policy and collects the replies) would otherwise wait for a
+# time slice at every step of its loop while every worker is ready to run. Moderate (a third of a
+# normal process's CPU share under contention): on a machine shared with other jobs the workers
+# still get their turn.
+WORKER_NICENESS = 5
+
+
 def main(argv: list[str]) -> None:
     # Ctrl-C reaches the whole process group; the parent decides and closes its workers.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    os.nice(WORKER_NICENESS)
     fd, camera_size, settle_steps = (int(arg) for arg in argv[:3])
     serve(Connection(fd), camera_size, settle_steps, argv[3])
