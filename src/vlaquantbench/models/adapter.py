@@ -150,6 +150,17 @@ class AdapterBase:
             )
 
 
+def wait_for_device(device: torch.device) -> None:
+    """Block until `device` has finished the work queued so far, sleeping rather than spinning.
+
+    CUDA's default wait spins a CPU core while it waits (one process, fewer contexts than cores); in
+    the closed-loop runner that core belongs to the simulator workers for the whole policy call."""
+    if device.type == "cuda":
+        done = torch.cuda.Event(blocking=True)
+        done.record()
+        done.synchronize()
+
+
 def make_adapter(config: AdapterConfig) -> PolicyAdapter:
     return adapter_class(config.model)(config)
 

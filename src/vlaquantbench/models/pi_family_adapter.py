@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from vlaquantbench.errors import UserError
-from vlaquantbench.models.adapter import AdapterBase, BatchInvariantLinears
+from vlaquantbench.models.adapter import AdapterBase, BatchInvariantLinears, wait_for_device
 from vlaquantbench.models.paligemma_family import REDUCED_WIDTHS_FILE, checkpoint_widths
 from vlaquantbench.models.registry import get_model_spec
 
@@ -215,6 +215,7 @@ class PiFamilyAdapter(AdapterBase):
         # Drawn on the CPU from each episode's own stream, then moved: identical on every device.
         noise = torch.stack([torch.randn(shape, generator=g) for g in generators]).to(self._device)
         actions = self._sample(batch, images, image_masks, noise)[:, :, :ACTION_DIM]
+        wait_for_device(self._device)
         actions = self.postprocessor(actions.float())
         return actions.float().cpu().numpy()
 
@@ -222,7 +223,11 @@ class PiFamilyAdapter(AdapterBase):
         batch: dict[str, Any] = {}
         for view, key in CAMERA_KEYS.items():
             pixels = np.stack([obs[view] for obs in observations])  # n x H x W x 3, uint8
-            batch[key] = torch.from_numpy(pixels).permute(0, 3, 1, 2).float().div(255.0)
+            # The uint8 pixels travel (a quarter of float32's bytes) and are widened where the policy
+            # runs: on a GPU the closed-loop runner's main process, which shares the CPU with the
+            # simulator workers, does no per-pixel work (division is exact-rounded on both devices).
+            pixels = torch.from_numpy(pixels).to(self._device)
+            batch[key] = pixels.permute(0, 3, 1, 2).float().div(255.0)
         batch[STATE_KEY] = torch.from_numpy(np.stack([obs["state"] for obs in observations]).astype(np.float32))
         batch["task"] = [obs["instruction"] for obs in observations]
         return batch

@@ -18,6 +18,12 @@ with copies of its last observation and replays that graph, instead of capturing
 for) every batch size a closed-loop runner meets as its episodes finish at different times. Rows
 do not interact, so the padding changes nothing in the real rows of that graph.
 
+All graphs of a sampler share one memory pool: they never run at the same time, and a replay's
+output is copied out before the next replay, so a later graph may reuse an earlier one's
+intermediate memory. The sampler's footprint is then its largest batch's, not the sum over every
+batch size it captured (with one pool per graph, batch sizes 1..64 at full size did not fit an
+H200's 140 GiB).
+
 Attention: the VLM prefix's 8 query heads share one KV head and are folded into one batched
 product by default (`static_sampling._attention`); `prefix_sdpa=True` runs SDPA there instead, with
 `attention_backends` (a list of `torch.nn.attention.SDPBackend`) ordering the kernels tried, which
@@ -74,6 +80,7 @@ class CapturedSampler:
         fuse = self.use_graphs if fuse_elementwise is None else fuse_elementwise
         self.ops = static_sampling.COMPILED_OPS if fuse else static_sampling.EAGER_OPS
         self._graphs: dict[tuple, dict[int, _Graph]] = {}  # input shapes past the batch -> batch -> graph
+        self._pool = torch.cuda.graph_pool_handle() if self.use_graphs else None
         self._groups: static_sampling.ModelGroups | None = None
 
     def reset(self) -> None:
@@ -129,21 +136,22 @@ class CapturedSampler:
         with self._kernel_choices():
             graph, output = capture_graph(
                 lambda: static_sampling.sample_actions(self.model, *inputs, self.times, self.ops, groups,
-                                                   self.prefix_sdpa))
+                                                   self.prefix_sdpa), pool=self._pool)
         return _Graph(graph, inputs, output)
 
 
-def capture_graph(fn):
+def capture_graph(fn, pool=None):
     """Run `fn` once on a side stream (cuBLAS/cuDNN handles, autotuning, Triton and inductor
-    compilation happen there, as CUDA graph capture requires), then record it; returns the graph
-    and the output tensors that each `graph.replay()` rewrites."""
+    compilation happen there, as CUDA graph capture requires), then record it (into memory pool
+    `pool`, shared with other graphs, when given); returns the graph and the output tensors that each
+    `graph.replay()` rewrites."""
     stream = torch.cuda.Stream()
     stream.wait_stream(torch.cuda.current_stream())
     with torch.cuda.stream(stream):
         fn()
     torch.cuda.current_stream().wait_stream(stream)
     graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
+    with torch.cuda.graph(graph, pool=pool):
         output = fn()
     return graph, output
 
