@@ -92,14 +92,46 @@ def episode_order(suite: LiberoSuite, count: int, per_task: int = 50) -> list:
     return [suite.episode_spec(t, e) for t in range(suite.n_tasks) for e in range(per_task)][:count]
 
 
-def warm_up(adapter, suite: LiberoSuite, camera_size: int, batch: int) -> float:
-    """One chunk at `batch` on stand-in observations: captures that batch size's graph."""
+def warm_up(adapter, suite: LiberoSuite, camera_size: int, batch: int) -> dict:
+    """One chunk at `batch` on stand-in observations: captures that batch size's graph. Returns its
+    time and, on CUDA, the GPU memory afterwards (all graphs share one pool: reserved memory grows
+    only when a batch needs more than every earlier one)."""
     blank = np.zeros((camera_size, camera_size, 3), np.uint8)
     obs = {"agentview": blank, "wrist": blank, "state": np.zeros(8, np.float32),
            "instruction": suite.tasks[0].instruction}
     began = time.perf_counter()
     adapter.act([obs] * batch, [adapter.reset(i) for i in range(batch)])
-    return time.perf_counter() - began
+    result = {"s": round(time.perf_counter() - began, 2)}
+    if torch.cuda.is_available() and adapter.model is not None and next(adapter.model.parameters()).is_cuda:
+        result |= {"allocated_gib": round(torch.cuda.memory_allocated() / 2**30, 2),
+                   "reserved_gib": round(torch.cuda.memory_reserved() / 2**30, 2),
+                   "peak_gib": round(torch.cuda.max_memory_allocated() / 2**30, 2)}
+    return result
+
+
+class GpuMeter:
+    """GPU time of the adapter's sampling (CUDA events around `_sample`, read after the run): what
+    part of a policy call the GPU spends, the rest being the main process's own work and waits."""
+
+    def __init__(self):
+        self.events: list[tuple] = []
+
+    def wrap(self, fn):
+        def timed(*args, **kwargs):
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            result = fn(*args, **kwargs)
+            end.record()
+            self.events.append((start, end))
+            return result
+
+        return timed
+
+    def summary(self) -> dict:
+        torch.cuda.synchronize()
+        ms = [start.elapsed_time(end) for start, end in self.events]
+        return {"calls": len(ms), "mean_ms": round(float(np.mean(ms)), 2) if ms else None,
+                "seconds": round(sum(ms) / 1e3, 3)}
 
 
 def build_first_tasks(env: LiberoVectorEnv, specs: list) -> None:
@@ -114,6 +146,9 @@ def measure(policy, env: LiberoVectorEnv, specs: list, max_steps: int, overlap: 
     real_act, real_collect = policy.act, env.collect
     policy.act = calls.wrap(real_act, items=lambda observations, generators: len(observations))
     env.collect = waits.wrap(real_collect)
+    gpu = GpuMeter() if hasattr(policy, "_sample") and torch.cuda.is_available() else None
+    if gpu:
+        policy._sample = gpu.wrap(policy._sample)  # an instance attribute over the class's method
     records: list[dict] = []
     try:
         began = time.perf_counter()
@@ -121,8 +156,11 @@ def measure(policy, env: LiberoVectorEnv, specs: list, max_steps: int, overlap: 
         wall = time.perf_counter() - began
     finally:
         policy.act, env.collect = real_act, real_collect
+        if gpu:
+            del policy._sample
     steps = int(sum(r["steps"] for r in records))
-    return {
+    extra = {"policy_gpu": gpu.summary()} if gpu else {}
+    return {**extra,
         "episodes": len(records),
         "policy_steps": steps,
         "successes": int(sum(r["success"] for r in records)),
@@ -149,8 +187,8 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, default=None, help="default: the suite's limit for pi0.5")
     parser.add_argument("--camera-size", type=int, default=256)
     parser.add_argument("--captures", type=int, nargs="*", default=None,
-                        help="batch sizes to capture (default: powers of two up to the largest N; each graph keeps "
-                             "its own memory pool, and 1..64 together exceed an H200's 140 GiB)")
+                        help="batch sizes to capture (default: powers of two up to the largest N; the graphs share "
+                             "one memory pool, so the largest batch sets the footprint)")
     parser.add_argument("--out", default="benchmarks/results/closed_loop_gpu.json")
     args = parser.parse_args()
 
@@ -172,8 +210,15 @@ def main() -> None:
     largest = max(args.num_envs)
     powers = {1 << k for k in range(largest.bit_length())}
     sizes = sorted({*(powers if args.captures is None else args.captures), *args.num_envs})
-    warmups = {b: round(warm_up(adapter, suite, args.camera_size, b), 2) for b in sizes}
+    warmups = {}
+    for b in sizes:
+        try:
+            warmups[b] = warm_up(adapter, suite, args.camera_size, b)
+        except torch.OutOfMemoryError as error:  # recorded; larger N are then skipped
+            warmups[b] = {"error": f"OutOfMemoryError: {str(error)[:200]}"}
+            break
     print(f"policy load {load_s:.1f} s, first chunk per batch size (capture) {warmups}", flush=True)
+    captured = max((b for b, w in warmups.items() if "error" not in w), default=0)
     zero_cost = ZeroCostPolicy(adapter.executed_chunk, adapter.predicted_chunk)
 
     gpu = torch.cuda.get_device_name() if torch.device(args.device).type == "cuda" else None
@@ -193,6 +238,9 @@ def main() -> None:
         warm = measure(adapter, env, episode_order(suite, 1), 2 * adapter.executed_chunk, overlap=True)
     result["simulator_warmup_s"] = warm["wall_s"]
     for n in args.num_envs:
+        if args.sampler == "captured" and torch.device(args.device).type == "cuda" and n > captured:
+            print(f"num_envs={n}: skipped, batch {n} could not be captured", flush=True)
+            continue
         specs = episode_order(suite, max(n * args.rounds, args.min_episodes))
         began = time.perf_counter()
         with LiberoVectorEnv(suite, n, camera_size=args.camera_size) as env:
@@ -209,7 +257,8 @@ def main() -> None:
                                                run["lockstep"]["episodes_per_hour"], 3)
         result["runs"].append(run)
         print(f"num_envs={n}: policy {run['policy']['episodes_per_hour']} episodes/h "
-              f"(batch {run['policy']['policy_call']['mean_items']}, {run['policy']['policy_call']['mean_ms']} ms/call), "
+              f"(batch {run['policy']['policy_call']['mean_items']}, {run['policy']['policy_call']['mean_ms']} ms/call, "
+              f"GPU {run['policy'].get('policy_gpu', {}).get('mean_ms')} ms/call), "
               f"simulator bound {run['simulator_bound']['episodes_per_hour']} -> {run['vs_simulator_bound']}"
               + (f"; lockstep {run['lockstep']['episodes_per_hour']}" if "lockstep" in run else ""), flush=True)
         best = max(result["runs"], key=lambda r: r["policy"]["episodes_per_hour"])

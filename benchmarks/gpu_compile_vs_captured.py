@@ -92,6 +92,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=10)
     args = parser.parse_args()
 
+    started = time.perf_counter()
     device = torch.device(args.device)
     spec = get_model_spec("pi05")
     model = spec.build(variant="full" if device.type == "cuda" else "demo", device=device, seed=0).eval()
@@ -120,6 +121,10 @@ def main() -> None:
                 _, row["eager_ms"] = timed(lambda b=b: model.sample_actions(*inputs[b][:4], noise=inputs[b][4].clone(),
                                                                            num_steps=args.flow_steps),
                                            device, warmup=1, repeats=args.repeats)
+                # Printed before the first compiled call: a run stopped at its time limit shows how long
+                # the compile had been running.
+                print(f"[{preset}] b{b}: eager {1e3 * row['eager_ms']:.1f} ms; compiling lerobot's sample_actions "
+                      f"at {time.perf_counter() - started:.0f} s into the run", flush=True)
                 first, row["compiled_ms"] = timed(lambda b=b: compiled(*inputs[b]), device, warmup=2, repeats=args.repeats)
                 row["compiled_first_call_s"] = first
                 report.reset_hook_calls()

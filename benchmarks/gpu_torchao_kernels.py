@@ -69,12 +69,17 @@ def main() -> None:
     parser.add_argument("--out", required=True)
     parser.add_argument("--repeats", type=int, default=50)
     parser.add_argument("--methods", nargs="+", default=list(METHODS))
+    parser.add_argument("--shapes", nargs="+", default=["x".join(map(str, s)) for s in SHAPES],
+                        help="tokens x in x out, e.g. 64x4096x11008 (rows are written as they finish)")
     args = parser.parse_args()
+    shapes = [tuple(int(v) for v in shape.split("x")) for shape in args.shapes]
     device = torch.device("cuda")
     torch.manual_seed(0)
     rows = []
+    out = {"device": torch.cuda.get_device_name(device), "torch": torch.__version__, "torchao": torchao.__version__,
+           "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "rows": rows}
     with torch.no_grad():
-        for tokens, fan_in, fan_out in SHAPES:
+        for tokens, fan_in, fan_out in shapes:
             linear = torch.nn.Linear(fan_in, fan_out, bias=False).to(device, torch.bfloat16)
             x = torch.randn(tokens, fan_in, device=device, dtype=torch.bfloat16)
             ref = linear(x)
@@ -98,6 +103,8 @@ def main() -> None:
                     row["error"] = f"{type(err).__name__}: {str(err)[:300]}"
                 rows.append(row)
                 print(json.dumps(row), flush=True)
+                with open(args.out, "w") as f:  # a run cut short keeps its finished rows
+                    json.dump(out, f, indent=2)
                 torch._dynamo.reset()
     print(f"\n{'method':<11}{'shape':>20}{'hand ms':>9}{'ao ms':>9}{'ao/hand':>9}{'compiled':>10}")
     for r in rows:
@@ -106,8 +113,6 @@ def main() -> None:
             continue
         print(f"{r['method']:<11}{'x'.join(map(str, r['shape'])):>20}{r['hand_ms']:>9.3f}{r['torchao_ms']:>9.3f}"
               f"{r['torchao_over_hand']:>9.2f}{r['torchao_over_hand_compiled']:>10.2f}")
-    out = {"device": torch.cuda.get_device_name(device), "torch": torch.__version__, "torchao": torchao.__version__,
-           "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "rows": rows}
     with open(args.out, "w") as f:
         json.dump(out, f, indent=2)
 
