@@ -14,8 +14,9 @@ chunks, `runner.loop.run_episodes` overlapping the policy with stepping). For ea
 Episodes go task-major as in a cell (task 0's init states 0, 1, ..., then task 1's); each slot's
 first task environment is built before timing, so every run meets the same builds. Random weights
 never succeed: every episode runs to the step limit (the suite's, or `--max-steps`). Worker
-start-up, the first capture of each batch size (powers of two up to the largest N: the captured
-sampler pads a batch to the smallest captured size at least as large) and one short simulator
+start-up, the first capture of each batch size (powers of two up to the largest N, at most
+`MAX_GRAPH_BATCH`: the captured sampler pads a batch to the smallest captured size at least as large
+and runs larger batches in slices) and one short simulator
 warm-up episode are timed apart and excluded. Writes after every N, so a run cut short keeps what
 it measured.
 
@@ -40,6 +41,7 @@ import transformers
 
 from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv
 from vlaquantbench.models.adapter import AdapterConfig, episode_generator, make_adapter
+from vlaquantbench.models.pi05.fast.captured import MAX_GRAPH_BATCH
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.runner.provenance import versions
 
@@ -94,8 +96,8 @@ def episode_order(suite: LiberoSuite, count: int, per_task: int = 50) -> list:
 
 def warm_up(adapter, suite: LiberoSuite, camera_size: int, batch: int) -> dict:
     """One chunk at `batch` on stand-in observations: captures that batch size's graph. Returns its
-    time and, on CUDA, the GPU memory afterwards (all graphs share one pool: reserved memory grows
-    only when a batch needs more than every earlier one)."""
+    time and, on CUDA, the GPU memory afterwards (every captured graph keeps memory in proportion to
+    its batch: `captured.MAX_GRAPH_BATCH`)."""
     blank = np.zeros((camera_size, camera_size, 3), np.uint8)
     obs = {"agentview": blank, "wrist": blank, "state": np.zeros(8, np.float32),
            "instruction": suite.tasks[0].instruction}
@@ -187,8 +189,8 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, default=None, help="default: the suite's limit for pi0.5")
     parser.add_argument("--camera-size", type=int, default=256)
     parser.add_argument("--captures", type=int, nargs="*", default=None,
-                        help="batch sizes to capture (default: powers of two up to the largest N; the graphs share "
-                             "one memory pool, so the largest batch sets the footprint)")
+                        help="batch sizes to capture (default: powers of two up to the largest N, at most MAX_GRAPH_BATCH; "
+                             "larger batches run as slices)")
     parser.add_argument("--out", default="benchmarks/results/closed_loop_gpu.json")
     args = parser.parse_args()
 
@@ -207,18 +209,11 @@ def main() -> None:
                            components=adapter.components)
         quant_header = report.to_header()["quant_report"]
     inference = adapter.prepare_inference(report)
-    largest = max(args.num_envs)
+    largest = min(max(args.num_envs), MAX_GRAPH_BATCH)  # larger batches run as slices of this size
     powers = {1 << k for k in range(largest.bit_length())}
-    sizes = sorted({*(powers if args.captures is None else args.captures), *args.num_envs})
-    warmups = {}
-    for b in sizes:
-        try:
-            warmups[b] = warm_up(adapter, suite, args.camera_size, b)
-        except torch.OutOfMemoryError as error:  # recorded; larger N are then skipped
-            warmups[b] = {"error": f"OutOfMemoryError: {str(error)[:200]}"}
-            break
+    sizes = sorted({*(powers if args.captures is None else args.captures), *(n for n in args.num_envs if n <= largest)})
+    warmups = {b: warm_up(adapter, suite, args.camera_size, b) for b in sizes}
     print(f"policy load {load_s:.1f} s, first chunk per batch size (capture) {warmups}", flush=True)
-    captured = max((b for b, w in warmups.items() if "error" not in w), default=0)
     zero_cost = ZeroCostPolicy(adapter.executed_chunk, adapter.predicted_chunk)
 
     gpu = torch.cuda.get_device_name() if torch.device(args.device).type == "cuda" else None
@@ -238,9 +233,6 @@ def main() -> None:
         warm = measure(adapter, env, episode_order(suite, 1), 2 * adapter.executed_chunk, overlap=True)
     result["simulator_warmup_s"] = warm["wall_s"]
     for n in args.num_envs:
-        if args.sampler == "captured" and torch.device(args.device).type == "cuda" and n > captured:
-            print(f"num_envs={n}: skipped, batch {n} could not be captured", flush=True)
-            continue
         specs = episode_order(suite, max(n * args.rounds, args.min_episodes))
         began = time.perf_counter()
         with LiberoVectorEnv(suite, n, camera_size=args.camera_size) as env:

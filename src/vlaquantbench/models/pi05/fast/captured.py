@@ -18,11 +18,11 @@ with copies of its last observation and replays that graph, instead of capturing
 for) every batch size a closed-loop runner meets as its episodes finish at different times. Rows
 do not interact, so the padding changes nothing in the real rows of that graph.
 
-All graphs of a sampler share one memory pool: they never run at the same time, and a replay's
-output is copied out before the next replay, so a later graph may reuse an earlier one's
-intermediate memory. The sampler's footprint is then its largest batch's, not the sum over every
-batch size it captured (with one pool per graph, batch sizes 1..64 at full size did not fit an
-H200's 140 GiB).
+A batch larger than `max_batch` (default `MAX_GRAPH_BATCH`) runs as consecutive slices of at most
+that many rows (rows do not interact): at full size each captured graph keeps memory in proportion
+to its batch (on an H200, capturing batch 1, 2, ..., 32 grew allocated memory by ≈ 0.48 GiB and
+reserved memory by ≈ 1.1 GiB per batch row, to 42.6 / 83.6 GiB with the weights; it grew the same
+with all graphs in one shared memory pool and one warm-up stream), so batch 64 does not fit in 140 GiB.
 
 Attention: the VLM prefix's 8 query heads share one KV head and are folded into one batched
 product by default (`static_sampling._attention`); `prefix_sdpa=True` runs SDPA there instead, with
@@ -49,6 +49,7 @@ from vlaquantbench.models.pi05.fast import static_sampling
 
 # Quantization methods whose layers cannot run inside a CUDA graph, with the reason.
 UNCAPTURABLE_METHODS = {"int8": "bitsandbytes LLM.int8() synchronizes with the host on its outlier columns"}
+MAX_GRAPH_BATCH = 32
 SDPA_ORDER = (SDPBackend.EFFICIENT_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBackend.CUDNN_ATTENTION,
               SDPBackend.MATH)
 
@@ -65,8 +66,9 @@ class CapturedSampler:
 
     def __init__(self, model: nn.Module, num_steps: int, *, use_graphs: bool | None = None, tf32: bool = True,
                  attention_backends: Sequence = SDPA_ORDER, prefix_sdpa: bool = False,
-                 fuse_elementwise: bool | None = None):
+                 fuse_elementwise: bool | None = None, max_batch: int = MAX_GRAPH_BATCH):
         self.model = model
+        self.max_batch = max_batch
         self.num_steps = num_steps
         device = next(model.parameters()).device
         self.use_graphs = device.type == "cuda" if use_graphs is None else use_graphs
@@ -80,7 +82,6 @@ class CapturedSampler:
         fuse = self.use_graphs if fuse_elementwise is None else fuse_elementwise
         self.ops = static_sampling.COMPILED_OPS if fuse else static_sampling.EAGER_OPS
         self._graphs: dict[tuple, dict[int, _Graph]] = {}  # input shapes past the batch -> batch -> graph
-        self._pool = torch.cuda.graph_pool_handle() if self.use_graphs else None
         self._groups: static_sampling.ModelGroups | None = None
 
     def reset(self) -> None:
@@ -99,6 +100,9 @@ class CapturedSampler:
             return static_sampling.sample_actions(self.model, images, img_masks, tokens, masks, noise, self.times, self.ops,
                                               groups, self.prefix_sdpa)
         batch = noise.shape[0]
+        if batch > self.max_batch:
+            return torch.cat([self(*_rows((images, img_masks, tokens, masks, noise), slice(start, start + self.max_batch)))
+                              for start in range(0, batch, self.max_batch)])
         by_batch = self._graphs.setdefault(tuple(tuple(t.shape[1:]) for t in (*images, tokens, noise)), {})
         size = min((b for b in by_batch if b >= batch), default=batch)
         if size not in by_batch:
@@ -136,24 +140,28 @@ class CapturedSampler:
         with self._kernel_choices():
             graph, output = capture_graph(
                 lambda: static_sampling.sample_actions(self.model, *inputs, self.times, self.ops, groups,
-                                                   self.prefix_sdpa), pool=self._pool)
+                                                   self.prefix_sdpa))
         return _Graph(graph, inputs, output)
 
 
-def capture_graph(fn, pool=None):
+def capture_graph(fn):
     """Run `fn` once on a side stream (cuBLAS/cuDNN handles, autotuning, Triton and inductor
-    compilation happen there, as CUDA graph capture requires), then record it (into memory pool
-    `pool`, shared with other graphs, when given); returns the graph and the output tensors that each
-    `graph.replay()` rewrites."""
+    compilation happen there, as CUDA graph capture requires), then record it; returns the graph
+    and the output tensors that each `graph.replay()` rewrites."""
     stream = torch.cuda.Stream()
     stream.wait_stream(torch.cuda.current_stream())
     with torch.cuda.stream(stream):
         fn()
     torch.cuda.current_stream().wait_stream(stream)
     graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph, pool=pool):
+    with torch.cuda.graph(graph):
         output = fn()
     return graph, output
+
+
+def _rows(inputs, rows: slice) -> tuple:
+    """The sampler's inputs (tensors and lists of tensors) restricted to the batch rows `rows`."""
+    return tuple([t[rows] for t in item] if isinstance(item, list | tuple) else item[rows] for item in inputs)
 
 
 def _flatten(items) -> list[torch.Tensor]:
