@@ -181,3 +181,106 @@ def test_the_demo_policy_header_says_its_tokenizer_and_ranges_are_stand_ins():
     adapter.load()
     assert "random-weight policy only" in adapter.checkpoint_provenance["tokenizer"]["source"]
     assert "random-weight policy only" in adapter.checkpoint_provenance["normalization"]["source"]
+
+
+# X-VLA: `2toINF/X-VLA-Libero` as the release ships it (a transformers remote-code repository), loaded with
+# lerobot's `XVLAModel`, lerobot's remap of its weights, its own tokenizer and its image processor.
+XVLA = "2toINF/X-VLA-Libero"
+XVLA_FILES = {"config.json", "model.safetensors", "preprocessor_config.json", "tokenizer.json", "tokenizer_config.json",
+              "vocab.json"}
+
+
+def test_the_xvla_release_layout_resolves_offline_and_lerobots_remap_names_every_weight(hub_fixture):
+    from huggingface_hub import snapshot_download
+
+    from vlaquantbench.hub.checks import weight_shapes
+    from vlaquantbench.models.xvla import release
+
+    checkpoint, revision = pinned(hub_fixture, "xvla")
+    with offline_cache(hub_fixture["home"]):
+        folder = Path(snapshot_download(checkpoint, revision=revision, local_files_only=True))
+    assert folder.name == revision and {p.name for p in folder.iterdir()} == XVLA_FILES
+    config = json.loads((folder / "config.json").read_text())
+    assert config["model_type"] == "xvla" and "type" not in config  # not lerobot's layout
+    assert config["auto_map"]["AutoModel"] == "modeling_xvla.XVLA" and config["num_actions"] == 30
+    shapes = weight_shapes(folder / "model.safetensors")
+    # the remote code's names: vendored Florence-2 (DaViT wrappers, BART under `.model`, a raw projection)
+    assert "vlm.image_projection" in shapes and "vlm.language_model.final_logits_bias" in shapes
+    assert "vlm.vision_tower.blocks.0.0.spatial_block.window_attn.fn.qkv.weight" in shapes
+    assert not [k for k in shapes if k.startswith("model.") or "decoder.layers" in k]
+    expected = release.build_model(release.policy_config(config, "cpu", "float32"), device="meta").state_dict()
+    renamed = release.lerobot_state({k: torch.empty(s, device="meta") for k, s in shapes.items()})
+    assert {k: tuple(v.shape) for k, v in renamed.items()} == {k: tuple(v.shape) for k, v in expected.items()}
+
+
+def xvla_fault(folder: Path, fault: str) -> None:
+    """Break one file of a writable X-VLA snapshot copy."""
+    if fault.startswith("missing_"):
+        (folder / {"missing_config": "config.json", "missing_image_processor": "preprocessor_config.json"}[fault]).unlink()
+    elif fault == "corrupt_config":
+        (folder / "config.json").write_text('{"model_type": "xvla", "hidden_size": ')
+    elif fault == "config_without_florence":
+        config = json.loads((folder / "config.json").read_text())
+        del config["florence_config"]["vision_config"]
+        (folder / "config.json").write_text(json.dumps(config))
+    elif fault == "corrupt_image_processor":
+        (folder / "preprocessor_config.json").write_text('{"image_mean": [0.5, ')
+    elif fault == "tokenizer":
+        for name in ("tokenizer.json", "vocab.json"):
+            (folder / name).write_text((folder / name).read_text()[:300])
+    else:
+        weights = folder / "model.safetensors"
+        state = load_file(weights)
+        if fault == "weights_missing":
+            del state["transformer.action_decoder.bias.weight"]
+        else:
+            state["vlm.language_model.model.encoder.layers.0.fc1.weight"] = torch.zeros(3, 3)
+        weights.unlink()
+        save_file(state, weights)
+
+
+@pytest.mark.parametrize("fault, message", [
+    ("missing_config", r"X-VLA config config.json is missing from"),
+    ("corrupt_config", r"X-VLA config .*config.json is corrupt"),
+    ("config_without_florence", r"X-VLA config .*config.json lacks florence_config.vision_config"),
+    ("missing_image_processor", r"image processor file preprocessor_config.json is missing"),
+    ("corrupt_image_processor", r"image processor file .*preprocessor_config.json is corrupt"),
+    ("tokenizer", rf"tokenizer of {XVLA} \(tokenizer.json, tokenizer_config.json, vocab.json in .*\) does not load"),
+    ("weights_missing", r"model.safetensors does not fit the architecture: 1 missing keys: transformer.action_decoder.bias.weight"),
+    ("weights_shape", r"model.safetensors does not fit the architecture: wrong shapes: "
+                      r"vlm.language_model.encoder.layers.0.fc1.weight \(3, 3\) vs \(128, 64\)"),
+])
+def test_a_faulty_xvla_release_is_refused_naming_the_file(hub_fixture, tmp_path, fault, message):
+    folder = snapshot_copy(hub_fixture, tmp_path, XVLA)
+    xvla_fault(folder, fault)
+    with pytest.raises(UserError, match=message):
+        load(hub_fixture, folder, model="xvla")
+
+
+def test_an_xvla_snapshot_of_another_revision_is_refused(hub_fixture):
+    folder = hub_fixture["repos"][XVLA]["path"]
+    with pytest.raises(UserError, match=rf"snapshot {folder} is revision .*, but the config pins revision {'2' * 40}"):
+        load(hub_fixture, folder, model="xvla", revision="2" * 40)
+
+
+def test_xvla_prompts_use_the_releases_tokenizer_and_images_its_processor(hub_fixture):
+    from transformers import AutoImageProcessor, AutoTokenizer
+
+    from vlaquantbench.hub.checks import sha256
+
+    folder = Path(hub_fixture["repos"][XVLA]["path"])
+    adapter = load(hub_fixture, folder, model="xvla")
+    header = adapter.checkpoint_provenance
+    assert header["tokenizer"] == {"class": "RobertaTokenizer", "repo": XVLA, "revision": folder.name,
+                                   "files": {n: sha256(folder / n) for n in ("tokenizer.json", "tokenizer_config.json", "vocab.json")}}
+    processor = AutoImageProcessor.from_pretrained(folder)
+    record = header["normalization"]["image_processor"]
+    assert (record["sha256"], record["size"], record["mode"]) == (sha256(folder / "preprocessor_config.json"), 224, "bicubic")
+    assert record["mean"] == list(processor.image_mean) and record["std"] == list(processor.image_std)
+    # The adapter's view of a 224 px frame: (pixel / 255 - mean) / std with the file's numbers, by hand.
+    frame = np.random.default_rng(0).integers(0, 256, (224, 224, 3), dtype=np.uint8)
+    view = adapter._view([{"agentview": frame}], "agentview")[0].numpy()
+    by_hand = (frame.astype(np.float64) / 255.0 - np.array(processor.image_mean)) / np.array(processor.image_std)
+    np.testing.assert_allclose(view, by_hand.transpose(2, 0, 1), rtol=0, atol=1e-5)
+    text = "pick up the black bowl between the plate and the ramekin and place it on the plate"
+    assert adapter.tokenizer(text).input_ids == AutoTokenizer.from_pretrained(folder).encode(text)

@@ -1,7 +1,8 @@
 """`HF_HOME=<hub fixture> HF_HUB_OFFLINE=1 snakemake --cores 2 tables/lattice.tex --configfile
 config/paper_smoke.yaml`, for real, in a copy of the workflow: the paper's checkpoints at their
-pinned revisions resolve from the cache, load through lerobot's from_pretrained, drive real LIBERO
-episodes, and every cell header records the tokenizer and statistics it used, with their hashes."""
+pinned revisions resolve from the cache, load through lerobot (pi: `from_pretrained` and the checkpoint's
+processors; X-VLA: lerobot's model and remap of the release's weights), drive real LIBERO episodes, and
+every cell header records the tokenizer and normalization it used, with their hashes."""
 
 import json
 import os
@@ -34,7 +35,7 @@ def test_the_paper_smoke_config_runs_end_to_end_on_the_hub_fixture(hub_fixture, 
     table = (checkout / "tables" / "lattice.tex").read_text()
     assert "offline hub fixture" in table and "Demo policy" not in table
     assert r"$\pi_{0.5}$ W4A4, all 167 AH layers & 167 &" in table
-    tokenizer_repo = hub_fixture["repos"]["google/paligemma-3b-pt-224"]
+    paligemma = hub_fixture["repos"]["google/paligemma-3b-pt-224"]
     headers = {}
     for path in (checkout / "results" / "cells").glob("*/header.json"):
         header = json.loads(path.read_text())
@@ -42,20 +43,28 @@ def test_the_paper_smoke_config_runs_end_to_end_on_the_hub_fixture(hub_fixture, 
         model = hub_fixture["study"]["models"][header["model"]]
         snapshot = Path(hub_fixture["repos"][model["checkpoint"]]["path"])
         assert (header["variant"], header["checkpoint"], header["revision"]) == ("full", model["checkpoint"], model["revision"])
-        assert header["tokenizer"]["class"] == "GemmaTokenizer"
-        assert (header["tokenizer"]["repo"], header["tokenizer"]["revision"]) == ("google/paligemma-3b-pt-224", tokenizer_repo["revision"])
-        assert header["tokenizer"]["files"] == {
-            name: sha256(Path(tokenizer_repo["path"]) / name) for name in ("config.json", "tokenizer.json", "tokenizer_config.json")
-        }
-        for processor in ("policy_preprocessor", "policy_postprocessor"):
-            record = header["normalization"][processor]
-            assert record["sha256"] == sha256(snapshot / f"{processor}.json")
-            assert record["state_files"] and all(sha256(snapshot / f) == h for f, h in record["state_files"].items())
-        assert header["widths"] == "reduced (offline hub fixture)"
-        assert header["chunk"] == {"predicted": 50, "executed": 10}
+        if header["model"] == "xvla":  # the release's own tokenizer and image processor, in its snapshot
+            tokenizer_repo, tokenizer_files = {"path": snapshot, "revision": model["revision"]}, ("tokenizer.json", "tokenizer_config.json", "vocab.json")
+            assert (header["tokenizer"]["class"], header["tokenizer"]["repo"]) == ("RobertaTokenizer", model["checkpoint"])
+            record = header["normalization"]["image_processor"]
+            assert record["sha256"] == sha256(snapshot / "preprocessor_config.json") and record["mode"] == "bicubic"
+            assert header["widths"] == "reduced (config.json)"
+            assert header["chunk"] == {"predicted": 30, "executed": 10}
+            assert header["environment"]["mujoco"] == "3.1.6"
+        else:
+            tokenizer_repo, tokenizer_files = paligemma, ("config.json", "tokenizer.json", "tokenizer_config.json")
+            assert (header["tokenizer"]["class"], header["tokenizer"]["repo"]) == ("GemmaTokenizer", "google/paligemma-3b-pt-224")
+            for processor in ("policy_preprocessor", "policy_postprocessor"):
+                record = header["normalization"][processor]
+                assert record["sha256"] == sha256(snapshot / f"{processor}.json")
+                assert record["state_files"] and all(sha256(snapshot / f) == h for f, h in record["state_files"].items())
+            assert header["widths"] == "reduced (offline hub fixture)"
+            assert header["chunk"] == {"predicted": 50, "executed": 10}
+        assert header["tokenizer"]["revision"] == tokenizer_repo["revision"]
+        assert header["tokenizer"]["files"] == {name: sha256(Path(tokenizer_repo["path"]) / name) for name in tokenizer_files}
         assert header["hooks"]["fired"] == header["hooks"]["selected"]
         assert header["episodes_per_task"] == 1 and header["max_steps"] == 30
     assert set(headers) == {"libero/libero_spatial/pi05/rtn-BASELINE-e2e", "libero/libero_spatial/pi05/rtn-W4A4-ah",
-                            "libero/libero_spatial/pi0/rtn-BASELINE-e2e"}
+                            "libero/libero_spatial/pi0/rtn-BASELINE-e2e", "libero/libero_spatial/xvla/rtn-BASELINE-e2e"}
     stamp = json.loads(next((checkout / "results" / "checkpoints").glob("pi05*/checkpoint.json")).read_text())
     assert Path(stamp["path"]) == Path(hub_fixture["repos"]["lerobot/pi05_libero_finetuned_v044"]["path"])

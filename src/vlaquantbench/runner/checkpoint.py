@@ -55,15 +55,16 @@ def download_checkpoint(model: str, variant: str, checkpoint: str | None, revisi
     if variant in ("demo", "random"):  # random weights: nothing to fetch
         info["path"] = None
     else:
-        from vlaquantbench.hub.checks import check_snapshot_revision, tokenizer_names
+        from vlaquantbench.hub.checks import PROCESSOR_FILES, check_snapshot_revision, tokenizer_names
 
         if not checkpoint or not revision:
             raise UserError(f"study.models.{model}: a full-variant model needs `checkpoint` and a pinned `revision`")
         path = _snapshot("checkpoint", checkpoint, revision)
         check_snapshot_revision(path, checkpoint, revision)
         info["path"] = str(path)
-        info["tokenizers"] = {
-            name: _snapshot("tokenizer", name, None, TOKENIZER_PATTERNS).name for name in tokenizer_names(path)
-        }
+        # A lerobot checkpoint's preprocessor names the tokenizer repositories it loads; a release
+        # without lerobot processors (X-VLA's) carries its tokenizer in its own snapshot.
+        named = tokenizer_names(path) if (path / PROCESSOR_FILES[0]).exists() else []
+        info["tokenizers"] = {name: _snapshot("tokenizer", name, None, TOKENIZER_PATTERNS).name for name in named}
     write_text(stamp, json.dumps(info, indent=2, sort_keys=True) + "\n")
     return info

@@ -2,7 +2,7 @@
 
 Observation -> the primary (agentview) view as LIBERO renders it rotated 180 degrees, the wrist
 view unrotated (the client flips only the primary view; the environment rotates both, so the
-wrist view is turned back), each resized to `IMAGE_SIZE` and ImageNet-normalized -> the proprio
+wrist view is turned back), each resized to 224 px and ImageNet-normalized -> the proprio
 vector: end-effector position, the first two columns of its rotation matrix (6-D rotation), a zero,
 then ten zeros (the client's 20-D ee6d layout) -> the instruction tokenized to 64 tokens -> domain
 id 3 (LIBERO) -> flow matching over `flow_steps` steps from noise drawn from each episode's own
@@ -10,15 +10,18 @@ generator -> per action: absolute target position, the 6-D rotation as axis-angl
 thresholded at 0.5 to +1/-1. The environment runs its controller with absolute targets
 (`control_mode = "absolute"`) and the whole 30-action chunk is executed before the next query.
 
-Full variant: `XVLAPolicy.from_pretrained` on the local snapshot of `2toINF/X-VLA-Libero` (lerobot
-remaps its remote-code Florence-2 weights) and the snapshot's BART tokenizer. Demo variant: the
-reduced-width random-weight model of the model spec and an offline byte-level tokenizer (see
-`pi_family_adapter.offline_byte_tokenizer`). Random variant: the full-size architecture, seeded.
+Full variant: the local snapshot of `2toINF/X-VLA-Libero` as the release ships it (`release`):
+lerobot's `XVLAModel` built from its config.json, its weights through lerobot's remap of the
+remote-code Florence-2 layout, its own BART tokenizer and its image processor's size, resampling,
+mean and std, each checked before any rollout. Demo variant: the reduced-width random-weight model of
+the model spec, an offline byte-level tokenizer (see `pi_family_adapter.offline_byte_tokenizer`) and
+the release's image settings as constants. Random variant: the full-size architecture, seeded.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,11 +31,11 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterBase, BatchInvariantLinears
 from vlaquantbench.models.registry import get_model_spec
 
-IMAGE_SIZE = 224
 TOKENS = 64  # lerobot's `tokenizer_max_length` for X-VLA
 LIBERO_DOMAIN = 3  # X-VLA's domain id of LIBERO (its client's `domain_id`)
-_IMAGENET_MEAN = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
-_IMAGENET_STD = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+# The demo's image settings: the release's 224 px and ImageNet mean/std (its preprocessor_config.json);
+# bilinear resizing, as the demo cells have always run (the release resizes bicubic).
+DEMO_IMAGE = {"size": 224, "mode": "bilinear", "mean": [0.485, 0.456, 0.406], "std": [0.229, 0.224, 0.225]}
 
 
 def axis_angle_to_rotate6d(axis_angle: np.ndarray) -> np.ndarray:
@@ -62,12 +65,16 @@ class XVLAAdapter(AdapterBase):
 
 
     def load(self) -> None:
-        from vlaquantbench.models.pi_family_adapter import offline_byte_tokenizer
+        from vlaquantbench.models.pi_family_adapter import DEMO_PROVENANCE, offline_byte_tokenizer
 
         spec = get_model_spec(self.name)
+        self._image = DEMO_IMAGE
         if self.config.variant == "full":
             self._load_checkpoint()
         elif self.config.variant in ("demo", "random"):
+            self.checkpoint_provenance = {"tokenizer": DEMO_PROVENANCE["tokenizer"],
+                                          "normalization": {"image": DEMO_IMAGE, "source": "X-VLA's image settings"},
+                                          "widths": "reduced (demo)" if self.config.variant == "demo" else "released"}
             if self.config.variant == "random" and self.config.dtype not in ("float32", "bfloat16"):
                 raise UserError(f"xvla: variant 'random' runs in float32 or bfloat16, not {self.config.dtype!r}")
             build = "demo" if self.config.variant == "demo" else "full"
@@ -84,18 +91,37 @@ class XVLAAdapter(AdapterBase):
         self._check_chunk()
 
     def _load_checkpoint(self) -> None:
-        from lerobot.policies.xvla.configuration_xvla import XVLAConfig
-        from lerobot.policies.xvla.modeling_xvla import XVLAPolicy
-        from transformers import AutoTokenizer
+        """The release's snapshot, checked before any rollout (revision, config, image processor,
+        tokenizer, a state dict that fits the architecture), then loaded strictly."""
+        from safetensors.torch import load_file
 
-        if not self.config.checkpoint_dir:
+        from vlaquantbench.hub import checks
+        from vlaquantbench.models.xvla import release
+        from vlaquantbench.models.xvla.components import FLORENCE_LARGE, FULL_HEAD
+
+        folder = self.config.checkpoint_dir
+        if not folder:
             raise UserError(f"xvla: checkpoint {self.config.checkpoint} has no local snapshot; run its download rule")
-        policy_config = XVLAConfig.from_pretrained(self.config.checkpoint_dir, local_files_only=True)
-        policy_config.device = self.config.device
-        policy_config.dtype = self.config.dtype
-        policy = XVLAPolicy.from_pretrained(self.config.checkpoint_dir, config=policy_config, local_files_only=True)
-        self.model = policy.model.to(self._device)
-        self.tokenizer = AutoTokenizer.from_pretrained(self.config.checkpoint_dir, local_files_only=True)
+        checks.check_snapshot_revision(folder, self.config.checkpoint, self.config.revision)
+        released = release.read_config(folder)
+        self._image, image_record = release.read_image_processor(folder)
+        self.tokenizer, tokenizer_record = release.load_tokenizer(folder, self.config.checkpoint)
+        weights = Path(folder) / release.WEIGHTS_FILE
+        found = {k: torch.empty(shape, device="meta") for k, shape in checks.weight_shapes(weights).items()}
+        policy_config = release.policy_config(released, self.config.device, self.config.dtype)
+        expected = release.build_model(policy_config, device="meta").state_dict()
+        checks.check_state_dict_fits({k: tuple(v.shape) for k, v in release.lerobot_state(found).items()},
+                                     {k: tuple(v.shape) for k, v in expected.items()}, weights)
+        model = release.build_model(policy_config)
+        model.load_state_dict(release.lerobot_state(load_file(weights)), strict=True)
+        model._apply_dtype()  # lerobot's cast to the configured dtype, as after its own from_pretrained
+        self.model = model.to(self._device)
+        full = released["florence_config"]["text_config"].get("d_model") == FLORENCE_LARGE["text_config"]["d_model"]
+        self.checkpoint_provenance = {
+            "tokenizer": tokenizer_record,
+            "normalization": {"image_processor": image_record},
+            "widths": "released" if full and released["hidden_size"] == FULL_HEAD["hidden_size"] else "reduced (config.json)",
+        }
 
     @torch.no_grad()
     def act(self, observations: Sequence[dict[str, Any]], generators: Sequence[torch.Generator]) -> np.ndarray:
@@ -126,9 +152,11 @@ class XVLAAdapter(AdapterBase):
         if view == "wrist":
             pixels = pixels[:, ::-1, ::-1]
         img = torch.from_numpy(np.ascontiguousarray(pixels)).permute(0, 3, 1, 2).float().div(255.0).to(self._device)
-        if tuple(img.shape[2:]) != (IMAGE_SIZE, IMAGE_SIZE):
-            img = torch.nn.functional.interpolate(img, size=(IMAGE_SIZE, IMAGE_SIZE), mode="bilinear", align_corners=False)
-        return (img - _IMAGENET_MEAN.to(img.device)) / _IMAGENET_STD.to(img.device)
+        size = self._image["size"]
+        if tuple(img.shape[2:]) != (size, size):
+            img = torch.nn.functional.interpolate(img, size=(size, size), mode=self._image["mode"], align_corners=False)
+        mean, std = (torch.tensor(self._image[k], device=img.device).view(1, 3, 1, 1) for k in ("mean", "std"))
+        return (img - mean) / std
 
     def _proprio(self, observations) -> np.ndarray:
         state = np.stack([obs["state"] for obs in observations]).astype(np.float64)  # pos, axis-angle, gripper qpos
