@@ -111,6 +111,11 @@ def test_kill_9_mid_cell_then_rerun_gives_exactly_the_uninterrupted_episodes(tmp
     frames = [pd.read_parquet(folder / "episodes.parquet") for folder in (interrupted, uninterrupted)]
     episodes, other = (f.drop(columns=[c for c in f.columns if "latency" in c or "wall_time" in c]) for f in frames)
     assert episodes.equals(other)
+    # The study's own scope, counted as the paper does: OFT's one fc2 layer, X-VLA's 24 qkv projections.
+    header = read_cell(interrupted).header
+    layers = {"openvla_oft": 1, "xvla": 24}[header["model"]]
+    assert {c: v["layers"] for c, v in header["quant_report"].items()} == {"ah": layers}
+    assert header["hooks"]["selected"] == header["hooks"]["fired"] == layers
 
 
 STUDIES = {
