@@ -45,7 +45,8 @@ def main() -> None:
     spec = get_model_spec("pi05")
     baseline = spec.build("demo", device="cpu", seed=0)
     quantized = copy.deepcopy(baseline)
-    report = quantize_(quantized, QuantConfig.from_preset(args.preset, scope="e2e"), spec.components)
+    config = QuantConfig.from_preset(args.preset, scope="e2e")
+    report = quantize_(quantized, config, config.select(quantized, spec.components))
     images, image_masks, tokens, token_masks, noise = chunk_inputs()
 
     def one_chunk(model) -> float:

@@ -205,8 +205,8 @@ def main() -> None:
     if args.preset:
         from vlaquantbench.quant import QuantConfig, quantize_
 
-        report = quantize_(adapter.model, QuantConfig.from_preset(args.preset, scope="e2e"),
-                           components=adapter.components)
+        config = QuantConfig.from_preset(args.preset, scope="e2e")
+        report = quantize_(adapter.model, config, config.select(adapter.model, adapter.components))
         quant_header = report.to_header()["quant_report"]
     inference = adapter.prepare_inference(report)
     largest = min(max(args.num_envs), MAX_GRAPH_BATCH)  # larger batches run as slices of this size

@@ -108,7 +108,8 @@ def main() -> None:
         with torch.no_grad():
             for name, weight in originals.items():
                 model.get_submodule(name).weight.copy_(weight)
-        report = quantize_(model, QuantConfig.from_preset(preset, scope="e2e"), components=spec.components)
+        config = QuantConfig.from_preset(preset, scope="e2e")
+        report = quantize_(model, config, config.select(model, spec.components))
         cell = {"preset": preset, "hooks": len(report.result.hooks), "batches": {}}
         compiled = compiled_sampler(model, args.flow_steps, args.backend)
         eager_chunks = {}

@@ -112,7 +112,8 @@ def main() -> None:
         with torch.no_grad():
             for name, weight in originals.items():
                 model.get_submodule(name).weight.copy_(weight)
-        report = quantize_(model, QuantConfig.from_preset(preset, scope="e2e"), components=spec.components)
+        config = QuantConfig.from_preset(preset, scope="e2e")
+        report = quantize_(model, config, config.select(model, spec.components))
         fuse_activation_hooks(report)  # integer per-token transforms only; float formats fall back to theirs
         sampler = CapturedSampler(model, num_steps=steps)
         cell = {"format": report.result.format, "hooks": len(report.result.hooks), "captured_ms": {}}

@@ -175,7 +175,8 @@ def main() -> None:
         with torch.no_grad():
             for name, weight in originals.items():
                 model.get_submodule(name).weight.copy_(weight)
-        report = quantize_(model, QuantConfig.from_preset(preset, scope="e2e"), components=spec.components)
+        config = QuantConfig.from_preset(preset, scope="e2e")
+        report = quantize_(model, config, config.select(model, spec.components))
         cell = {"preset": preset, "format": report.result.format, "hooks": len(report.result.hooks),
                 "layers": report.components, "eager": {}, "captured": {}}
 

@@ -189,7 +189,7 @@ def measure(backbone: Backbone, method: str, repeats: int, references: dict | No
         if METHODS[method] is not None:
             stats = calibrate(backbone) if method in CALIBRATED else None
             cfg = QuantConfig.from_preset(METHODS[method], scope="llm", method=method, stats=stats)
-            report = quantize_(backbone.model, cfg, components=backbone.components)
+            report = quantize_(backbone.model, cfg, cfg.select(backbone.model, backbone.components))
             entry.update(format=report.result.format, layers=report.components)
         else:
             entry.update(format="bf16 (released precision)")

@@ -11,9 +11,15 @@ def records_of(refs):
     return [WF.cell_input(ref) for ref in refs]
 
 
+def headers_of(refs):
+    """The header.json files read beside the cell folders among `refs` (declared inputs too)."""
+    return [header for header in map(WF.cell_header, refs) if header is not None]
+
+
 rule records_manifest:
     input:
         cells=lambda wc: records_of(WF.cell_refs()),
+        headers=lambda wc: headers_of(WF.cell_refs()),
     output:
         "results/records/manifest.tsv",
     params:
@@ -28,6 +34,7 @@ rule summary:
     input:
         manifest=MANIFEST,
         cells=lambda wc: records_of(WF.cell_refs()),
+        headers=lambda wc: headers_of(WF.cell_refs()),
     output:
         "tables/summary.csv",
     params:
@@ -48,6 +55,7 @@ rule paper_table:
     input:
         manifest=MANIFEST,
         cells=lambda wc: records_of(WF.checked_refs(WF.table_record_refs(wc.table), f"tables/{wc.table}.tex")),
+        headers=lambda wc: headers_of(WF.checked_refs(WF.table_record_refs(wc.table), f"tables/{wc.table}.tex")),
         summary=lambda wc: WF.table_summary(wc.table),
         sources=lambda wc: list(WF.table_sources(wc.table).values()),
     output:
@@ -88,6 +96,7 @@ rule scope_recovery_figure:
     input:
         manifest=MANIFEST,
         cells=lambda wc: records_of(WF.checked_refs(WF.record_refs(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY), SCOPE_RECOVERY)),
+        headers=lambda wc: headers_of(WF.checked_refs(WF.record_refs(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY), SCOPE_RECOVERY)),
         summary=lambda wc: WF.summary_input(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY),
     output:
         report(SCOPE_RECOVERY, caption="../workflow/report/figure.rst", category="Figures"),

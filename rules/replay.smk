@@ -3,13 +3,16 @@
 # `<format>/analysis.json` files; otherwise the DAG records full-precision trajectories in LIBERO,
 # replays every configuration on them (one job each; full precision twice, under `fp/`) and
 # analyses each format under results/replay/<study>/.
-from vlaquantbench.replay.study import load_study, with_formats  # noqa: E402
+from vlaquantbench.replay.study import RecordSettings, analysis_files, load_study, with_formats  # noqa: E402
 
 REPLAY_STUDY = "pi05_libero_spatial"
 REPLAY_OPTIONS = config.get("replay") or {}
 REPLAY = with_formats(load_study(REPLAY_STUDY), REPLAY_OPTIONS.get("formats"))
 REPLAY_DIR = config.get("replay_analysis_dir") or f"results/replay/{REPLAY_STUDY}"
-REPLAY_ANALYSES = [f"{REPLAY_DIR}/{fmt}/analysis.json" for fmt in REPLAY["formats"]]
+REPLAY_ANALYSES = [str(path) for path in analysis_files(REPLAY_DIR, REPLAY["formats"]).values()]
+# The recording: records.json and one file per (task, init state) trajectory, every one declared.
+RECORDING = f"results/replay/{REPLAY_STUDY}/records"
+TRAJECTORIES = [f"{RECORDING}/{name}" for name in RecordSettings.from_study(REPLAY, REPLAY_OPTIONS).trajectory_files()]
 # Success rates of the matching closed-loop cells (SR column): a summary with the authors' columns.
 SUCCESS_SUMMARY = config.get("success_summary") or "tables/summary.csv"
 
@@ -20,12 +23,13 @@ wildcard_constraints:
 
 rule replay_record:
     output:
-        "results/replay/{study}/records/records.json",
+        records=f"{RECORDING}/records.json",
+        trajectories=TRAJECTORIES,
     params:
-        study=lambda wc: load_study(wc.study),
+        study=REPLAY,
         options=REPLAY_OPTIONS,
     log:
-        "logs/replay_record/{study}.log",
+        f"logs/replay_record/{REPLAY_STUDY}.log",
     script:
         "../workflow/scripts/replay_record.py"
 
@@ -34,41 +38,45 @@ rule replay_configuration:
     wildcard_constraints:
         config="|".join([REPLAY["baseline"], REPLAY["repeat"], *REPLAY["configurations"]]),
     input:
-        "results/replay/{study}/records/records.json",
+        records=f"{RECORDING}/records.json",
+        trajectories=TRAJECTORIES,
     output:
-        summary="results/replay/{study}/{replay_format}/{config}.json",
-        arrays="results/replay/{study}/{replay_format}/{config}.npz",
+        summary=f"results/replay/{REPLAY_STUDY}/{{replay_format}}/{{config}}.json",
+        arrays=f"results/replay/{REPLAY_STUDY}/{{replay_format}}/{{config}}.npz",
     params:
-        study=lambda wc: load_study(wc.study),
+        study=REPLAY,
         preset=lambda wc: "BASELINE" if wc.replay_format == "fp" else wc.replay_format,
         checkpoint_dir=REPLAY_OPTIONS.get("checkpoint_dir"),
     log:
-        "logs/replay_configuration/{study}/{replay_format}/{config}.log",
+        f"logs/replay_configuration/{REPLAY_STUDY}/{{replay_format}}/{{config}}.log",
     script:
         "../workflow/scripts/replay_configuration.py"
 
 
+def replay_runs(replay_format, suffix):
+    """One format's replays (`.json` summaries or `.npz` arrays), full precision's two runs first."""
+    return [f"results/replay/{REPLAY_STUDY}/fp/{REPLAY['baseline']}.{suffix}",
+            f"results/replay/{REPLAY_STUDY}/fp/{REPLAY['repeat']}.{suffix}",
+            *(f"results/replay/{REPLAY_STUDY}/{replay_format}/{name}.{suffix}" for name in REPLAY["configurations"])]
+
+
 rule replay_analyze:
     input:
-        lambda wc: [
-            f"results/replay/{wc.study}/fp/{REPLAY['baseline']}.json",
-            f"results/replay/{wc.study}/fp/{REPLAY['repeat']}.json",
-            *expand("results/replay/{study}/{replay_format}/{config}.json", study=wc.study,
-                    replay_format=wc.replay_format, config=REPLAY["configurations"]),
-        ],
+        summaries=lambda wc: replay_runs(wc.replay_format, "json"),
+        arrays=lambda wc: replay_runs(wc.replay_format, "npz"),
     output:
-        "results/replay/{study}/{replay_format}/analysis.json",
+        f"results/replay/{REPLAY_STUDY}/{{replay_format}}/analysis.json",
     params:
-        study=lambda wc: load_study(wc.study),
+        study=REPLAY,
     log:
-        "logs/replay_analyze/{study}/{replay_format}.log",
+        f"logs/replay_analyze/{REPLAY_STUDY}/{{replay_format}}.log",
     script:
         "../workflow/scripts/replay_analyze.py"
 
 
 rule replay_composition_table:
     input:
-        REPLAY_ANALYSES,
+        analyses=REPLAY_ANALYSES,
     output:
         tex="tables/replay_composition.tex",
         html=report("tables/replay_composition.html", caption="../workflow/report/derived.rst", category="Tables",
@@ -77,7 +85,6 @@ rule replay_composition_table:
         "logs/tables/replay_composition.log",
     params:
         source=lambda wc: f"the replay analysis files in {REPLAY_DIR}",
-        analysis_dir=REPLAY_DIR,
         study=REPLAY_STUDY,
         formats=REPLAY["formats"],
     script:
@@ -96,7 +103,6 @@ rule replay_all_formats_table:
         "logs/tables/replay_all_formats.log",
     params:
         source=lambda wc: f"the replay analysis files in {REPLAY_DIR}",
-        analysis_dir=REPLAY_DIR,
         study=REPLAY_STUDY,
         formats=REPLAY["formats"],
     script:
@@ -105,7 +111,7 @@ rule replay_all_formats_table:
 
 rule replay_bias_table:
     input:
-        REPLAY_ANALYSES,
+        analyses=REPLAY_ANALYSES,
     output:
         tex="tables/replay_bias.tex",
         html=report("tables/replay_bias.html", caption="../workflow/report/derived.rst", category="Tables",
@@ -114,7 +120,6 @@ rule replay_bias_table:
         "logs/tables/replay_bias.log",
     params:
         source=lambda wc: f"the replay analysis files in {REPLAY_DIR}",
-        analysis_dir=REPLAY_DIR,
         study=REPLAY_STUDY,
         formats=REPLAY["formats"],
     script:
@@ -123,14 +128,13 @@ rule replay_bias_table:
 
 rule replay_formats_figure:
     input:
-        REPLAY_ANALYSES,
+        analyses=REPLAY_ANALYSES,
     output:
         report("figures/replay_formats.pdf", caption="../workflow/report/derived.rst", category="Figures"),
     log:
         "logs/figures/replay_formats.log",
     params:
         source=lambda wc: f"the replay analysis files in {REPLAY_DIR}",
-        analysis_dir=REPLAY_DIR,
         study=REPLAY_STUDY,
         formats=REPLAY["formats"],
     script:
@@ -140,7 +144,7 @@ rule replay_formats_figure:
 # Layer diagnostics -> proxy audit (tab:proxy_audit). With `diagnostics_dir` set (e.g. the authors'
 # diagnostics/v2), its files are read; otherwise they are collected under results/diagnostics/ on the
 # replay study's full-precision recording (models of that recording only).
-from vlaquantbench.diagnostics.proxy_audit import load_cohort  # noqa: E402
+from vlaquantbench.diagnostics.proxy_audit import diagnostics_files, load_cohort  # noqa: E402
 
 PROXY_COHORT = load_cohort("proxy_audit")
 DIAGNOSTICS_DIR = config.get("diagnostics_dir") or "results/diagnostics"
@@ -148,7 +152,8 @@ DIAGNOSTICS_DIR = config.get("diagnostics_dir") or "results/diagnostics"
 
 rule diagnostics_collect:
     input:
-        f"results/replay/{REPLAY_STUDY}/records/records.json",
+        records=f"{RECORDING}/records.json",
+        trajectories=TRAJECTORIES,
     output:
         "results/diagnostics/{model}-{scope}-{preset}.json",
     params:
@@ -167,7 +172,7 @@ def proxy_audit_diagnostics(wildcards):
     if not config.get("diagnostics_dir") and uncollectable:
         raise UserError(f"tables/proxy_audit.tex needs diagnostics of {', '.join(uncollectable)}, which this DAG "
                         f"cannot collect (it records {REPLAY['model']}); set diagnostics_dir to a folder holding them")
-    return [f"{DIAGNOSTICS_DIR}/{m['diagnostics']}.json" for m in PROXY_COHORT["models"].values()]
+    return [str(path) for path in diagnostics_files(PROXY_COHORT, DIAGNOSTICS_DIR).values()]
 
 
 rule proxy_audit_table:
@@ -183,6 +188,6 @@ rule proxy_audit_table:
         "logs/tables/proxy_audit.log",
     params:
         source=lambda wc: f"the layer diagnostics in {DIAGNOSTICS_DIR} and the success summary {SUCCESS_SUMMARY}",
-        diagnostics_dir=DIAGNOSTICS_DIR,
+        models=list(PROXY_COHORT["models"]),
     script:
         "../workflow/scripts/proxy_audit_table.py"

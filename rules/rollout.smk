@@ -3,6 +3,7 @@
 # (vlaquantbench.cells) names its folder results/cells/<config-hash>/, so a cell reruns exactly
 # when something that changes its episodes changes. Without `records_dir` only.
 from vlaquantbench import cells as cell_configs  # noqa: E402
+from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE, JOURNAL_FILE  # noqa: E402
 from vlaquantbench.workflow import CELLS_DIR  # noqa: E402
 
 # Built (and every cell checked against the registries and the layer-name index) at parse time.
@@ -64,13 +65,17 @@ rule rollout:
         checkpoint=lambda wc: checkpoint_stamp(CELLS[wc.cell]),
         calibration=lambda wc: calibration_stats(CELLS[wc.cell]),
     output:
-        episodes=f"{CELLS_DIR}/{{cell}}/episodes.parquet",
-        header=f"{CELLS_DIR}/{{cell}}/header.json",
+        episodes=f"{CELLS_DIR}/{{cell}}/{EPISODES_FILE}",
+        header=f"{CELLS_DIR}/{{cell}}/{HEADER_FILE}",
     wildcard_constraints:
         cell="|".join(CELLS) or "^$",
+    # `state`: files the job keeps across failures, declared here because no Snakemake declaration
+    # survives one (a failed job's outputs are removed, logs are removed when a job starts, and
+    # update() outputs are rolled back). The journal of finished episodes lets a killed cell resume.
     params:
         cell=lambda wc: CELLS[wc.cell],
         execution=lambda wc: WF.study.execution.as_kwargs(),
+        state=lambda wc: {"journal": f"{CELLS_DIR}/{wc.cell}/{JOURNAL_FILE}"},
     log:
         "logs/rollout/{cell}.log",
     threads: 2

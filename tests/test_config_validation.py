@@ -44,6 +44,11 @@ def test_every_committed_yaml_satisfies_its_schema(kind):
 BROKEN = [  # (schema, file content, the field path and problem the error must name)
     ("config", {"tables": ["lattice"], "study": {"runner": {"max_step": 3}}},
      r"study.runner: unknown key 'max_step'; allowed keys: camera_size, control_mode, device, dtype, executed_chunk, flow_steps, max_steps, mujoco"),
+    # The schema holds the only lists of runner samplers and replay options (nothing re-checks them).
+    ("config", {"tables": ["lattice"], "study": {"runner": {"sampler": "fast"}}},
+     r"study.runner.sampler: 'fast' is not allowed; allowed values: auto, captured, eager"),
+    ("config", {"tables": ["lattice"], "replay": {"init_state": [20]}},
+     r"replay: unknown key 'init_state'; allowed keys: checkpoint, checkpoint_dir, device, executed_chunk, flow_steps"),
     ("table", {"caption": "c", "align": "lr", "header": [["a"]], "values": [{"stat": "rate", "cell": "c"}],
                "rows": [{"label": "x", "c": "libero/libero_spatial/pi05/rtn-W4A4-ah"}], "enviroment": "tabular"},
      r"\(top level\): unknown key 'enviroment'; allowed keys: align, bootstrap, caption, cells, environment"),
@@ -166,7 +171,7 @@ def dry_run(tmp_path: Path, row_cell: str | None = None, copy_src: bool = False,
 
 BAD_CELLS = [
     ("libero/libero_spatail/pi05/rtn-W4A4-ah", "unknown libero suite 'libero_spatail'; known: libero_spatial"),
-    ("libero/libero_spatial/pi5/rtn-W4A4-ah", "unknown model 'pi5'; known models: openvla_oft, pi0, pi05, xvla"),
+    ("libero/libero_spatial/pi5/rtn-W4A4-ah", "unknown model 'pi5'; known: openvla_oft, pi0, pi05, xvla"),
     ("libero/libero_spatial/pi05/rtn-W4A3X-ah", "unknown quantization preset 'W4A3X'"),
     ("libero/libero_spatial/pi05/quip-W4A4-ah", "unknown method 'quip'; expected one of awq, fp8, fp8_static"),
     ("libero/libero_spatial/pi05/ablate-W4A4-ah-onlyselfattn", "subset 'onlyselfattn' of pi05: unknown subset 'onlyselfattn'"),

@@ -13,6 +13,7 @@ import pytest
 import yaml
 
 from vlaquantbench.records import read_cell
+from file_audit import audited_env, job_audits, undeclared
 from paths import ROOT
 
 pytestmark = pytest.mark.slow
@@ -35,8 +36,8 @@ def tiny_study(checkout: Path) -> None:
     table_path.write_text(yaml.safe_dump(table))
 
 
-def snakemake(checkout: Path, *args: str) -> str:
-    result = subprocess.run([*SNAKEMAKE, *args], cwd=checkout, capture_output=True, text=True, timeout=1800)
+def snakemake(checkout: Path, *args: str, env: dict[str, str] | None = None) -> str:
+    result = subprocess.run([*SNAKEMAKE, *args], cwd=checkout, capture_output=True, text=True, timeout=1800, env=env)
     assert result.returncode == 0, (result.stdout[-2000:], result.stderr[-4000:])
     return result.stdout + result.stderr
 
@@ -54,8 +55,13 @@ def test_demo_dag_builds_the_table_reruns_nothing_then_only_the_changed_cell(tmp
         (shutil.copytree if source.is_dir() else shutil.copy)(source, checkout / item)
     tiny_study(checkout)
 
-    first = snakemake(checkout, "tables/lattice.tex")
+    audit = tmp_path / "audit"
+    first = snakemake(checkout, "tables/lattice.tex", env=audited_env(audit))
     assert job_counts(first)["rollout"] == 2
+    # Each job touched exactly the files its rule declares (the journal as the rollout's `state`).
+    assert {job["rule"] for job in job_audits(audit)} == {"download_checkpoint", "rollout", "records_manifest",
+                                                          "paper_table"}
+    assert undeclared(audit, checkout) == {}
     table = (checkout / "tables" / "lattice.tex").read_text()
     assert "attention" in table and "Demo policy with random weights" in table
     cells = {}

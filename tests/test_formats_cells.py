@@ -29,7 +29,7 @@ def test_mxfp4_and_nvfp4_action_head_cells_run_with_every_hook_fired(tmp_path):
         assert header["preset"] == preset
         assert f"weights {preset}: {words}" in header["quant_format"]
         assert f"activations {preset}: {words}" in header["quant_format"]
-        assert header["hooks"] == {"selected": 167, "fired": 167, "idle": []}
+        assert header["hooks"] == {"selected": 167, "fired": 167, "unfired": []}
         assert header["quant_report"]["ah"]["layers"] == 167
         episodes = pd.read_parquet(folder / "episodes.parquet")
         assert len(episodes) == 1 and episodes["steps"].iloc[0] <= 10

@@ -72,7 +72,8 @@ def test_grouped_linears_with_fused_quantization_equal_the_hooks_exactly():
 
     spec = get_model_spec("pi05")
     model = spec.build(variant="demo", device="cpu", seed=0)
-    report = quantize_(model, QuantConfig.from_preset("W4A4", scope="e2e"), components=spec.components)
+    config = QuantConfig.from_preset("W4A4", scope="e2e")
+    report = quantize_(model, config, config.select(model, spec.components))
     images, img_masks, tokens, masks, noise = _inputs(batch=2, seed=1)
     sampler = CapturedSampler(model, num_steps=2)
     grouped = sampler(images, img_masks, tokens, masks, noise)

@@ -67,5 +67,6 @@ def test_a_probe_beyond_its_bound_refuses_the_cell_before_any_episode(tmp_path, 
 def test_eager_cells_have_no_probe():
     adapter = make_adapter(AdapterConfig(model="pi05", variant="demo", flow_steps=1, sampler="eager"))
     adapter.load()
-    quantize_(adapter.model, QuantConfig.from_preset("W4A4", scope="ah"), components=adapter.components)
+    config = QuantConfig.from_preset("W4A4", scope="ah")
+    quantize_(adapter.model, config, config.select(adapter.model, adapter.components))
     assert adapter.fast_path_probe() is None

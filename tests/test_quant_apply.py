@@ -80,7 +80,8 @@ def test_weights_rounded_in_place_only_where_selected(policy):
     untouched = "paligemma_with_expert.gemma_expert.model.layers.0.mlp.up_proj"
     modules = dict(policy.named_modules())
     before, before_other = modules[name].weight.clone(), modules[untouched].weight.clone()
-    report = quantize_(policy, QuantConfig.from_preset("W4", scope="ah", only=["*self_attn*"]), SPEC.components)
+    config = QuantConfig.from_preset("W4", scope="ah", only=["*self_attn*"])
+    report = quantize_(policy, config, config.select(policy, SPEC.components))
     assert report.components == {"ah": {"layers": 72, "params": sum(
         modules[n].weight.numel() for n in report.selected)}}
     assert torch.equal(modules[name].weight, fake_quant_weight(before, 4, 128, symmetric=False))
@@ -89,7 +90,8 @@ def test_weights_rounded_in_place_only_where_selected(policy):
 
 
 def test_hook_accounting_names_exactly_the_skipped_layers(policy):
-    report = quantize_(policy, QuantConfig.from_preset("W4A4", scope="e2e"), SPEC.components)
+    config = QuantConfig.from_preset("W4A4", scope="e2e")
+    report = quantize_(policy, config, config.select(policy, SPEC.components))
     groups = report.selection.layers
     images, *_ = chunk_inputs()
     policy.paligemma_with_expert.embed_image(images[0])  # runs only the vision tower and projector
@@ -111,10 +113,12 @@ def test_hook_accounting_names_exactly_the_skipped_layers(policy):
 
 def test_activation_quantization_changes_actions_and_baseline_does_not(demo, policy):
     reference = sample(demo)
-    base_report = quantize_(policy, QuantConfig.from_preset("BASELINE"), SPEC.components)
+    config = QuantConfig.from_preset("BASELINE")
+    base_report = quantize_(policy, config, config.select(policy, SPEC.components))
     assert torch.equal(sample(policy), reference)
     assert base_report.to_header()["quant_report"]["ah"] == {"layers": 0, "params": 0}
-    quantize_(policy, QuantConfig.from_preset("W4A4", scope="ah"), SPEC.components)
+    config = QuantConfig.from_preset("W4A4", scope="ah")
+    quantize_(policy, config, config.select(policy, SPEC.components))
     assert not torch.allclose(sample(policy), reference, atol=1e-3)
 
 
@@ -124,7 +128,8 @@ def test_float_format_presets_quantize_weights_and_inputs_through_counted_hooks(
     name = "paligemma_with_expert.gemma_expert.model.layers.2.mlp.down_proj"
     layer = dict(policy.named_modules())[name]
     before = layer.weight.clone()
-    report = quantize_(policy, QuantConfig.from_preset(preset, scope="ah"), SPEC.components)
+    config = QuantConfig.from_preset(preset, scope="ah")
+    report = quantize_(policy, config, config.select(policy, SPEC.components))
     assert torch.equal(layer.weight, fmt.quantize_weight(before)) and not torch.equal(layer.weight, before)
     seen = {}
 
@@ -145,14 +150,17 @@ def test_float_format_presets_quantize_weights_and_inputs_through_counted_hooks(
 def test_bad_scope_and_patterns_fail_before_any_change(policy):
     snapshot = {k: v.clone() for k, v in policy.state_dict().items() if "vision_tower.encoder.layers.0" in k}
     with pytest.raises(UserError, match=r"'\*nothing_here\*'"):
-        quantize_(policy, QuantConfig.from_preset("W4", scope="e2e", only=["*self_attn*", "*nothing_here*"]),
-                  SPEC.components)
+        config = QuantConfig.from_preset("W4", scope="e2e", only=["*self_attn*", "*nothing_here*"])
+        quantize_(policy, config, config.select(policy, SPEC.components))
     with pytest.raises(UserError, match=r"--exclude '\*nope'"):
-        quantize_(policy, QuantConfig.from_preset("W4", scope="ve", exclude=["*nope"]), SPEC.components)
+        config = QuantConfig.from_preset("W4", scope="ve", exclude=["*nope"])
+        quantize_(policy, config, config.select(policy, SPEC.components))
     with pytest.raises(UserError, match="unknown scope 'vision'"):
-        quantize_(policy, QuantConfig.from_preset("W4", scope="vision"), SPEC.components)
+        config = QuantConfig.from_preset("W4", scope="vision")
+        quantize_(policy, config, config.select(policy, SPEC.components))
     with pytest.raises(UserError, match="unknown quantization method 'gptq'"):
-        quantize_(policy, QuantConfig.from_preset("W4", method="gptq"), SPEC.components)
+        config = QuantConfig.from_preset("W4", method="gptq")
+        quantize_(policy, config, config.select(policy, SPEC.components))
     for k, v in snapshot.items():
         assert torch.equal(policy.state_dict()[k], v)
 
@@ -165,7 +173,8 @@ def test_registered_method_receives_the_selection(policy):
         return MethodResult(format="recorded")
 
     register_method("test_record", record)
-    report = quantize_(policy, QuantConfig.from_preset("W4", scope="llm", method="test_record"), SPEC.components)
+    config = QuantConfig.from_preset("W4", scope="llm", method="test_record")
+    report = quantize_(policy, config, config.select(policy, SPEC.components))
     assert seen == report.components and seen["llm"]["layers"] == 126
     assert report.to_header()["quant_format"] == "recorded"
 
@@ -186,7 +195,7 @@ def test_smoothing_without_clip_or_quantization_preserves_each_linear_output(dem
     assert len(stats.layers) == 167
     smoothed = QuantConfig.from_preset("BASELINE", scope="ah", calibration=CalibrationSettings(quantile=None),
                                        stats=stats)
-    report = quantize_(policy, smoothed, SPEC.components)
+    report = quantize_(policy, smoothed, smoothed.select(policy, SPEC.components))
     assert report.to_header()["quant_report"]["ah"]["calibrated_layers"] == 167
     originals = dict(demo.named_modules())
     g = torch.Generator().manual_seed(3)
@@ -202,8 +211,8 @@ def test_smoothing_without_clip_or_quantization_preserves_each_linear_output(dem
 def test_calibrated_w4a4_records_provenance_and_clips(policy, ah_stats):
     stats = ah_stats
     settings = CalibrationSettings(alpha=0.5, quantile=0.999, components=("ah",))
-    report = quantize_(policy, QuantConfig.from_preset("W4A4", scope="ah", calibration=settings, stats=stats),
-                       SPEC.components)
+    config = QuantConfig.from_preset("W4A4", scope="ah", calibration=settings, stats=stats)
+    report = quantize_(policy, config, config.select(policy, SPEC.components))
     header = report.to_header()
     assert header["quant_report"]["ah"]["calibrated_layers"] == 167
     act = header["quant_report"]["act_calib"]

@@ -74,8 +74,8 @@ def test_awq_beats_rtn_w4_on_held_out_inputs(llama_and_stats):
         outputs = {}
         for method in ("rtn", "awq"):
             quantized = copy.deepcopy(model)
-            report = quantize_(quantized, QuantConfig.from_preset("W4", scope="llm", method=method, stats=stats),
-                               components=COMPONENTS)
+            config = QuantConfig.from_preset("W4", scope="llm", method=method, stats=stats)
+            report = quantize_(quantized, config, config.select(quantized, COMPONENTS))
             outputs[method] = quantized(inputs_embeds=held_out).last_hidden_state
     errors = {method: _rel(out, reference) for method, out in outputs.items()}
     print(f"held-out relative output error: AWQ {errors['awq']:.4f}, RTN W4 {errors['rtn']:.4f}, "
@@ -167,17 +167,18 @@ def test_missing_awq_statistics_fail_before_the_model_changes():
     model = _llama()
     before = {k: v.clone() for k, v in model.state_dict().items()}
     with pytest.raises(UserError, match=r"method 'awq'.*observe\(layers, sample_rows=128\)"):
-        quantize_(model, QuantConfig.from_preset("W4", scope="llm", method="awq"), components=COMPONENTS)
+        config = QuantConfig.from_preset("W4", scope="llm", method="awq")
+        quantize_(model, config, config.select(model, COMPONENTS))
     layers = select_layers(model, COMPONENTS, "llm").flat()
     with torch.no_grad(), calib.observe(layers, quantile=None) as observer:  # smoothing statistics only
         model(inputs_embeds=_embeds(0))
     smoothing_only = observer.stats("k", {})
     with pytest.raises(UserError, match="14 selected layers, e.g. layers.0.self_attn.q_proj"):
-        quantize_(model, QuantConfig.from_preset("W4", scope="llm", method="awq", stats=smoothing_only),
-                  components=COMPONENTS)
+        config = QuantConfig.from_preset("W4", scope="llm", method="awq", stats=smoothing_only)
+        quantize_(model, config, config.select(model, COMPONENTS))
     with pytest.raises(UserError, match="weight-only"):
-        quantize_(model, QuantConfig.from_preset("W4A8", scope="llm", method="awq", stats=smoothing_only),
-                  components=COMPONENTS)
+        config = QuantConfig.from_preset("W4A8", scope="llm", method="awq", stats=smoothing_only)
+        quantize_(model, config, config.select(model, COMPONENTS))
     assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())
 
 
@@ -218,8 +219,8 @@ def test_awq_on_the_llm_scope_of_demo_pi05():
         stats = observer.stats("pi05awq00000", {"init_states": [20, 21]})
         with torch.no_grad():
             reference = sample(5)
-            report = quantize_(policy, QuantConfig.from_preset("W4", scope="llm", method="awq", stats=stats),
-                               components=spec.components)
+            config = QuantConfig.from_preset("W4", scope="llm", method="awq", stats=stats)
+            report = quantize_(policy, config, config.select(policy, spec.components))
             assert report.unfired() == list(layers)  # hooks installed on all 126, none run yet
             actions = sample(5)
     finally:

@@ -12,7 +12,8 @@ from vlaquantbench.quant import QuantConfig, quantize_
 def test_fused_hooks_keep_results_and_counts():
     spec = get_model_spec("pi05")
     model = spec.build(variant="demo", device="cpu", seed=0)
-    report = quantize_(model, QuantConfig.from_preset("W4A4", scope="ah", only=["*mlp*"]), components=spec.components)
+    config = QuantConfig.from_preset("W4A4", scope="ah", only=["*mlp*"])
+    report = quantize_(model, config, config.select(model, spec.components))
     layer = model.paligemma_with_expert.gemma_expert.model.layers[0].mlp
     x = torch.randn(2, 50, layer.gate_proj.in_features)
     with torch.no_grad():

@@ -47,7 +47,8 @@ def test_kernel_method_replaces_layers_and_stays_close(method, fmt, tolerance):
     x = torch.randn(1, 20, 64, generator=torch.Generator().manual_seed(1))
     with torch.no_grad():
         reference = model(inputs_embeds=x).last_hidden_state
-        report = quantize_(model, _w8a8(method, model, x), components=COMPONENTS)
+        config = _w8a8(method, model, x)
+        report = quantize_(model, config, config.select(model, COMPONENTS))
         out = model(inputs_embeds=x).last_hidden_state
     assert report.components == {"llm": {"layers": 14, "params": 2 * (4 * 64 * 64 + 3 * 64 * 128)}}
     assert not any(isinstance(m, torch.nn.Linear) for m in model.layers.modules())
@@ -78,24 +79,27 @@ def test_smoothquant_smooths_by_default_and_refuses_to_run_without_statistics():
     q_proj = model.layers[0].self_attn.q_proj
     stats = config.stats.layers["layers.0.self_attn.q_proj"]
     expected = kernels.smoothing_factors(stats.absmax, q_proj.weight, 0.85)
-    report = quantize_(model, config, components=COMPONENTS)
+    report = quantize_(model, config, config.select(model, COMPONENTS))
     packed = model.layers[0].self_attn.q_proj
     assert torch.equal(packed.smooth, expected.float()) and report.result.calibrated == set(report.selected)
     assert "SmoothQuant migration alpha=0.85 from rollout calibration statistics" in report.result.format
     assert report.to_header()["quant_report"]["act_calib"]["alpha"] == 0.85
     with pytest.raises(UserError, match="'smoothquant' smooths by definition"):
-        quantize_(_llama(), QuantConfig.from_preset("W8A8", scope="llm", method="smoothquant"), components=COMPONENTS)
+        config = QuantConfig.from_preset("W8A8", scope="llm", method="smoothquant")
+        quantize_(_llama(), config, config.select(_llama(), COMPONENTS))
 
 
 def test_preset_must_match_the_method():
     with pytest.raises(UserError, match="implements W8A8"):
-        quantize_(_llama(), QuantConfig.from_preset("W4", scope="llm", method="smoothquant"), components=COMPONENTS)
+        config = QuantConfig.from_preset("W4", scope="llm", method="smoothquant")
+        quantize_(_llama(), config, config.select(_llama(), COMPONENTS))
 
 
 @pytest.mark.skipif(importlib.util.find_spec("bitsandbytes") is not None, reason="bitsandbytes installed")
 def test_bitsandbytes_methods_name_the_missing_extra():
     with pytest.raises(UserError, match=r"vlaquantbench\[kernels\]"):
-        quantize_(_llama(), QuantConfig.from_preset("W4", scope="llm", method="nf4"), components=COMPONENTS)
+        config = QuantConfig.from_preset("W4", scope="llm", method="nf4")
+        quantize_(_llama(), config, config.select(_llama(), COMPONENTS))
 
 
 @pytest.mark.parametrize("method", ["smoothquant", "fp8_tensor"])
@@ -107,7 +111,8 @@ def test_compiled_layers_share_one_graph_and_match_eager(method):
     x = torch.randn(1, 32, 256, generator=torch.Generator().manual_seed(1))
     with torch.no_grad():
         unquantized = model(inputs_embeds=x, use_cache=False).last_hidden_state
-        report = quantize_(model, _w8a8(method, model, x), components=COMPONENTS)
+        config = _w8a8(method, model, x)
+        report = quantize_(model, config, config.select(model, COMPONENTS))
         eager = model(inputs_embeds=x, use_cache=False).last_hidden_state
         assert report.unfired() == []
         for hook in report.result.hooks.values():  # dynamo would guard on their call counters
@@ -138,7 +143,7 @@ def test_static_fp8_uses_the_calibrated_input_range():
     with torch.no_grad():
         reference = model(inputs_embeds=x).last_hidden_state
         cfg = QuantConfig.from_preset("W8A8", scope="llm", method="fp8_static", stats=stats)
-        report = quantize_(model, cfg, components=COMPONENTS)
+        report = quantize_(model, cfg, cfg.select(model, COMPONENTS))
         out = model(inputs_embeds=x).last_hidden_state
     assert report.unfired() == [] and report.result.calibrated == set(report.selected)
     q_proj = model.layers[0].self_attn.q_proj
@@ -159,4 +164,5 @@ def test_static_fp8_equals_dynamic_at_the_calibrated_range_and_saturates_beyond(
 
 def test_static_fp8_needs_calibration_statistics():
     with pytest.raises(UserError, match="'fp8_static' needs calibration statistics"):
-        quantize_(_llama(), QuantConfig.from_preset("W8A8", scope="llm", method="fp8_static"), components=COMPONENTS)
+        config = QuantConfig.from_preset("W8A8", scope="llm", method="fp8_static")
+        quantize_(_llama(), config, config.select(_llama(), COMPONENTS))

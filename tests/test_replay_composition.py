@@ -163,7 +163,7 @@ def test_analyze_matches_authors_layout_and_statistics(tmp_path):
     assert union["flow_step_divergence"][0] == 0.0
     assert result["configs"]["s167"]["downproj_tok_absmax_p99"] == pytest.approx(167.0)
     # Files on disk round-trip through analyze_files.
-    paths = [r.save(tmp_path / "W4A4") for r in runs]
+    paths = [r.save(tmp_path / "W4A4" / f"{r.name}.json") for r in runs]
     out = analyze_files(paths, tmp_path / "W4A4" / "analysis.json")
     assert out["additivity"] == add
     assert json.loads((tmp_path / "W4A4" / "analysis.json").read_text())["recovery"] == rec

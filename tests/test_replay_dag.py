@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from vlaquantbench.replay.run import ReplayRun
+from vlaquantbench.replay.study import analysis_files
 from vlaquantbench.replay.tables import write_replay_table
+from file_audit import audited_env, job_audits, undeclared
 from paths import ROOT
 
 STUDY = "results/replay/pi05_libero_spatial"
@@ -24,9 +26,19 @@ def demo_dag(tmp_path_factory):
         if (ROOT / item).exists():
             (work / item).symlink_to(ROOT / item)
     cmd = [sys.executable, "-m", "snakemake", *TARGETS, "--cores", "2", "--configfile", "config/replay_demo.yaml"]
-    proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True, timeout=1800)
+    proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True, timeout=1800,
+                          env=audited_env(work.parent / f"{work.name}-audit"))
     assert proc.returncode == 0, proc.stderr[-4000:]
     return work
+
+
+@pytest.mark.slow
+def test_replay_jobs_touch_exactly_their_declared_files(demo_dag):
+    audit = demo_dag.parent / f"{demo_dag.name}-audit"
+    assert {job["rule"] for job in job_audits(audit)} == {
+        "replay_record", "replay_configuration", "replay_analyze", "replay_composition_table", "replay_bias_table",
+        "replay_formats_figure", "diagnostics_collect"}
+    assert undeclared(audit, demo_dag) == {}
 
 
 @pytest.mark.slow
@@ -82,7 +94,8 @@ def test_tables_render_from_the_demo_analysis(demo_dag):
     assert f"W4A4 & {ratio:.2f} & " in composition
     assert (demo_dag / "tables/replay_bias.tex").read_text().count(r" \\") == 6  # header + 5 scopes
     assert (demo_dag / "figures/replay_formats.pdf").read_bytes().startswith(b"%PDF")
-    all_formats = write_replay_table("all_formats", demo_dag / STUDY, demo_dag / "all.tex", formats=["W4A4"])
+    all_formats = write_replay_table("all_formats", analysis_files(demo_dag / STUDY, ["W4A4"]), demo_dag / "all.tex",
+                                     formats=["W4A4"])
     assert r"W4A4 & Attention & 72 & -- & " in all_formats
 
 

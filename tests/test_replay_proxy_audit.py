@@ -15,7 +15,8 @@ import sys
 import pytest
 
 from vlaquantbench.diagnostics.files import Diagnostics
-from vlaquantbench.diagnostics.proxy_audit import correlations, load_cohort, scope_table, write_proxy_audit
+from vlaquantbench.diagnostics.proxy_audit import (correlations, diagnostics_files, load_cohort, scope_table,
+                                                   write_proxy_audit)
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.subsets import get_subset
 from vlaquantbench.replay.study import success_rates
@@ -35,7 +36,7 @@ DISPERSION_NOT_REPRODUCED = {"pi05", "openvla_oft"}
 
 @pytest.fixture(scope="module")
 def rhos():
-    return correlations(scope_table(load_cohort(), DIAG, success_rates(SUMMARY))).set_index("model")
+    return correlations(scope_table(load_cohort(), diagnostics_files(load_cohort(), DIAG), success_rates(SUMMARY))).set_index("model")
 
 
 def test_cohort_is_the_35_seed0_scopes(rhos):
@@ -104,19 +105,19 @@ def test_count_mismatch_and_missing_inputs_are_user_errors(tmp_path):
     cohort = load_cohort()
     cohort["models"] = {"pi0": cohort["models"]["pi0"]}
     with pytest.raises(UserError, match="pi0-ah-W4A4.json does not exist"):
-        scope_table(cohort, tmp_path, success_rates(SUMMARY))
+        scope_table(cohort, diagnostics_files(cohort, tmp_path), success_rates(SUMMARY))
     broken = tmp_path / "pi0-ah-W4A4.json"
     data = json.loads((DIAG / "pi0-ah-W4A4.json").read_text())
     del data["layers"]["gemma_expert.layers.0.mlp.up_proj"]  # a file missing one layer of the scope
     broken.write_text(json.dumps(data))
     with pytest.raises(UserError, match=r"pi0/onlymlp select 53 layers, config/scopes.yaml says 54"):
-        scope_table(cohort, tmp_path, success_rates(SUMMARY))
+        scope_table(cohort, diagnostics_files(cohort, tmp_path), success_rates(SUMMARY))
     del data["provenance"]["checkpoint_revision"]
     broken.write_text(json.dumps(data))
     with pytest.raises(UserError, match="provenance.checkpoint_revision"):
         Diagnostics.read(broken)
     with pytest.raises(UserError, match="success_summary"):
-        write_proxy_audit(DIAG, None, tmp_path / "t.tex")
+        write_proxy_audit(diagnostics_files(load_cohort(), DIAG), None, tmp_path / "t.tex")
 
 
 def test_snakemake_renders_proxy_audit_from_authors_files(tmp_path):

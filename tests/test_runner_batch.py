@@ -25,7 +25,8 @@ def test_batch_of_two_equals_batch_of_one(model):
     specs = [suite.episode_spec(0, 0), suite.episode_spec(1, 0)]
     adapter = make_adapter(AdapterConfig(model=model, variant="demo", flow_steps=2, executed_chunk=MODELS[model]))
     adapter.load()
-    report = quantize_(adapter.model, QuantConfig.from_preset("W4A4", scope="ah"), components=adapter.components)
+    config = QuantConfig.from_preset("W4A4", scope="ah")
+    report = quantize_(adapter.model, config, config.select(adapter.model, adapter.components))
 
     chunks = defaultdict(list)  # episode seed -> [(state observed, chunk predicted)]
     act = adapter.act

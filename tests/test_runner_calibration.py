@@ -36,4 +36,4 @@ def test_calibration_statistics_drive_a_calibrated_cell(tmp_path):
     assert report["ah"]["layers"] == 72 and report["ah"]["calibrated_layers"] == 72
     assert report["act_calib"]["cache"] == f"{stats.key}.pt" and report["act_calib"]["alpha"] == 0.5
     assert cell.header["calibration"] == cfg["calibration"]
-    assert cell.header["hooks"] == {"selected": 72, "fired": 72, "idle": []}
+    assert cell.header["hooks"] == {"selected": 72, "fired": 72, "unfired": []}

@@ -44,7 +44,8 @@ class _Recording:
 def _act_ah(sampler: str, obs, seeds, preset="W4A4"):
     adapter = make_adapter(AdapterConfig(model="pi05", variant="demo", flow_steps=1, sampler=sampler))
     adapter.load()
-    report = quantize_(adapter.model, QuantConfig.from_preset(preset, scope="ah"), components=adapter.components)
+    config = QuantConfig.from_preset(preset, scope="ah")
+    report = quantize_(adapter.model, config, config.select(adapter.model, adapter.components))
     inference = adapter.prepare_inference(report)
     calls = []
     for name, hook in report.result.hooks.items():

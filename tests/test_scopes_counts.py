@@ -147,7 +147,8 @@ def test_oft_vision_forward_leaves_exactly_the_attention_pool_unfired():
     from vlaquantbench.quant import QuantConfig, quantize_
 
     model = meta_model("openvla_oft")
-    report = quantize_(model, QuantConfig.from_preset("W4A8", scope="ve"), get_model_spec("openvla_oft").components)
+    config = QuantConfig.from_preset("W4A8", scope="ve")
+    report = quantize_(model, config, config.select(model, get_model_spec("openvla_oft").components))
     try:
         pixels = torch.empty(1, 3, 224, 224, device="meta")
         assert model.vision_backbone(pixels, pixels).shape == (1, 256, 2176)

@@ -1,5 +1,5 @@
-"""The workflow contract (issue 14 §3): every rule logs under logs/, parsing imports no torch, a refused
-run leads with its cause and leaves no stale table behind."""
+"""The workflow contract (issue 14 §3): every rule logs under logs/, its jobs touch only the files it
+declares, parsing imports no torch, a refused run leads with its cause and leaves no stale table behind."""
 
 import shutil
 import subprocess
@@ -10,6 +10,7 @@ import pytest
 from snakemake.api import SnakemakeApi
 from snakemake.settings.types import ConfigSettings, OutputSettings, ResourceSettings
 
+from file_audit import audited_env, job_audits, undeclared
 from paths import ROOT, SHARED
 
 
@@ -22,10 +23,68 @@ def reference_checkout(tmp_path: Path) -> Path:
     return workdir
 
 
-def snakemake(workdir: Path, *args: str, python_flags: tuple[str, ...] = ()) -> subprocess.CompletedProcess:
+def snakemake(workdir: Path, *args: str, python_flags: tuple[str, ...] = (), snakefile: Path = ROOT / "Snakefile",
+              env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     command = [sys.executable, *python_flags, "-m", "snakemake", *args, "--cores", "1",
-               "--snakefile", str(ROOT / "Snakefile"), "--directory", str(workdir)]  # fmt: skip
-    return subprocess.run(command, capture_output=True, text=True, timeout=300)
+               "--snakefile", str(snakefile), "--directory", str(workdir)]  # fmt: skip
+    return subprocess.run(command, capture_output=True, text=True, timeout=300, env=env)
+
+
+UNDECLARED_ACCESS = """
+rule honest:
+    input: "given.txt"
+    output: "made.txt"
+    log: "logs/honest.log"
+    script: "job.py"
+
+rule sneaky:
+    input: "given.txt"
+    output: "also_made.txt"
+    log: "logs/sneaky.log"
+    script: "job.py"
+"""
+JOB = """
+import os
+from pathlib import Path
+from vlaquantbench.atomic import write_text
+sm = snakemake  # noqa: F821
+Path(sm.log[0]).write_text("ran")
+write_text(sm.output[0], Path(sm.input[0]).read_text())
+if sm.rule == "sneaky":
+    Path("beside.txt").write_text("not declared")
+    Path("secret.txt").read_text()
+    os.listdir("folder")
+"""
+
+
+def test_the_audit_names_every_file_a_job_touches_undeclared(tmp_path):
+    """The check below can fail: a job that writes, reads or lists what its rule does not declare is caught."""
+    workdir = tmp_path / "work"
+    (workdir / "folder").mkdir(parents=True)
+    for name, text in {"given.txt": "x", "secret.txt": "y", "Snakefile": UNDECLARED_ACCESS, "job.py": JOB}.items():
+        (workdir / name).write_text(text)
+    audit = tmp_path / "audit"
+    run = snakemake(workdir, "made.txt", "also_made.txt", snakefile=workdir / "Snakefile", env=audited_env(audit))
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert sorted(job["rule"] for job in job_audits(audit)) == ["honest", "sneaky"]
+    real = workdir.resolve()
+    assert undeclared(audit, workdir) == {
+        "sneaky": [f"list {real / 'folder'}", f"read {real / 'secret.txt'}", f"write {real / 'beside.txt'}"]
+    }
+
+
+def test_reference_rules_touch_exactly_their_declared_files(tmp_path):
+    """Every rule the reference config runs (records and authors' files, no GPU), in a real Snakemake run."""
+    workdir, audit = reference_checkout(tmp_path), tmp_path / "audit"
+    targets = ["tables/lattice.tex", "tables/summary.csv", "tables/vla_params.tex", "tables/proxy_audit.tex",
+               "tables/replay_composition.tex", "tables/replay_all_formats.tex", "tables/replay_bias.tex",
+               "figures/replay_formats.pdf", "figures/scope_recovery.pdf"]
+    run = snakemake(workdir, *targets, f"--configfile={ROOT / 'config' / 'reference.yaml'}", env=audited_env(audit))
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert {job["rule"] for job in job_audits(audit)} == {
+        "paper_table", "summary", "vla_params_table", "proxy_audit_table", "replay_composition_table",
+        "replay_all_formats_table", "replay_bias_table", "replay_formats_figure", "scope_recovery_figure"}
+    assert undeclared(audit, workdir) == {}
 
 
 def test_every_rule_that_runs_something_logs_under_logs(tmp_path):

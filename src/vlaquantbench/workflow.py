@@ -85,6 +85,14 @@ class WorkflowConfig:
             )
         return str(found)
 
+    def cell_header(self, ref: str) -> str | None:
+        """The header.json that `read_cell` reads beside a cell folder's episodes.parquet (None for the
+        authors' .jsonl, which holds its header)."""
+        from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE
+
+        record = Path(self.cell_input(ref))
+        return str(record.with_name(HEADER_FILE)) if record.name == EPISODES_FILE else None
+
     @property
     def tables_dir(self) -> Path:
         """Table definitions: `config/tables/`, or the study's own (`study.tables_dir`) when the

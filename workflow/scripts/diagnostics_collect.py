@@ -6,5 +6,5 @@ from vlaquantbench.diagnostics.collect import collect
 from vlaquantbench.rule_log import job_log
 
 with job_log(snakemake):
-    collect(snakemake.input[0], snakemake.wildcards.model, snakemake.wildcards.scope, snakemake.wildcards.preset,
+    collect(snakemake.input.records, snakemake.input.trajectories, snakemake.wildcards.model, snakemake.wildcards.scope, snakemake.wildcards.preset,
             snakemake.output[0], checkpoint_dir=snakemake.params.checkpoint_dir)

@@ -7,6 +7,6 @@ from vlaquantbench.rule_log import job_log
 
 sm = snakemake
 with job_log(sm):
-    write_replay_table("all_formats", sm.params.analysis_dir, sm.output.tex, study=sm.params.study, success_summary=sm.input.success, formats=sm.params.formats,
+    write_replay_table("all_formats", dict(zip(sm.params.formats, sm.input.analyses)), sm.output.tex, study=sm.params.study, success_summary=sm.input.success, formats=sm.params.formats,
                        html_output=sm.output.html)
     print(f"{sm.output.tex} from {sm.params.source}")

@@ -6,4 +6,5 @@ from vlaquantbench.replay.analysis import analyze_files
 from vlaquantbench.rule_log import job_log
 
 with job_log(snakemake):
-    analyze_files(list(snakemake.input), snakemake.output[0], study=snakemake.params.study)
+    analyze_files(snakemake.input.summaries, snakemake.output[0], study=snakemake.params.study,
+                  arrays=snakemake.input.arrays)

@@ -7,6 +7,6 @@ from vlaquantbench.rule_log import job_log
 
 sm = snakemake
 with job_log(sm):
-    write_replay_table("composition", sm.params.analysis_dir, sm.output.tex, study=sm.params.study, formats=sm.params.formats,
+    write_replay_table("composition", dict(zip(sm.params.formats, sm.input.analyses)), sm.output.tex, study=sm.params.study, formats=sm.params.formats,
                        html_output=sm.output.html)
     print(f"{sm.output.tex} from {sm.params.source}")

@@ -6,5 +6,6 @@ from vlaquantbench.replay.configuration import replay_to
 from vlaquantbench.rule_log import job_log
 
 with job_log(snakemake):
-    replay_to(snakemake.input[0], snakemake.params.study, snakemake.wildcards.config, snakemake.params.preset,
-              snakemake.output.summary, snakemake.params.checkpoint_dir)
+    replay_to(snakemake.input.records, snakemake.input.trajectories, snakemake.params.study,
+              snakemake.wildcards.config, snakemake.params.preset, snakemake.output.summary, snakemake.output.arrays,
+              snakemake.params.checkpoint_dir)

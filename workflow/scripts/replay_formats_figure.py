@@ -7,5 +7,5 @@ from vlaquantbench.rule_log import job_log
 
 sm = snakemake
 with job_log(sm):
-    write_replay_figure(sm.params.analysis_dir, sm.output[0], study=sm.params.study, formats=sm.params.formats)
+    write_replay_figure(dict(zip(sm.params.formats, sm.input.analyses)), sm.output[0], study=sm.params.study, formats=sm.params.formats)
     print(f"{sm.output[0]} from {sm.params.source}")

@@ -1,4 +1,4 @@
-"""Rule replay_record: the study's full-precision trajectories in LIBERO (records.json beside them)."""
+"""Rule replay_record: the study's full-precision trajectories in LIBERO and their records.json."""
 # snakemake is injected by Snakemake's script directive.
 # ruff: noqa: F821
 
@@ -6,4 +6,4 @@ from vlaquantbench.replay.record import record_to
 from vlaquantbench.rule_log import job_log
 
 with job_log(snakemake):
-    record_to(snakemake.params.study, snakemake.params.options, snakemake.output[0])
+    record_to(snakemake.params.study, snakemake.params.options, snakemake.output.records, snakemake.output.trajectories)

@@ -1,5 +1,5 @@
-"""Rule rollout: one cell's closed-loop episodes -> header.json + episodes.parquet (resumes the cell's journal,
-which lives beside them and is deliberately not an output: Snakemake removes the outputs of a failed job)."""
+"""Rule rollout: one cell's closed-loop episodes -> header.json + episodes.parquet in the cell's folder (resumes
+the cell's journal beside them, which the rule declares as a log: Snakemake keeps a failed job's logs)."""
 # snakemake is injected by Snakemake's script directive.
 # ruff: noqa: F821
 
@@ -14,5 +14,6 @@ with job_log(snakemake):
         Path(snakemake.output.header).parent,
         snakemake.input.checkpoint,
         snakemake.input.calibration[0] if snakemake.input.calibration else None,
+        journal=snakemake.params.state["journal"],
         **snakemake.params.execution,
     )

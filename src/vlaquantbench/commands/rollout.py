@@ -67,11 +67,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         return _run(args, study, cfg, project)
     except KeyboardInterrupt:
-        from vlaquantbench.runner.cell import JOURNAL
+        from vlaquantbench.records.cell import JOURNAL_FILE
         from vlaquantbench.runner.journal import recorded_episodes
 
         total = len(cfg["tasks"]) * cfg["episodes_per_task"]
-        done = recorded_episodes(out / JOURNAL)
+        done = recorded_episodes(out / JOURNAL_FILE)
         print(f"\nvqb rollout: interrupted: {args.ref} has {done} of {total} episodes recorded in {out}; "
               "run the same command again to resume it", file=sys.stderr)
         return 130

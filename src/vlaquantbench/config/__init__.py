@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import yaml
 
 from vlaquantbench.errors import UserError
+from vlaquantbench.textfiles import read_parsed
 
 if TYPE_CHECKING:
     from jsonschema.exceptions import ValidationError
@@ -76,13 +77,7 @@ def load_yaml(path: str | Path, schema_name: str) -> Any:
 
 
 def _parse(path: str | Path) -> Any:
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: no such file")
-    try:
-        data = yaml.load(path.read_text(), Loader=YAML_LOADER)
-    except yaml.YAMLError as err:
-        raise UserError(f"{path}: not valid YAML ({err})") from None
+    data = read_parsed(path, lambda text: yaml.load(text, Loader=YAML_LOADER), "YAML", (yaml.YAMLError,))
     return {} if data is None else data
 
 

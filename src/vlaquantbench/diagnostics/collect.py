@@ -68,13 +68,13 @@ class DiagnosticsObserver:
         return out
 
 
-def collect(recording: str | Path, model: str, scope: str, preset: str, output: str | Path,
-            checkpoint_dir: str | None = None) -> dict:
+def collect(records_json: str | Path, trajectories: list[str | Path], model: str, scope: str, preset: str,
+            output: str | Path, checkpoint_dir: str | None = None) -> dict:
     """Snakemake entry: diagnostics of every layer in `scope` under `preset` on the recording
-    (`records.json` or its folder)."""
-    meta, trajectories = load_records(recording)
+    (`records.json` and its trajectory files)."""
+    meta, trajectories = load_records(records_json, trajectories)
     if meta["model"] != model:
-        raise UserError(f"diagnostics for {model!r} asked of a recording of {meta['model']!r} ({recording})")
+        raise UserError(f"diagnostics for {model!r} asked of a recording of {meta['model']!r} ({records_json})")
     adapter = make_adapter(AdapterConfig(model=meta["model"], variant=meta["variant"], checkpoint=meta["checkpoint"],
                                          checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"],
                                          device=meta["device"], flow_steps=meta["flow_steps"]))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Mapping
 from pathlib import Path
 
 import pandas as pd
@@ -33,11 +34,24 @@ def load_cohort(name_or_path: str | Path = "proxy_audit") -> dict:
     return cohort
 
 
-def scope_table(cohort: dict, diagnostics_dir: str | Path, rates: dict[str, float]) -> pd.DataFrame:
-    """One row per (model, subset): selected layer count, scope-averaged diagnostics, success loss in pp."""
+def diagnostics_files(cohort: dict, diagnostics_dir: str | Path) -> dict[str, Path]:
+    """model -> its diagnostics file `<diagnostics_dir>/<cohort's diagnostics name>.json`."""
+    return {model: Path(diagnostics_dir) / f"{spec['diagnostics']}.json" for model, spec in cohort["models"].items()}
+
+
+def _checked(cohort: dict, diagnostics: Mapping[str, str | Path]) -> dict[str, Path]:
+    if sorted(diagnostics) != sorted(cohort["models"]):
+        raise UserError(f"diagnostics given for models {sorted(diagnostics)}; the cohort has {sorted(cohort['models'])}")
+    return {model: Path(path) for model, path in diagnostics.items()}
+
+
+def scope_table(cohort: dict, diagnostics: Mapping[str, str | Path], rates: dict[str, float]) -> pd.DataFrame:
+    """One row per (model, subset): selected layer count, scope-averaged diagnostics, success loss in pp
+    (`diagnostics`: model -> its diagnostics file)."""
     rows = []
+    files = _checked(cohort, diagnostics)
     for model, spec in cohort["models"].items():
-        diag = Diagnostics.read(Path(diagnostics_dir) / f"{spec['diagnostics']}.json")
+        diag = Diagnostics.read(files[model])
         prefix = f"{cohort['benchmark']}/{cohort['suite']}/{model}/"
         baseline = _rate(rates, prefix + spec["baseline"])
         for subset in map(functools.partial(get_subset, model), spec["subsets"]):
@@ -97,22 +111,23 @@ def render_proxy_audit(rhos: pd.DataFrame, cohort: dict, sources: dict[str, dict
 
 
 def write_proxy_audit(
-    diagnostics_dir: str | Path,
+    diagnostics: Mapping[str, str | Path],
     success_summary: str | Path,
     output: str | Path,
+    scopes_output: str | Path | None = None,
     cohort: str | Path = "proxy_audit",
     html_output: str | Path | None = None,
 ) -> pd.DataFrame:
-    """Snakemake entry: `tables/proxy_audit.tex` (+ the per-scope values beside it as CSV, and the browser page)."""
+    """Snakemake entry: `tables/proxy_audit.tex` from `diagnostics` (model -> diagnostics file), the
+    per-scope values as CSV to `scopes_output` (default: `<output>.scopes.csv`) and the browser page."""
     spec = load_cohort(cohort)
     rates = success_rates(success_summary)
     if not rates:
         raise UserError("the proxy audit needs a success summary (config key success_summary)")
-    scopes = scope_table(spec, diagnostics_dir, rates)
+    scopes = scope_table(spec, diagnostics, rates)
     rhos = correlations(scopes)
-    sources = {m: Diagnostics.read(Path(diagnostics_dir) / f"{s['diagnostics']}.json").header["provenance"]
-               for m, s in spec["models"].items()}
+    sources = {m: Diagnostics.read(path).header["provenance"] for m, path in _checked(spec, diagnostics).items()}
     output = render_proxy_audit(rhos, spec, sources).write(output, html_output)
-    with atomic_write(output.with_suffix(".scopes.csv")) as handle:
+    with atomic_write(scopes_output or output.with_suffix(".scopes.csv")) as handle:
         scopes.to_csv(handle, index=False)
     return rhos

@@ -18,9 +18,6 @@ import importlib
 from dataclasses import dataclass
 
 
-CONTROL_MODES = ("delta", "absolute")
-
-
 @dataclass(frozen=True)
 class ClientConventions:
     executed_chunk: int  # actions executed per predicted chunk

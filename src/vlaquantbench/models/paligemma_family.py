@@ -17,7 +17,7 @@ from unittest import mock
 import torch
 from torch import nn
 
-from vlaquantbench.models.registry import Component, randomize_linears, seeded_build
+from vlaquantbench.models.registry import Component, demo_build, seeded_build
 
 _VLM = "paligemma_with_expert.paligemma.model"
 _EXPERT = "paligemma_with_expert.gemma_expert"
@@ -57,9 +57,7 @@ def pi_builders(modeling: types.ModuleType, model_cls: type, config_cls: type) -
     def demo(device: torch.device, seed: int) -> nn.Module:
         config = config_cls(dtype="float32", device="cpu")
         with reduced_widths(modeling):
-            model = seeded_build(lambda: model_cls(config), device, seed)
-        randomize_linears(model, seed)
-        return model.eval()
+            return demo_build(lambda: model_cls(config), device, seed)
 
     return {"full": full, "demo": demo}
 

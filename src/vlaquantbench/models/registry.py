@@ -21,10 +21,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from vlaquantbench.errors import UserError
+from vlaquantbench.errors import UserError, lookup
 from vlaquantbench.quant.patterns import COMPONENT_NAMES
 
-__all__ = ["COMPONENT_NAMES", "Component", "ModelSpec", "adapter_class", "get_model_spec", "model_names",
+__all__ = ["COMPONENT_NAMES", "Component", "ModelSpec", "adapter_class", "demo_build", "get_model_spec", "model_names",
            "randomize_linears", "rollout_models", "seeded_build"]
 
 if TYPE_CHECKING:
@@ -72,9 +72,7 @@ class ModelSpec:
     def build(self, variant: str = "full", device: str | torch.device = "meta", seed: int = 0) -> nn.Module:
         import torch
 
-        if variant not in self.builders:
-            raise UserError(f"model {self.name!r} has no variant {variant!r}; choose one of {sorted(self.builders)}")
-        return self.builders[variant](torch.device(device), seed)
+        return lookup(self.builders, variant, f"{self.name} variant")(torch.device(device), seed)
 
 
 def model_names() -> list[str]:
@@ -83,9 +81,7 @@ def model_names() -> list[str]:
 
 def model_package(name: str) -> str:
     """The package of model `name`; UserError listing the known models otherwise."""
-    if name not in MODELS:
-        raise UserError(f"unknown model {name!r}; known models: {', '.join(model_names())}")
-    return MODELS[name]
+    return lookup(MODELS, name, "model")
 
 
 def get_model_spec(name: str) -> ModelSpec:
@@ -117,6 +113,14 @@ def seeded_build(construct: Callable[[], nn.Module], device: torch.device, seed:
         torch.manual_seed(seed)
         with device:
             return construct()
+
+
+def demo_build(construct: Callable[[], nn.Module], device: torch.device, seed: int) -> nn.Module:
+    """A model's `demo` variant: `construct()` seeded by `seed` (`seeded_build`), every linear layer
+    given seeded random weights (`randomize_linears`), in eval mode."""
+    model = seeded_build(construct, device, seed)
+    randomize_linears(model, seed)
+    return model.eval()
 
 
 def randomize_linears(model: "nn.Module", seed: int) -> None:

@@ -1,20 +1,21 @@
-"""`quantize_(model, config, components)`: apply one quantization to a policy, torchao style.
+"""`quantize_(model, config, selection)`: apply one quantization to a policy, torchao style.
 
     cfg = QuantConfig.from_preset("W4A4", scope="ah", only=["*self_attn*"])
-    report = quantize_(model, cfg, components=get_model_spec("pi05").components)
+    report = quantize_(model, cfg, cfg.select(model, adapter.components))  # or get_model_spec("pi05").components
     ...  # run episodes
     report.check_hooks_fired()          # raises HooksNotFired naming layers whose hooks never ran
     header.update(report.to_header())
 
 Layer selection (`quant.scope`) happens, and fails on bad scopes or patterns, before any weight
-changes. The quantization itself is a *method* looked up in the registry `quant.methods`: `rtn` (this
-module) fake-quantizes weights in place and installs counting activation hooks; real-kernel methods
-live in `quant.kernels`. Weight changes are in place and not undone.
+changes; `quantize_` receives the selected layers and knows no model (each model declares its
+component scopes in its own folder). The quantization itself is a *method* looked up in the registry
+`quant.methods`: `rtn` (this module) fake-quantizes weights in place and installs counting activation
+hooks; real-kernel methods live in `quant.kernels`. Weight changes are in place and not undone.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import torch
@@ -25,6 +26,7 @@ from vlaquantbench.quant.calibration import FLOOR, CalibrationSettings, Calibrat
 from vlaquantbench.quant.hooks import CountingHook, InputTransform
 from vlaquantbench.quant.methods import get_method
 from vlaquantbench.quant.presets import Preset, parse_preset
+from vlaquantbench.quant.patterns import scope_components
 from vlaquantbench.quant.scope import LayerOwner, Selection, select_layers
 
 
@@ -61,6 +63,11 @@ class QuantConfig:
             stats=stats,
         )
 
+    def select(self, model: nn.Module, components: Mapping[str, LayerOwner]) -> Selection:
+        """The linears of `model` that this config's scope and patterns select, given the model's
+        component scopes (its adapter's or spec's `components`): what `quantize_` receives."""
+        return select_layers(model, components, self.scope, self.only, self.exclude)
+
 
 @dataclass
 class MethodResult:
@@ -72,6 +79,14 @@ class MethodResult:
     hooks: dict[str, CountingHook] = field(default_factory=dict)
     calibrated: set[str] = field(default_factory=set)
     details: dict = field(default_factory=dict)
+
+
+def hook_summary(installed: Iterable[str], fired: Collection[str]) -> dict:
+    """A header's `hooks`: how many activation hooks were installed, how many fired, and the names of
+    those that never fired (`unfired`, in installation order)."""
+    installed = list(installed)
+    unfired = [name for name in installed if name not in fired]
+    return {"selected": len(installed), "fired": len(installed) - len(unfired), "unfired": unfired}
 
 
 class HooksNotFired(RuntimeError):
@@ -123,20 +138,23 @@ class QuantReport:
         if self.config.calibration is not None:
             quant_report["act_calib"] = self.config.stats.provenance(self.config.calibration)
         quant_report.update(self.result.details)
-        unfired = self.unfired()
-        hooks = {"selected": len(self.result.hooks), "fired": len(self.result.hooks) - len(unfired), "unfired": unfired}
+        fired = {name for name, calls in self.hook_calls().items() if calls}
         return {
             "quant_report": quant_report,
             "quant_format": self.result.format,
-            "hooks": hooks,
+            "hooks": hook_summary(self.result.hooks, fired),
             "selected_layers": self.selected,
         }
 
 
-def quantize_(model: nn.Module, config: QuantConfig, components: Mapping[str, LayerOwner]) -> QuantReport:
-    """Quantize the layers of `model` that `config` selects and return the report."""
+def quantize_(model: nn.Module, config: QuantConfig, selection: Selection) -> QuantReport:
+    """Quantize the layers of `model` in `selection` (e.g. `config.select(model, components)`) as
+    `config` says and return the report. The selection's components must be those of `config.scope`,
+    which the report records."""
     method = get_method(config.method)
-    selection = select_layers(model, components, config.scope, config.only, config.exclude)
+    in_scope = scope_components(config.scope, selection.layers)
+    if list(selection.layers) != in_scope:
+        raise UserError(f"selection of components {list(selection.layers)} given for scope {config.scope!r} ({in_scope})")
     if config.preset.is_baseline and config.calibration is None:
         empty = Selection({comp: {} for comp in selection.layers})
         return QuantReport(config, empty, MethodResult(format="released precision"))

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from vlaquantbench.errors import UserError
+from vlaquantbench.errors import UserError, lookup
 from vlaquantbench.quant.presets import Preset, WeightGrid
 
 
@@ -78,6 +78,4 @@ def registered_methods() -> list[str]:
 
 
 def get_method(name: str) -> Method:
-    if name not in METHODS:
-        raise UserError(f"unknown quantization method {name!r}; registered: {', '.join(registered_methods())}")
-    return METHODS[name]
+    return lookup(METHODS, name, "quantization method")

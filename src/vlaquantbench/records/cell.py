@@ -11,9 +11,12 @@ import pandas as pd
 
 from vlaquantbench.atomic import atomic_write, write_text
 from vlaquantbench.errors import UserError
+from vlaquantbench.textfiles import read_parsed
 
 HEADER_FILE = "header.json"
 EPISODES_FILE = "episodes.parquet"
+# The run's journal of finished episodes (runner.journal), kept beside them until the cell completes.
+JOURNAL_FILE = "journal.jsonl"
 AUTHORS_SUFFIX = ".jsonl"
 
 EPISODE_KEY = ("task_id", "episode", "seed")
@@ -145,10 +148,7 @@ def read_cell(path: str | Path) -> Cell:
     for required in (header_path, episodes_path):
         if not required.is_file():
             raise UserError(f"{path}: not a cell record: {required} is missing")
-    try:
-        header = json.loads(header_path.read_text())
-    except json.JSONDecodeError as err:
-        raise UserError(f"{header_path}: not valid JSON ({err})") from err
+    header = read_parsed(header_path, json.loads, "JSON")
     return Cell(header=header, episodes=normalize_episodes(pd.read_parquet(episodes_path), episodes_path), path=folder)
 
 

@@ -115,9 +115,13 @@ def analyze(runs: list[ReplayRun], roles: Roles = Roles()) -> dict:
     }
 
 
-def analyze_files(summaries: list[str | Path], output: str | Path, study: dict | None = None) -> dict:
-    """Snakemake entry: replay summaries (`<config>.json` beside `<config>.npz`) -> analysis.json."""
+def analyze_files(summaries: list[str | Path], output: str | Path, study: dict | None = None,
+                  arrays: list[str | Path] | None = None) -> dict:
+    """Snakemake entry: replay summaries and their arrays files (default: beside them) -> analysis.json."""
     roles = Roles.from_study(study) if study else Roles()
-    result = analyze([ReplayRun.load(p) for p in summaries], roles)
+    arrays = arrays or [None] * len(summaries)
+    if len(arrays) != len(summaries):
+        raise UserError(f"{len(summaries)} replay summaries but {len(arrays)} arrays files")
+    result = analyze([ReplayRun.load(p, a) for p, a in zip(summaries, arrays)], roles)
     write_text(output, json.dumps(result, indent=1))
     return result

@@ -10,7 +10,6 @@ noise is identical. Quantized policies never drive the simulator here.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -42,15 +41,15 @@ def quant_config(study: dict, name: str, preset: str) -> tuple[QuantConfig, int]
     return QuantConfig.from_preset(preset, scope=conf["scope"], only=only, exclude=exclude), conf["layers"]
 
 
-def replay_configuration(recording, study: dict, name: str, preset: str, output_dir, checkpoint_dir=None) -> ReplayRun:
-    """Replay configuration `name` at `preset` on a recording (`records.json` or its folder)."""
-    meta, trajectories = load_records(recording)
+def replay_configuration(records_json, trajectories, study: dict, name: str, preset: str, checkpoint_dir=None) -> ReplayRun:
+    """Replay configuration `name` at `preset` on a recording (`records.json` and its trajectory files)."""
+    meta, trajectories = load_records(records_json, trajectories)
     cfg, expected_layers = quant_config(study, name, preset)
     adapter = make_adapter(AdapterConfig(model=meta["model"], variant=meta["variant"], checkpoint=meta["checkpoint"],
                                          checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"],
                                          device=meta["device"], flow_steps=meta["flow_steps"]))
     adapter.load()
-    report = quantize_(adapter.model, cfg, components=adapter.components)
+    report = quantize_(adapter.model, cfg, cfg.select(adapter.model, adapter.components))
     layers = sum(c["layers"] for c in report.components.values()) if expected_layers else 0
     if layers != expected_layers:
         raise UserError(f"replay configuration {name!r} at {preset} selects {layers} layers; the study expects {expected_layers}")
@@ -71,9 +70,7 @@ def replay_configuration(recording, study: dict, name: str, preset: str, output_
         "records": records, "recording": {"code_revision": meta["code_revision"], "created": meta["created"]},
         "versions": versions(), "vqb_commit": code_revision(), "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
-    run = ReplayRun(summary, arrays)
-    run.save(output_dir)
-    return run
+    return ReplayRun(summary, arrays)
 
 
 def _replay_trajectory(adapter, probe: PolicyProbe, data: dict, record: str) -> tuple[dict, float]:
@@ -91,9 +88,9 @@ def _replay_trajectory(adapter, probe: PolicyProbe, data: dict, record: str) -> 
     return {"chunks": np.stack(chunks), "actions": actions, "flow_states": np.stack(states),
             "downproj": np.concatenate(inputs)}, dev
 
-def replay_to(records_json, study: dict, name: str, preset: str, summary_out, checkpoint_dir=None) -> ReplayRun:
-    """Snakemake entry: replay configuration `name` at `preset`; writes `summary_out` and its .npz."""
-    summary_out = Path(summary_out)
-    if summary_out.stem != name:
-        raise UserError(f"replay output {summary_out} must be named after its configuration {name!r}")
-    return replay_configuration(records_json, study, name, preset, summary_out.parent, checkpoint_dir)
+def replay_to(records_json, trajectories, study: dict, name: str, preset: str, summary_out, arrays_out,
+              checkpoint_dir=None) -> ReplayRun:
+    """Snakemake entry: replay configuration `name` at `preset`; writes `summary_out` and `arrays_out`."""
+    run = replay_configuration(records_json, trajectories, study, name, preset, checkpoint_dir)
+    run.save(summary_out, arrays_out)
+    return run

@@ -52,10 +52,10 @@ def plot_formats(results: StudyResults, output: str | Path) -> Path:
 
 
 def write_replay_figure(
-    analyses: str | Path | Mapping[str, str | Path],
+    analyses: Mapping[str, str | Path],
     output: str | Path,
     study: str | Path = "pi05_libero_spatial",
     formats: list[str] | None = None,
 ) -> Path:
-    """Snakemake entry: `fig:replay_formats` from `analyses` (format -> analysis.json, or their folder)."""
-    return plot_formats(StudyResults.read(analyses, with_formats(load_study(study), formats)), output)
+    """Snakemake entry: `fig:replay_formats` from `analyses` (format -> analysis.json)."""
+    return plot_formats(StudyResults.from_files(analyses, with_formats(load_study(study), formats)), output)

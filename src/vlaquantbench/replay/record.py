@@ -4,70 +4,33 @@ One `<record>.npz` per trajectory (`t<task>_e<init state>.npz`) holds everything
 did at each call: both camera images, the state, the instruction, the episode's RNG seed and the
 generator state entering the call, the predicted normalized chunk, the flow states entering each
 denoising step, how many of the chunk's actions were executed, and the executed actions.
-`records.json` beside them carries the provenance.
+`records.json` beside them carries the provenance. The rule `replay_record` declares every one of
+these files as an output (`RecordSettings.trajectory_files`).
 """
 
 from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from vlaquantbench.atomic import write_text
+from vlaquantbench.atomic import atomic_write, write_text
 from vlaquantbench.envs.libero import EpisodeSpec, LiberoSuite, LiberoVectorEnv, episode_seed, simulator_versions
-from vlaquantbench.config.study import RunnerConfig
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.replay.probe import PolicyProbe, torch_rng_state
+from vlaquantbench.replay.study import RecordSettings
 from vlaquantbench.runner.provenance import code_revision, versions
 
 
-@dataclass(frozen=True)
-class RecordSettings:
-    model: str
-    variant: str
-    suite: str
-    tasks: list[int]
-    init_states: list[int]
-    observe: list[str]  # layers whose inputs the probe summarizes (e.g. the expert down_proj)
-    checkpoint: str | None = None
-    revision: str | None = None
-    checkpoint_dir: str | None = None
-    max_steps: int | None = None  # default: the suite's step limit for the model
-    executed_chunk: int | None = RunnerConfig.executed_chunk  # None: the model's released client
-    flow_steps: int = RunnerConfig.flow_steps
-    run_seed: int = 0
-    device: str = RunnerConfig.device
-    threads: int = 1  # CPU kernels' blocking depends on it; the replay uses the same count
-
-    @classmethod
-    def from_study(cls, study: dict, options: dict | None = None) -> "RecordSettings":
-        """The study's recording, with the workflow's `replay` options (variant, tasks, init_states,
-        max_steps, checkpoint, revision, checkpoint_dir, device, threads) taking precedence."""
-        options = dict(options or {})
-        options.pop("formats", None)
-        known = set(cls.__dataclass_fields__) - {"model", "suite", "observe"}
-        unknown = sorted(set(options) - known)
-        if unknown:
-            raise UserError(f"replay: unknown options {unknown}; known: {', '.join(sorted(known))}")
-        base = {"variant": "full", "tasks": study["tasks"], "init_states": study["init_states"]}
-        if options.get("variant", "full") == "full":  # a demo policy has random weights, no checkpoint
-            base.update(checkpoint=study["checkpoint"], revision=study["revision"])
-        return cls(model=study["model"], suite=study["suite"], observe=study["observe"], **{**base, **options})
-
-    def adapter_config(self) -> AdapterConfig:
-        return AdapterConfig(model=self.model, variant=self.variant, checkpoint=self.checkpoint,
-                             checkpoint_dir=self.checkpoint_dir, device=self.device,
-                             executed_chunk=self.executed_chunk, flow_steps=self.flow_steps)
-
-
-def record_name(task_id: int, init_state_id: int) -> str:
-    return f"t{task_id}_e{init_state_id}.npz"
+def adapter_config(settings: RecordSettings) -> AdapterConfig:
+    return AdapterConfig(model=settings.model, variant=settings.variant, checkpoint=settings.checkpoint,
+                         checkpoint_dir=settings.checkpoint_dir, device=settings.device,
+                         executed_chunk=settings.executed_chunk, flow_steps=settings.flow_steps)
 
 
 def _record_one(adapter, probe: PolicyProbe, env: LiberoVectorEnv, spec: EpisodeSpec, max_steps: int) -> dict:
@@ -107,9 +70,14 @@ def _record_one(adapter, probe: PolicyProbe, env: LiberoVectorEnv, spec: Episode
     }
 
 
-def record(settings: RecordSettings, out_dir: str | Path) -> dict:
-    """Roll out the full-precision policy from each (task, init state) and store the trajectories."""
-    out_dir = Path(out_dir)
+def record(settings: RecordSettings, records_json: str | Path, trajectories: list[str | Path]) -> dict:
+    """Roll out the full-precision policy from each (task, init state) and store the trajectories at
+    `trajectories` (named as `settings.trajectory_files()`, beside `records_json`) and their provenance."""
+    records_json, trajectories = Path(records_json), [Path(p) for p in trajectories]
+    expected = [records_json.parent / name for name in settings.trajectory_files()]
+    if trajectories != expected:
+        raise UserError(f"recording {records_json}: trajectory files {[str(p) for p in trajectories]} are not the "
+                        f"recording's {[str(p) for p in expected]}")
     suite = LiberoSuite(settings.suite)
     specs = [EpisodeSpec(t, i, init_state_id=i, seed=episode_seed(t, i, settings.run_seed))
              for t in settings.tasks for i in settings.init_states]
@@ -117,16 +85,16 @@ def record(settings: RecordSettings, out_dir: str | Path) -> dict:
         suite.init_state(spec.task_id, spec.init_state_id)
     max_steps = settings.max_steps or suite.max_steps(settings.model)
     torch.set_num_threads(settings.threads)
-    adapter = make_adapter(settings.adapter_config())
+    adapter = make_adapter(adapter_config(settings))
     adapter.load()
-    out_dir.mkdir(parents=True, exist_ok=True)
+    records_json.parent.mkdir(parents=True, exist_ok=True)
     records = []
     with LiberoVectorEnv(suite, num_envs=1) as env, PolicyProbe(adapter.model, settings.observe, 7) as probe:
-        for spec in tqdm(specs, desc="record", unit="trajectory"):
+        for spec, path in tqdm(list(zip(specs, trajectories)), desc="record", unit="trajectory"):
             data = _record_one(adapter, probe, env, spec, max_steps)
-            name = record_name(spec.task_id, spec.init_state_id)
-            np.savez_compressed(out_dir / name, **data)
-            records.append({"record": name, "task_id": spec.task_id, "episode": spec.init_state_id,
+            with atomic_write(path, "wb") as handle:
+                np.savez_compressed(handle, **data)
+            records.append({"record": path.name, "task_id": spec.task_id, "episode": spec.init_state_id,
                             "seed": spec.seed, "n_steps": len(data["actions"]), "n_chunks": len(data["chunk"]),
                             "flow_steps": settings.flow_steps, "recorded_success": bool(data["success"])})
     meta = {
@@ -140,32 +108,33 @@ def record(settings: RecordSettings, out_dir: str | Path) -> dict:
         "torch_threads": torch.get_num_threads(), "code_revision": code_revision(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "records": records,
     }
-    write_text(out_dir / "records.json", json.dumps(meta, indent=1))
+    write_text(records_json, json.dumps(meta, indent=1))
     return meta
 
 
-def load_records(records_dir: str | Path) -> tuple[dict, dict[str, dict[str, np.ndarray]]]:
-    """The provenance (`records.json`, or the folder holding it) and every trajectory's arrays."""
-    records_dir = Path(records_dir)
-    if records_dir.name == "records.json":
-        records_dir = records_dir.parent
-    meta_path = records_dir / "records.json"
-    if not meta_path.exists():
-        raise UserError(f"no recording in {records_dir}: {meta_path} is missing")
-    meta = json.loads(meta_path.read_text())
+def load_records(records_json: str | Path, trajectories: list[str | Path]) -> tuple[dict, dict[str, dict[str, np.ndarray]]]:
+    """The provenance `records_json` and the arrays of every trajectory it names (`trajectories`: their
+    files, which must be exactly the ones it names), keyed by record name."""
+    records_json = Path(records_json)
+    if not records_json.is_file():
+        raise UserError(f"no recording: {records_json} is missing")
+    meta = json.loads(records_json.read_text())
+    given = {Path(p).name: Path(p) for p in trajectories}
+    named = [rec["record"] for rec in meta["records"]]
+    if sorted(given) != sorted(named):
+        raise UserError(f"recording {records_json} names trajectories {named}; given {sorted(given)}")
     data = {}
-    for rec in meta["records"]:
-        path = records_dir / rec["record"]
-        if not path.exists():
-            raise UserError(f"recording {meta_path} names {rec['record']}, which is missing")
-        with np.load(path) as npz:
-            data[rec["record"]] = {k: npz[k] for k in npz.files}
+    for name in named:
+        if not given[name].is_file():
+            raise UserError(f"recording {records_json} names {name}, which is missing ({given[name]})")
+        with np.load(given[name]) as npz:
+            data[name] = {k: npz[k] for k in npz.files}
     return meta, data
 
 
-def record_to(study: dict, options: dict | None, records_json: str | Path) -> dict:
-    """Snakemake entry: record the study's trajectories beside `records_json`."""
-    return record(RecordSettings.from_study(study, options), Path(records_json).parent)
+def record_to(study: dict, options: dict | None, records_json: str | Path, trajectories: list[str | Path]) -> dict:
+    """Snakemake entry: record the study's trajectories (the rule's declared outputs)."""
+    return record(RecordSettings.from_study(study, options), records_json, trajectories)
 
 
 def recorded_calls(adapter, data: dict[str, np.ndarray], record: str):

@@ -22,6 +22,11 @@ from vlaquantbench.errors import UserError
 ARRAYS = ("chunks", "actions", "flow_states", "downproj")
 
 
+def arrays_file(summary_path: str | Path) -> Path:
+    """Where a replay's arrays live by default: `<config>.npz` beside `<config>.json`."""
+    return Path(summary_path).with_suffix(".npz")
+
+
 @dataclass
 class ReplayRun:
     summary: dict
@@ -38,20 +43,22 @@ class ReplayRun:
         """One array concatenated over trajectories in record order (chunks nest in trajectories)."""
         return np.concatenate([self.arrays[r][array] for r in self.record_names()])
 
-    def save(self, directory: str | Path) -> Path:
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
+    def save(self, summary_path: str | Path, arrays_path: str | Path | None = None) -> Path:
+        """Write the summary to `summary_path` (named `<config>.json`) and the arrays to `arrays_path`
+        (default: `arrays_file(summary_path)`); returns the summary's path."""
+        summary_path = Path(summary_path)
+        if summary_path.stem != self.name:
+            raise UserError(f"replay output {summary_path} must be named after its configuration {self.name!r}")
         flat = {f"{rec}/{k}": v for rec, arrays in self.arrays.items() for k, v in arrays.items()}
-        with atomic_write(directory / f"{self.name}.npz", "wb") as handle:
+        with atomic_write(arrays_path or arrays_file(summary_path), "wb") as handle:
             np.savez_compressed(handle, **flat)
-        write_text(directory / f"{self.name}.json", json.dumps(self.summary, indent=1))
-        return directory / f"{self.name}.json"
+        return write_text(summary_path, json.dumps(self.summary, indent=1))
 
     @classmethod
-    def load(cls, summary_path: str | Path) -> "ReplayRun":
+    def load(cls, summary_path: str | Path, arrays_path: str | Path | None = None) -> "ReplayRun":
         summary_path = Path(summary_path)
         summary = json.loads(summary_path.read_text())
-        npz = summary_path.with_suffix(".npz")
+        npz = Path(arrays_path or arrays_file(summary_path))
         if not npz.exists():
             raise UserError(f"replay {summary_path} has no arrays file {npz}")
         arrays: dict[str, dict[str, np.ndarray]] = {}

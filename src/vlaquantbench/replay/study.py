@@ -10,6 +10,7 @@ from pathlib import Path
 
 
 from vlaquantbench.config import load_yaml
+from vlaquantbench.config.study import RunnerConfig
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.subsets import get_subset
 from vlaquantbench.records.summary import read_summary
@@ -53,26 +54,59 @@ def with_formats(study: dict, formats: list[str] | None) -> dict:
             "bias_format": study["bias_format"] if study["bias_format"] in formats else keep[-1]}
 
 
+def analysis_files(analysis_dir: str | Path, formats: list[str]) -> dict[str, Path]:
+    """format -> `<analysis_dir>/<format>/analysis.json`: where the replay DAG writes (and the authors
+    published) each format's analysis."""
+    return {fmt: Path(analysis_dir) / fmt / "analysis.json" for fmt in formats}
+
+
+@dataclass(frozen=True)
+class RecordSettings:
+    """A replay study's full-precision recording: which policy, which (task, init state) trajectories."""
+
+    model: str
+    variant: str
+    suite: str
+    tasks: list[int]
+    init_states: list[int]
+    observe: list[str]  # layers whose inputs the probe summarizes (e.g. the expert down_proj)
+    checkpoint: str | None = None
+    revision: str | None = None
+    checkpoint_dir: str | None = None
+    max_steps: int | None = None  # default: the suite's step limit for the model
+    executed_chunk: int | None = RunnerConfig.executed_chunk  # None: the model's released client
+    flow_steps: int = RunnerConfig.flow_steps
+    run_seed: int = 0
+    device: str = RunnerConfig.device
+    threads: int = 1  # CPU kernels' blocking depends on it; the replay uses the same count
+
+    @classmethod
+    def from_study(cls, study: dict, options: dict | None = None) -> "RecordSettings":
+        """The study's recording, with the workflow's `replay` options (validated by the config schema:
+        variant, tasks, init_states, max_steps, checkpoint, revision, checkpoint_dir, device, threads,
+        executed_chunk, flow_steps, run_seed) taking precedence."""
+        options = {k: v for k, v in (options or {}).items() if k != "formats"}
+        base = {"variant": "full", "tasks": study["tasks"], "init_states": study["init_states"]}
+        if options.get("variant", "full") == "full":  # a demo policy has random weights, no checkpoint
+            base.update(checkpoint=study["checkpoint"], revision=study["revision"])
+        return cls(model=study["model"], suite=study["suite"], observe=study["observe"], **{**base, **options})
+
+    def trajectory_files(self) -> list[str]:
+        """File names of the recorded trajectories (`t<task>_e<init state>.npz`), in recording order."""
+        return [f"t{task}_e{init_state}.npz" for task in self.tasks for init_state in self.init_states]
+
+
 @dataclass(frozen=True)
 class StudyResults:
     study: dict
     analyses: dict[str, dict]  # format -> analysis.json content
 
     @classmethod
-    def from_dir(cls, analysis_dir: str | Path, study: dict) -> "StudyResults":
-        """Read `<analysis_dir>/<format>/analysis.json` for every format of the study."""
-        return cls.from_files({f: Path(analysis_dir) / f / "analysis.json" for f in study["formats"]}, study)
-
-    @classmethod
-    def read(cls, analyses: str | Path | Mapping[str, str | Path], study: dict) -> "StudyResults":
-        """From a mapping format -> analysis.json (what a rule's input declares) or a folder of them."""
-        if isinstance(analyses, Mapping):
-            return cls.from_files(dict(analyses), study)
-        return cls.from_dir(analyses, study)
-
-    @classmethod
-    def from_files(cls, paths: dict[str, str | Path], study: dict) -> "StudyResults":
+    def from_files(cls, paths: Mapping[str, str | Path], study: dict) -> "StudyResults":
+        """Read the analysis file of every format of the study (`paths`: format -> analysis.json)."""
         paths = {fmt: Path(p) for fmt, p in paths.items()}
+        if sorted(paths) != sorted(study["formats"]):
+            raise UserError(f"replay analyses given for formats {sorted(paths)}, the study has {study['formats']}")
         absent = [str(p) for p in paths.values() if not p.exists()]
         if absent:
             raise UserError(f"replay analysis files missing (replay_analysis_dir): {', '.join(absent)}")

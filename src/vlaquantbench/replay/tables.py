@@ -81,7 +81,7 @@ def bias_table(results: StudyResults) -> Booktabs:
 
 def write_replay_table(
     table: str,
-    analyses: str | Path | Mapping[str, str | Path],
+    analyses: Mapping[str, str | Path],
     output: str | Path,
     study: str | Path = "pi05_libero_spatial",
     success_summary: str | Path | None = None,
@@ -89,9 +89,9 @@ def write_replay_table(
     html_output: str | Path | None = None,
 ) -> str:
     """Snakemake entry: render one replay table (`composition`, `all_formats` or `bias`) to `output`
-    from `analyses` (format -> analysis.json, or a folder of `<format>/analysis.json`), and its browser
+    from `analyses` (format -> analysis.json, e.g. `analysis_files(folder, formats)`), and its browser
     page to `html_output`; returns the LaTeX."""
-    results = StudyResults.read(analyses, with_formats(load_study(study), formats))
+    results = StudyResults.from_files(analyses, with_formats(load_study(study), formats))
     renderers = {
         "composition": lambda: composition_table(results),
         "all_formats": lambda: all_formats_table(results, success_rates(success_summary)),

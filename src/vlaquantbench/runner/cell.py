@@ -31,13 +31,13 @@ from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv, simulator_ve
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.records import write_cell
+from vlaquantbench.records.cell import JOURNAL_FILE
 from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal, recorded_keys
 from vlaquantbench.runner.loop import run_episodes
+from vlaquantbench.quant.apply import hook_summary
 from vlaquantbench.quant.semantics import QUANT_SEMANTICS
 from vlaquantbench.runner.provenance import code_revision, versions
 from vlaquantbench.software_env import activate, environment_for
-
-JOURNAL = "journal.jsonl"
 
 
 class CellFailed(UserError):
@@ -90,12 +90,14 @@ class CellRun:
         checkpoint_stamp: str | Path | None = None,
         calibration_stats: str | Path | None = None,
         *,
+        journal: str | Path | None = None,
         num_envs: int = ExecutionConfig.num_envs,
         torch_threads: int | None = ExecutionConfig.torch_threads,
         progress: bool = ExecutionConfig.progress,
     ):
         self.cfg = cfg
         self.out_dir = Path(out_dir)
+        self.journal = Path(journal) if journal else self.out_dir / JOURNAL_FILE  # default: beside the records
         self.checkpoint_stamp = checkpoint_stamp
         self.calibration_stats = calibration_stats
         self.num_envs = num_envs
@@ -118,7 +120,7 @@ class CellRun:
         each slot's first env, so that `prepare` loads the policy meanwhile; `run` uses them (or
         starts its own), and `close_env` stops them. The journal is read unchecked here: `run`
         verifies its header before any episode runs."""
-        self._env = self._start_env([s for s in self.specs if _key(s) not in recorded_keys(self.out_dir / JOURNAL)])
+        self._env = self._start_env([s for s in self.specs if _key(s) not in recorded_keys(self.journal)])
 
     def _start_env(self, missing: list) -> Future | None:
         if not missing:
@@ -168,7 +170,7 @@ class CellRun:
             calibration=calibration,
             stats=stats,
         )
-        self.report = quantize_(self.adapter.model, quant, components=self.adapter.components)
+        self.report = quantize_(self.adapter.model, quant, quant.select(self.adapter.model, self.adapter.components))
         quantized = self.report.to_header()
         inference = self.adapter.prepare_inference(self.report)
         if (probe := self.adapter.fast_path_probe()) is not None:
@@ -225,7 +227,7 @@ class CellRun:
             self.close_env()
 
     def _run(self) -> Path:
-        journal = CellJournal(self.out_dir / JOURNAL, self.header)
+        journal = CellJournal(self.journal, self.header)
         missing = self.missing(journal)
         bar = tqdm(
             total=len(self.specs),
@@ -252,18 +254,17 @@ class CellRun:
 
     def _finish(self, journal: CellJournal) -> Path:
         # Layers the policy never calls (OFT's SigLIP attention-pool head) keep their quantized weights
-        # and their scope count, but no activation hook can fire on them: reported, not required.
-        idle = {n for n in self.report.result.hooks if any(fnmatch.fnmatchcase(n, p) for p in self.adapter.idle_layers)}
-        selected = set(self.report.result.hooks) - idle
-        unfired = sorted(selected - journal.fired)
-        if unfired:
+        # and their scope count, but no activation hook can fire on them: listed as unfired, not refused.
+        hooks = hook_summary(self.report.result.hooks, journal.fired)
+        missed = [n for n in hooks["unfired"] if not any(fnmatch.fnmatchcase(n, p) for p in self.adapter.idle_layers)]
+        if missed:
             raise CellFailed(
-                f"cell {self.cfg['ref']}: {len(unfired)} of {len(selected)} selected layers' activation hooks never "
-                f"fired, so they ran unquantized: {', '.join(unfired)}"
+                f"cell {self.cfg['ref']}: {len(missed)} of {hooks['selected']} selected layers' activation hooks never "
+                f"fired, so they ran unquantized: {', '.join(missed)}"
             )
         header = {
             **self.header,
-            "hooks": {"selected": len(selected), "fired": len(selected & journal.fired), "idle": sorted(idle)},
+            "hooks": hooks,
             "nonfinite_episodes": sum(bool(e.get("nonfinite_action")) for e in journal.episodes),
         }
         order = {tuple(getattr(s, k) for k in EPISODE_KEY): n for n, s in enumerate(self.specs)}

@@ -33,13 +33,16 @@ import vlaquantbench
 from vlaquantbench.envs.libero.offline import config_dir
 from vlaquantbench.envs.libero.suite import EpisodeSpec, LiberoSuite
 from vlaquantbench.envs.libero.versions import simulator_versions
-from vlaquantbench.envs.libero.worker import CONTROL_MODES, EpisodeStart
+from vlaquantbench.envs.libero.worker import EpisodeStart
 from vlaquantbench.errors import UserError
 
 ACTION_DIM = 7
 # No-op steps after loading an init state, as in lerobot's LiberoEnv and openpi's LIBERO client.
 SETTLE_STEPS = 10
 CAMERA_SIZE = 256  # the render size of lerobot's and openpi's LIBERO evaluation
+# "delta": actions are end-effector pose deltas (LIBERO's default); "absolute": absolute targets, the
+# worker switching the controller to `use_delta=False` after the settle steps, as X-VLA's client does.
+CONTROL_MODES = ("delta", "absolute")
 _SHUTDOWN_TIMEOUT_S = 10
 _WORKER_MAIN = "import sys; from vlaquantbench.envs.libero.worker import main; main(sys.argv[1:])"
 

@@ -24,9 +24,6 @@ from vlaquantbench.envs.libero.suite import EpisodeSpec
 # LIBERO's no-op: arm still (zero delta pose), gripper open (-1). Used to let objects settle after an
 # init state is loaded, as lerobot's LiberoEnv (num_steps_wait=10) and openpi's LIBERO client do.
 DUMMY_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)
-# "delta": actions are end-effector pose deltas (LIBERO's default); "absolute": absolute targets, the
-# controller switched to `use_delta=False` after the settle steps, as X-VLA's client does.
-CONTROL_MODES = ("delta", "absolute")
 # robosuite samples every observable once per sampling period (LIBERO: the control period of 25
 # physics substeps), in the substep after its timer wraps; float drift of that timer can stretch a
 # period to 26 substeps, so the image in a step's observation was rendered during that step or the

@@ -6,14 +6,7 @@ attention-pooling head too: the policy never runs it, which is why the paper obs
 """
 
 from vlaquantbench.models.openvla_oft.architecture import DEMO, OpenVLAOFT
-from vlaquantbench.models.registry import Component, ModelSpec, randomize_linears, seeded_build
-
-
-def _demo(device, seed):
-    model = seeded_build(lambda: OpenVLAOFT(DEMO), device, seed)
-    randomize_linears(model, seed)
-    return model.eval()
-
+from vlaquantbench.models.registry import Component, ModelSpec, demo_build, seeded_build
 
 SPEC = ModelSpec(
     name="openvla_oft",
@@ -23,5 +16,6 @@ SPEC = ModelSpec(
         "llm": Component(roots=("language_model",), never=("language_model.lm_head",)),
         "ah": Component(roots=("action_head",)),
     },
-    builders={"full": lambda device, seed: seeded_build(OpenVLAOFT, device, seed), "demo": _demo},
+    builders={"full": lambda device, seed: seeded_build(OpenVLAOFT, device, seed),
+              "demo": lambda device, seed: demo_build(lambda: OpenVLAOFT(DEMO), device, seed)},
 )

@@ -16,7 +16,7 @@ import copy
 from lerobot.policies.xvla.configuration_xvla import XVLAConfig
 from lerobot.policies.xvla.modeling_xvla import XVLAModel
 
-from vlaquantbench.models.registry import Component, ModelSpec, randomize_linears, seeded_build
+from vlaquantbench.models.registry import Component, ModelSpec, demo_build, seeded_build
 
 # Florence-2-large as stored with `2toINF/X-VLA-Libero` (remote-code field names; lerobot translates).
 FLORENCE_LARGE = {
@@ -68,19 +68,17 @@ def policy_config(florence: dict, head: dict, **fields) -> XVLAConfig:
     return XVLAConfig(florence_config=florence, chunk_size=CHUNK, n_action_steps=CHUNK, **head, **fields)
 
 
-def _build(config: XVLAConfig, device, seed):
+def _constructor(config: XVLAConfig):
     florence = config.get_florence_config()
-    return seeded_build(lambda: XVLAModel(config, florence, proprio_dim=PROPRIO_DIM), device, seed)
+    return lambda: XVLAModel(config, florence, proprio_dim=PROPRIO_DIM)
 
 
 def _full(device, seed):
-    return _build(policy_config(FLORENCE_LARGE, FULL_HEAD, device="cpu"), device, seed)
+    return seeded_build(_constructor(policy_config(FLORENCE_LARGE, FULL_HEAD, device="cpu")), device, seed)
 
 
 def _demo(device, seed):
-    model = _build(policy_config(DEMO_FLORENCE, DEMO_HEAD, device="cpu"), device, seed)
-    randomize_linears(model, seed)
-    return model.eval()
+    return demo_build(_constructor(policy_config(DEMO_FLORENCE, DEMO_HEAD, device="cpu")), device, seed)
 
 
 SPEC = ModelSpec(

@@ -1,0 +1,70 @@
+"""Which files a Snakemake job touched that its rule does not declare (the workflow contract, issue 14 §3:
+declared inputs and outputs are exactly the files the scripts read and write).
+
+    env = audited_env(tmp_path / "audit")          # run snakemake with this environment
+    assert undeclared(tmp_path / "audit", workdir) == {}
+
+Only data files count: those under the Snakemake working folder (minus its .snakemake/ bookkeeping)
+and under ../shared; the project's code and definitions (src/, config/, workflow/, rules/, Snakefile)
+are read by name, Python's import system lists the folders on sys.path, and libraries probe for
+folders that do not exist (torch's CUDA library search). A job may read its declared inputs, outputs
+and logs, and write its outputs, logs and `params.state` files (a rollout's journal, which must survive
+a failed job); the hidden temporary file of an atomic write counts as its target. Listing a folder is
+never declared.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+
+from paths import ROOT, SHARED
+
+AUDIT_SITE = Path(__file__).with_name("audit_site")
+CODE = ("src", "config", "workflow", "rules", "Snakefile")  # in the checkout, or in a copy of it
+_ATOMIC_TMP = re.compile(r"^\.(?P<name>.+)\.\d+-\d+\.tmp$")  # vlaquantbench.atomic's temporary files
+
+
+def audited_env(audit_dir: Path) -> dict[str, str]:
+    """The environment of a Snakemake run whose job scripts record the files they touch in `audit_dir`."""
+    audit_dir.mkdir(parents=True, exist_ok=True)
+    path = os.pathsep.join(p for p in (str(AUDIT_SITE), os.environ.get("PYTHONPATH")) if p)
+    return {**os.environ, "PYTHONPATH": path, "VQB_FILE_AUDIT": str(audit_dir)}
+
+
+def _real(path: str | Path) -> Path:
+    real = Path(os.path.realpath(path))
+    match = _ATOMIC_TMP.match(real.name)
+    return real.with_name(match["name"]) if match else real
+
+
+def _within(path: Path, folders: list[Path]) -> bool:
+    return any(path == folder or folder in path.parents for folder in folders)
+
+
+def job_audits(audit_dir: Path) -> list[dict]:
+    return [json.loads(p.read_text()) for p in sorted(audit_dir.glob("*.json"))]
+
+
+def undeclared(audit_dir: Path, workdir: Path) -> dict[str, list[str]]:
+    """`<rule>` -> sorted `<action> <path>` of every data file a job of the rule touched undeclared."""
+    data = [_real(workdir), _real(SHARED)]
+    skip = [_real(workdir / ".snakemake"), *(_real(top / name) for top in (ROOT, workdir) for name in CODE)]
+    found: dict[str, set[str]] = {}
+    for job in job_audits(audit_dir):
+        declared = {kind: {_real(p) for p in paths} for kind, paths in job["declared"].items()}
+        may_read = declared["input"] | declared["output"] | declared["log"] | declared["state"]
+        may_write = declared["output"] | declared["log"] | declared["state"]
+        import_path = {_real(p) for p in job["import_path"]}  # Python's import system lists these
+        for action, raw in job["events"]:
+            path = _real(raw)
+            if not _within(path, data) or _within(path, skip):
+                continue
+            if action == "list" and (path in import_path or not path.is_dir()):  # a library probing for folders
+                continue
+            allowed = {"read": may_read, "write": may_write, "remove": may_write, "list": set()}[action]
+            if path not in allowed:
+                found.setdefault(job["rule"], set()).add(f"{action} {path}")
+    return {rule: sorted(paths) for rule, paths in found.items()}
