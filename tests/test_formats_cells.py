@@ -5,18 +5,14 @@ import json
 
 import pandas as pd
 import pytest
+from demo_study import demo_study
 
 from vlaquantbench.cells import cell_config
 from vlaquantbench.runner.cell import run_cell
 
 pytestmark = pytest.mark.slow
 
-STUDY = {
-    "models": {"pi05": {"variant": "demo", "checkpoint": "lerobot/pi05_libero_finetuned_v044"}},
-    "tasks": [0],
-    "episodes_per_task": 1,
-    "runner": {"max_steps": 10, "camera_size": 64, "flow_steps": 2},
-}
+STUDY = demo_study()
 
 
 def test_mxfp4_and_nvfp4_action_head_cells_run_with_every_hook_fired(tmp_path):

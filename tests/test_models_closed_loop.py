@@ -1,8 +1,9 @@
 """X-VLA and OpenVLA-OFT in closed loop: their demo policies (real architectures, reduced widths, random
-weights) in real LIBERO. Per model: an episode's actions do not depend on its batch; a cell killed with
-kill -9 resumes to exactly the uninterrupted records; the paper's model-specific study cells (OFT's fc2
-protection, X-VLA's action-head qkv and MLP groups) run and count the paper's layers; every header records
-the model's released client conventions and the demo's overrides of them."""
+weights) in real LIBERO. Per model: a cell killed with kill -9 resumes to exactly the uninterrupted
+records; the paper's model-specific study cells (OFT's fc2 protection, X-VLA's action-head qkv and MLP
+groups) run and count the paper's layers; every header records the model's released client conventions
+and the demo's overrides of them. (That an episode's actions do not depend on its batch is
+test_runner_batch.py's, for every model.)"""
 
 import json
 import os
@@ -10,32 +11,19 @@ import signal
 import subprocess
 import sys
 import time
-from collections import defaultdict
 
-import numpy as np
 import pandas as pd
 import pytest
+from demo_study import demo_study
 
 from test_runner_resume import journal_lines, outcomes
 from vlaquantbench.cells import cell_config
-from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv
-from vlaquantbench.models.adapter import AdapterConfig, make_adapter
-from vlaquantbench.quant import QuantConfig, quantize_
 from vlaquantbench.records import read_cell
-from vlaquantbench.runner.loop import run_episodes
 
 pytestmark = pytest.mark.slow
 
-STUDY = {
-    "models": {
-        "openvla_oft": {"variant": "demo", "checkpoint": "moojink/openvla-7b-oft-finetuned-libero-spatial"},
-        # X-VLA cells run in its software environment (MuJoCo 3.1.6, its client's pin)
-        "xvla": {"variant": "demo", "checkpoint": "2toINF/X-VLA-Libero"},
-    },
-    "tasks": [0],
-    "episodes_per_task": 1,
-    "runner": {"max_steps": 8, "camera_size": 64, "flow_steps": 2},
-}
+# X-VLA cells run in its software environment (MuJoCo 3.1.6, its client's pin)
+STUDY = demo_study("openvla_oft", "xvla", max_steps=8)
 RUN_CELL = ("import json, sys; from vlaquantbench.runner.cell import run_cell; "
             "run_cell(json.loads(sys.argv[1]), sys.argv[2], num_envs=int(sys.argv[3]), progress=False)")
 
@@ -45,45 +33,6 @@ def run_cell(cfg, folder, num_envs=1):
     subprocess.run([sys.executable, "-c", RUN_CELL, json.dumps(cfg), str(folder), str(num_envs)], check=True,
                    timeout=1500)
     return folder
-
-
-@pytest.mark.parametrize("model", ["openvla_oft", "xvla"])
-def test_batch_of_two_equals_batch_of_one(model):
-    suite = LiberoSuite("libero_spatial")
-    specs = [suite.episode_spec(0, 0), suite.episode_spec(1, 0)]
-    adapter = make_adapter(AdapterConfig(model=model, variant="demo", flow_steps=2, executed_chunk=4))
-    adapter.load()
-    config = QuantConfig.from_preset("W4A4", scope="ah")
-    report = quantize_(adapter.model, config, config.select(adapter.model, adapter.components))
-    chunks = defaultdict(list)  # episode seed -> [(state observed, chunk predicted)]
-    act = adapter.act
-
-    def recording_act(observations, generators):
-        out = act(observations, generators)
-        for obs, generator, chunk in zip(observations, generators, out):
-            chunks[generator.initial_seed()].append((obs["state"].copy(), chunk.copy()))
-        return out
-
-    adapter.act = recording_act
-
-    def run(num_envs):
-        chunks.clear()
-        records = []
-        with LiberoVectorEnv(suite, num_envs, camera_size=64, control_mode=adapter.control_mode) as env:
-            run_episodes(adapter, env, specs, max_steps=8, on_finished=records.extend)
-        return sorted(records, key=lambda r: r["task_id"]), {seed: list(calls) for seed, calls in chunks.items()}
-
-    batched, batched_chunks = run(2)
-    single, single_chunks = run(1)
-    for a, b in zip(batched, single):
-        assert (a["steps"], a["actions_sha256"]) == (b["steps"], b["actions_sha256"])
-    assert batched_chunks.keys() == single_chunks.keys() == {0, 1009}
-    for seed in batched_chunks:
-        assert len(batched_chunks[seed]) == len(single_chunks[seed]) == 2  # 8 steps, 4 executed per chunk
-        for (state_a, chunk_a), (state_b, chunk_b) in zip(batched_chunks[seed], single_chunks[seed]):
-            assert np.array_equal(state_a, state_b) and np.array_equal(chunk_a, chunk_b)
-    assert batched[0]["actions_sha256"] != batched[1]["actions_sha256"]
-    assert not report.unfired()
 
 
 @pytest.mark.parametrize("ref", ["libero/libero_spatial/openvla_oft/ablate-W4A8-ah-only_fc2",

@@ -1,6 +1,7 @@
 """Rollout calibration on real LIBERO episodes feeds a calibrated cell, with provenance in its header."""
 
 import pytest
+from demo_study import demo_study
 import torch
 
 from vlaquantbench.cells import calibration_config, cell_config
@@ -11,13 +12,7 @@ from vlaquantbench.runner.cell import run_cell
 
 pytestmark = pytest.mark.slow
 
-STUDY = {
-    "models": {"pi05": {"variant": "demo", "checkpoint": "lerobot/pi05_libero_finetuned_v044"}},
-    "tasks": [0],
-    "episodes_per_task": 1,
-    "runner": {"max_steps": 10, "camera_size": 64, "flow_steps": 2},
-    "calibration": {"episodes": 1, "first_init_state": 20},
-}
+STUDY = demo_study(calibration={"episodes": 1, "first_init_state": 20})
 
 
 def test_calibration_statistics_drive_a_calibrated_cell(tmp_path):

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from demo_study import demo_study
 
 from vlaquantbench.cells import cell_config
 from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv
@@ -18,12 +19,7 @@ from vlaquantbench.tables.latex import table_rows
 
 pytestmark = pytest.mark.slow
 
-STUDY = {
-    "models": {"pi05": {"variant": "demo", "checkpoint": "lerobot/pi05_libero_finetuned_v044"}},
-    "tasks": [0],
-    "episodes_per_task": 2,
-    "runner": {"max_steps": 10, "camera_size": 64, "flow_steps": 2},
-}
+STUDY = demo_study(episodes_per_task=2)
 REF = "libero/libero_spatial/pi05/rtn-BASELINE-e2e"
 
 

@@ -4,6 +4,7 @@ rerun that resumes it exactly: test_runner_soak.py.)"""
 import json
 
 import pytest
+from demo_study import demo_study
 
 from vlaquantbench.cells import cell_config
 from vlaquantbench.errors import UserError
@@ -11,12 +12,7 @@ from vlaquantbench.runner.cell import CellFailed, CellRun, run_cell
 
 pytestmark = pytest.mark.slow
 
-STUDY = {
-    "models": {"pi05": {"variant": "demo", "checkpoint": "lerobot/pi05_libero_finetuned_v044"}},
-    "tasks": [0],
-    "episodes_per_task": 3,
-    "runner": {"max_steps": 10, "camera_size": 64, "flow_steps": 2},
-}
+STUDY = demo_study(episodes_per_task=3)
 REF = "libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn"
 
 

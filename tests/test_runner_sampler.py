@@ -3,6 +3,7 @@
 
 import numpy as np
 import pytest
+from demo_study import demo_study
 import torch
 from test_pi05_fast import REL_TOL
 from test_runner_adapter import observations
@@ -13,15 +14,7 @@ from vlaquantbench.models.adapter import AdapterConfig, make_adapter, resolve_sa
 from vlaquantbench.quant import QuantConfig, quantize_
 from vlaquantbench.runner.cell import CellRun
 
-STUDY = {
-    "models": {
-        "pi05": {"variant": "demo", "checkpoint": "lerobot/pi05_libero_finetuned_v044"},
-        "pi0": {"variant": "demo", "checkpoint": "lerobot/pi0_libero_finetuned_v044"},
-    },
-    "tasks": [0],
-    "episodes_per_task": 1,
-    "runner": {"max_steps": 10, "camera_size": 64, "flow_steps": 1},
-}
+STUDY = demo_study("pi05", "pi0", flow_steps=1)
 
 
 def _rel(a, b) -> float:
