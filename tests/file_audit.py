@@ -9,8 +9,8 @@ and under ../shared; the project's code and definitions (src/, config/, workflow
 are read by name, Python's import system lists the folders on sys.path, and libraries probe for
 folders that do not exist (torch's CUDA library search). A job may read its declared inputs, outputs
 and logs, and write its outputs, logs and `params.state` files (a rollout's journal, which must survive
-a failed job); the hidden temporary file of an atomic write counts as its target. Listing a folder is
-never declared.
+a failed job); the hidden temporary file of an atomic write counts as its target, and listing the
+folder it writes in is its clean-up. Listing any other folder is never declared.
 """
 
 from __future__ import annotations
@@ -18,13 +18,15 @@ from __future__ import annotations
 import json
 import os
 import re
+import socket
 from pathlib import Path
 
 from paths import ROOT, SHARED
 
 AUDIT_SITE = Path(__file__).with_name("audit_site")
 CODE = ("src", "config", "workflow", "rules", "Snakefile")  # in the checkout, or in a copy of it
-_ATOMIC_TMP = re.compile(r"^\.(?P<name>.+)\.\d+-\d+\.tmp$")  # vlaquantbench.atomic's temporary files
+# vlaquantbench.atomic's temporary files: `.<name>.<host>.<pid>-<thread>.tmp`
+_ATOMIC_TMP = re.compile(rf"^\.(?P<name>.+)\.{re.escape(socket.gethostname())}\.\d+-\d+\.tmp$")
 
 
 def audited_env(audit_dir: Path) -> dict[str, str]:
@@ -58,12 +60,14 @@ def undeclared(audit_dir: Path, workdir: Path) -> dict[str, list[str]]:
         may_read = declared["input"] | declared["output"] | declared["log"] | declared["state"]
         may_write = declared["output"] | declared["log"] | declared["state"]
         import_path = {_real(p) for p in job["import_path"]}  # Python's import system lists these
+        # atomic_write lists the folder of the file it writes, to remove a killed writer's temporary files
+        write_folders = {path.parent for path in may_write}
         for action, raw in job["events"]:
             path = _real(raw)
             if not _within(path, data) or _within(path, skip):
                 continue
-            if action == "list" and (path in import_path or not path.is_dir()):  # a library probing for folders
-                continue
+            if action == "list" and (path in import_path | write_folders or not path.is_dir()):
+                continue  # the import system, atomic_write's clean-up, a library probing for folders
             allowed = {"read": may_read, "write": may_write, "remove": may_write, "list": set()}[action]
             if path not in allowed:
                 found.setdefault(job["rule"], set()).add(f"{action} {path}")

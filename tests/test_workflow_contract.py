@@ -24,10 +24,10 @@ def reference_checkout(tmp_path: Path) -> Path:
 
 
 def snakemake(workdir: Path, *args: str, python_flags: tuple[str, ...] = (), snakefile: Path = ROOT / "Snakefile",
-              env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+              env: dict[str, str] | None = None, timeout: int = 300) -> subprocess.CompletedProcess:
     command = [sys.executable, *python_flags, "-m", "snakemake", *args, "--cores", "1",
                "--snakefile", str(snakefile), "--directory", str(workdir)]  # fmt: skip
-    return subprocess.run(command, capture_output=True, text=True, timeout=300, env=env)
+    return subprocess.run(command, capture_output=True, text=True, timeout=timeout, env=env)
 
 
 UNDECLARED_ACCESS = """
@@ -74,15 +74,17 @@ def test_the_audit_names_every_file_a_job_touches_undeclared(tmp_path):
 
 
 def test_reference_rules_touch_exactly_their_declared_files(tmp_path):
-    """Every rule the reference config runs (records and authors' files, no GPU), in a real Snakemake run."""
+    """Every rule the reference config runs (records and authors' files, no GPU) in a real Snakemake run;
+    paper_table's jobs are audited in the refused-run test below."""
     workdir, audit = reference_checkout(tmp_path), tmp_path / "audit"
-    targets = ["tables/lattice.tex", "tables/summary.csv", "tables/vla_params.tex", "tables/proxy_audit.tex",
+    targets = ["tables/summary.csv", "tables/vla_params.tex", "tables/proxy_audit.tex",
                "tables/replay_composition.tex", "tables/replay_all_formats.tex", "tables/replay_bias.tex",
                "figures/replay_formats.pdf", "figures/scope_recovery.pdf"]
-    run = snakemake(workdir, *targets, f"--configfile={ROOT / 'config' / 'reference.yaml'}", env=audited_env(audit))
+    run = snakemake(workdir, *targets, f"--configfile={ROOT / 'config' / 'reference.yaml'}", env=audited_env(audit),
+                    timeout=900)
     assert run.returncode == 0, run.stderr[-3000:]
     assert {job["rule"] for job in job_audits(audit)} == {
-        "paper_table", "summary", "vla_params_table", "proxy_audit_table", "replay_composition_table",
+        "summary", "vla_params_table", "proxy_audit_table", "replay_composition_table",
         "replay_all_formats_table", "replay_bias_table", "replay_formats_figure", "scope_recovery_figure"}
     assert undeclared(audit, workdir) == {}
 
@@ -117,9 +119,12 @@ def test_dry_run_imports_no_torch(tmp_path, configfile, planned):
 def test_refused_run_leads_with_its_cause_and_removes_the_stale_table(tmp_path):
     workdir = reference_checkout(tmp_path)
     config = f"--configfile={ROOT / 'config' / 'reference.yaml'}"
-    assert snakemake(workdir, "tables/lattice.tex", config).returncode == 0
+    audit = tmp_path / "audit"
+    assert snakemake(workdir, "tables/lattice.tex", config, env=audited_env(audit)).returncode == 0
     table = workdir / "tables" / "lattice.tex"
     assert table.is_file()
+    assert [job["rule"] for job in job_audits(audit)] == ["paper_table"]
+    assert undeclared(audit, workdir) == {}  # its records and their manifest, its table and page, its log
 
     lines = (ROOT / "manifests" / "reference.tsv").read_text().splitlines()
     changed = "libero/libero_spatial/pi05/ablate-W4A4-ah-attn_adarms.jsonl"  # a record tab:lattice reads
