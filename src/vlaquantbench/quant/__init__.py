@@ -5,32 +5,16 @@ Names are imported on first access (PEP 562), so the torch-free parts (`quant.pr
 `quant.methods`, `quant.subsets`, `quant.patterns`) load without torch when the workflow parses.
 """
 
-import importlib
+from vlaquantbench.lazy_exports import lazy_exports
 
 _EXPORTS = {
-    "HooksNotFired": "apply",
-    "MethodResult": "apply",
-    "QuantConfig": "apply",
-    "QuantReport": "apply",
-    "quantize_": "apply",
-    "register_method": "methods",
-    "registered_methods": "methods",
-    "CalibrationSettings": "calibration",
-    "CalibrationStats": "calibration",
-    "Preset": "presets",
-    "WeightGrid": "presets",
-    "parse_preset": "presets",
-    "Selection": "scope",
-    "select_layers": "scope",
-    "Subset": "subsets",
-    "get_subset": "subsets",
-    "subsets_for": "subsets",
+    "apply": ["HooksNotFired", "MethodResult", "QuantConfig", "QuantReport", "quantize_"],
+    "methods": ["register_method", "registered_methods"],
+    "calibration": ["CalibrationSettings", "CalibrationStats"],
+    "presets": ["Preset", "WeightGrid", "parse_preset"],
+    "scope": ["Selection", "select_layers"],
+    "subsets": ["Subset", "get_subset", "subsets_for"],
 }
 
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+__all__ = sorted(name for names in _EXPORTS.values() for name in names)
+__getattr__ = lazy_exports(__name__, _EXPORTS)

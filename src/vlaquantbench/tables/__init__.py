@@ -4,23 +4,13 @@ Names are imported on first access (PEP 562), so a job that only needs the LaTeX
 e.g. tab:vla_params) does not import pandas through the record readers.
 """
 
-import importlib
+from vlaquantbench.lazy_exports import lazy_exports
 
 _EXPORTS = {
-    "SUMMARY_COLUMNS": "summary",
-    "TableDefinition": "definition",
-    "load_table": "definition",
-    "render_latex": "latex",
-    "summarize": "summary",
-    "table_rows": "latex",
-    "write_summary": "summary",
-    "write_table": "latex",
+    "definition": ["TableDefinition", "load_table"],
+    "latex": ["render_latex", "table_rows", "write_table"],
+    "summary": ["SUMMARY_COLUMNS", "summarize", "write_summary"],
 }
 
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+__all__ = sorted(name for names in _EXPORTS.values() for name in names)
+__getattr__ = lazy_exports(__name__, _EXPORTS)
