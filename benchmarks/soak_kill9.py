@@ -19,8 +19,10 @@ workers), and a kill is SIGKILL to the whole group. A seeded RNG times the first
 
 `--startup-window` defaults to the reference's start-up time (launch to its journal's header line),
 `--window` to half a round of its episodes (a round: its running time over episodes / envs), so
-that a kill lands within the episodes in flight. Only `append` kills are sure to make progress; the
-defaults leave the cell episodes to spare.
+that a kill lands within the episodes in flight. A timed attempt that completes the cell before its
+kill is counted, not a kill; once the journal holds every episode, the remaining kills are
+write-phase kills (on a machine that gets faster than the reference run, running-anchored kills
+also add episodes).
 
 The last `--write-kills` kills land while the records are being written: the soak watches the cell
 folder (every `--poll` s) for the atomic writer's temporary files (`.header.json.*.tmp`,
@@ -122,8 +124,9 @@ def kill_group(process: subprocess.Popen) -> None:
     process.wait()
 
 
-def timed_kill(cfg: dict, folder: Path, args: argparse.Namespace, rng: random.Random) -> dict:
-    """One attempt killed at a moment the RNG picks after one of the anchors (see the module doc)."""
+def timed_kill(cfg: dict, folder: Path, args: argparse.Namespace, rng: random.Random) -> dict | None:
+    """One attempt killed at a moment the RNG picks after one of the anchors (see the module doc);
+    None if the attempt completed the cell first."""
     anchor = rng.choices(ANCHORS, weights=args.anchor_p)[0]
     delay = rng.uniform(0, args.startup_window if anchor == "startup" else args.window)
     launched = time.monotonic()
@@ -136,7 +139,9 @@ def timed_kill(cfg: dict, folder: Path, args: argparse.Namespace, rng: random.Ra
     anchored = time.monotonic()
     time.sleep(delay)
     if process.poll() is not None:
-        raise RuntimeError("the cell finished before its kills were done: give it more episodes or a shorter --window")
+        if process.returncode:
+            raise RuntimeError(f"the cell in {folder} failed (exit {process.returncode}) during a timed attempt")
+        return None  # the attempt completed the cell before its kill
     kill_group(process)
     now = time.monotonic()
     return {"phase": anchor, "at_s": round(now - launched, 2), "after_anchor_s": round(now - anchored, 2)}
@@ -174,26 +179,25 @@ def after_kill(folder: Path) -> dict:
     return state
 
 
-def soak(cfg: dict, folder: Path, args: argparse.Namespace) -> tuple[list[dict], int, set]:
-    """The kills, their misses, and every episode key some attempt journaled."""
+def soak(cfg: dict, folder: Path, args: argparse.Namespace, episodes: int) -> tuple[list[dict], dict, set]:
+    """The kills, the attempts that ended before their kill, and every episode key some attempt journaled.
+    Once the journal holds every episode, the remaining kills are write-phase kills."""
     rng = random.Random(args.seed)
-    kills, misses, journaled = [], 0, set()
+    kills, ended, journaled = [], Counter(), set()
     while len(kills) < args.kills:
         before = len(journal_episodes(folder))
-        if len(kills) < args.kills - args.write_kills:
-            kill = timed_kill(cfg, folder, args, rng)
-        else:
-            kill = write_kill(cfg, folder, args)
-            if kill is None:
-                misses += 1
-                print(f"write-phase attempt ended before a temporary file was seen (miss {misses})", flush=True)
-                if misses > args.max_write_misses:
-                    raise RuntimeError(f"{misses} write-phase attempts missed: try a smaller --poll")
-                continue
+        timed = len(kills) < args.kills - args.write_kills and before < episodes
+        kill = timed_kill(cfg, folder, args, rng) if timed else write_kill(cfg, folder, args)
+        if kill is None:
+            ended["timed" if timed else "write"] += 1
+            print(f"{'timed' if timed else 'write-phase'} attempt ended before its kill ({dict(ended)})", flush=True)
+            if ended["write"] > args.max_write_misses:
+                raise RuntimeError(f"{ended['write']} write-phase attempts missed: try a smaller --poll")
+            continue
         kills.append({**kill, "episodes_before": before, **after_kill(folder)})
         journaled |= {episode_key(r) for r in journal_episodes(folder)}
         print(f"kill {len(kills)}/{args.kills}: {kills[-1]}", flush=True)
-    return kills, misses, journaled
+    return kills, dict(ended), journaled
 
 
 def main() -> None:
@@ -238,7 +242,7 @@ def main() -> None:
               f"window {args.window} s, start-up window {args.startup_window} s", flush=True)
 
         began = time.monotonic()
-        kills, misses, journaled = soak(cfg, killed, args)
+        kills, ended, journaled = soak(cfg, killed, args, episodes)
         try:
             final_s, final_error = complete(cfg, killed, args.num_envs)["total_s"], None
         except RuntimeError as err:  # e.g. a duplicated episode refused by the journal: still counted below
@@ -259,7 +263,8 @@ def main() -> None:
             "episodes": len(expected),
             "kills": len(kills),
             "kills_by_phase": dict(Counter(k["phase"] for k in kills)),
-            "write_phase_misses": misses,
+            "write_phase_misses": ended.get("write", 0),
+            "timed_attempts_completed_the_cell": ended.get("timed", 0),
             "lost_episodes": len((expected.keys() | journaled) - recorded),
             "duplicated_episodes": sum(n - 1 for n in counts.values()),
             "journal_torn_after_kills": sum(k["journal_torn"] for k in kills),
