@@ -148,11 +148,13 @@ def timed_kill(cfg: dict, folder: Path, args: argparse.Namespace, rng: random.Ra
 
 
 def write_kill(cfg: dict, folder: Path, args: argparse.Namespace) -> dict | None:
-    """One attempt killed the moment a temporary file of the record writer appears; None on a miss."""
+    """One attempt killed the moment a temporary file of the record writer appears; None on a miss.
+    Files an earlier killed writer left (the next write removes them) do not count."""
+    left = set(temporary_files(folder))
     launched = time.monotonic()
     process = launch(cfg, folder, args.num_envs)
     while process.poll() is None:
-        if seen := temporary_files(folder):
+        if seen := sorted(set(temporary_files(folder)) - left):
             kill_group(process)
             return {"phase": "write", "at_s": round(time.monotonic() - launched, 2), "seen": seen}
         time.sleep(args.poll)
