@@ -63,8 +63,7 @@ from pathlib import Path
 from vlaquantbench.cells import cell_config
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import read_cell
-from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE
-from vlaquantbench.runner.cell import JOURNAL
+from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE, JOURNAL_FILE
 
 RUN_CELL = ("import json, sys; from vlaquantbench.runner.cell import run_cell; "
             "run_cell(json.loads(sys.argv[1]), sys.argv[2], num_envs=int(sys.argv[3]), progress=False)")
@@ -75,7 +74,7 @@ WRITES = (f".{HEADER_FILE}.", f".{EPISODES_FILE}.")  # the atomic writer's tempo
 
 
 def journal_lines(folder: Path) -> list[dict]:
-    path = folder / JOURNAL
+    path = folder / JOURNAL_FILE
     if not path.exists():
         return []
     return [json.loads(line) for line in path.read_bytes().split(b"\n")[:-1] if line]  # a torn last line is no line
@@ -104,12 +103,12 @@ def complete(cfg: dict, folder: Path, num_envs: int) -> dict:
     """Run the cell to the end; its wall time and start-up time (launch to the journal's first line,
     which the runner writes once the policy is loaded and quantized; None if the journal existed)."""
     began = time.monotonic()
-    fresh = not (folder / JOURNAL).exists()
+    fresh = not (folder / JOURNAL_FILE).exists()
     startup = None
     with tempfile.TemporaryFile() as stderr:
         process = launch(cfg, folder, num_envs, stderr=stderr)
         while process.poll() is None:
-            if fresh and startup is None and (folder / JOURNAL).exists():
+            if fresh and startup is None and (folder / JOURNAL_FILE).exists():
                 startup = time.monotonic() - began
             time.sleep(0.05)
         if process.returncode:
@@ -165,7 +164,7 @@ def write_kill(cfg: dict, folder: Path, args: argparse.Namespace) -> dict | None
 
 def after_kill(folder: Path) -> dict:
     """What a kill left in the folder: journal progress, torn tail, temporary files, readable records."""
-    raw = (folder / JOURNAL).read_bytes() if (folder / JOURNAL).exists() else b""
+    raw = (folder / JOURNAL_FILE).read_bytes() if (folder / JOURNAL_FILE).exists() else b""
     state = {
         "episodes_journaled": len(journal_episodes(folder)),
         "journal_torn": bool(raw) and not raw.endswith(b"\n"),
