@@ -32,20 +32,6 @@ def test_wilson_matches_every_row_of_the_authors_summary():
     assert np.round(high, 2).tolist() == [float(r["ci_high"]) for r in rows]
 
 
-def test_wilson_is_statsmodels_wilson_interval():
-    """The library's Wilson interval at the same z, on every authors' row (the workflow evaluates the closed
-    form itself to keep scipy.stats out of its jobs)."""
-    from scipy.stats import norm
-    from statsmodels.stats.proportion import proportion_confint
-
-    rows = list(csv.DictReader(open(REFERENCE / "authors-summary.csv", newline="")))
-    k, n = np.array([int(r["successes"]) for r in rows]), np.array([int(r["episodes"]) for r in rows])
-    low, high = proportion_confint(k, n, alpha=2.0 * norm.sf(1.96), method="wilson")
-    ours = wilson_interval(k, n)
-    np.testing.assert_allclose(ours[0], 100.0 * low, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(ours[1], 100.0 * high, rtol=0, atol=1e-9)
-
-
 def test_wilson_is_the_appendix_formula():
     k, n, z = 187, 200, 1.96
     p = k / n
