@@ -75,7 +75,8 @@ rule paper_table:
         "../workflow/scripts/paper_table.py"
 
 
-# tab:vla_params needs no records: its counts come from the model builders on the meta device.
+# tab:vla_params needs no records: its counts come from the committed layer index (models/<model>/linears.json),
+# written from the model builders on the meta device and compared with them by tests/test_scopes_counts.py.
 rule vla_params_table:
     output:
         tex="tables/vla_params.tex",
