@@ -11,8 +11,14 @@ STATE=${VQB_SLURM_STATE:-/var/spool/vqb-slurm}
 
 install() {
     command -v slurmctld >/dev/null && command -v munged >/dev/null && return 0
-    apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq slurm-wlm munge >/dev/null
+    # Without recommends: slurm-wlm-plugins would add ~30 packages (HDF5, ROCm, IPMI, InfluxDB, MySQL
+    # plugins) this cluster never loads. The package lists are refreshed only when the install fails
+    # without that (.ci/run has usually refreshed them moments before, to install chromium).
+    local packages=(slurm-wlm munge)
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${packages[@]}" >/dev/null 2>&1 || {
+        apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${packages[@]}" >/dev/null
+    }
 }
 
 start() {
@@ -59,6 +65,10 @@ CONF
     pgrep -x slurmctld >/dev/null || slurmctld -c
     pgrep -x slurmd >/dev/null || slurmd
     for _ in $(seq 60); do
+        # A run killed mid-job (its tasks outlived KillWait) leaves the node drained: back into service.
+        if sinfo -h -o '%T' 2>/dev/null | grep -q '^drain'; then
+            scontrol update NodeName="$node" State=RESUME || true
+        fi
         if sinfo -h -o '%T' 2>/dev/null | grep -qE '^(idle|mixed|allocated)'; then
             echo "local_slurm: cluster up on $node ($cpus CPUs, $mem MB)"
             return 0
@@ -74,7 +84,8 @@ stop() {
     scancel --full --quiet --user=root 2>/dev/null || true
     pkill -x slurmd 2>/dev/null || true
     pkill -x slurmctld 2>/dev/null || true
-    for _ in $(seq 20); do pgrep -x 'slurmd|slurmctld' >/dev/null || break; sleep 0.5; done
+    # (two pgreps: pgrep matches nothing when its pattern is longer than a process name's 15 characters)
+    for _ in $(seq 20); do pgrep -x slurmd >/dev/null || pgrep -x slurmctld >/dev/null || break; sleep 0.5; done
     echo "local_slurm: stopped"
 }
 
