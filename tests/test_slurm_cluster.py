@@ -3,12 +3,15 @@
 analysis jobs; while it runs, one rollout job is requeued (`scontrol requeue`), one is cancelled
 (`scancel`) and one hits its time limit. Snakemake's retry resubmits the failed ones, each rollout
 resumes from its journal, and the cells' episodes and the final table equal an uninterrupted local run's
-byte for byte. Select with `pytest -k slurm`; skipped (with the reason printed) only where apt cannot
-install slurm-wlm and munge, or where the test does not run as root."""
+byte for byte. The local run starts first and runs beside the cluster's install and run: the cluster
+run waits on sbatch, status checks and slurmctld's time-limit check most of the time, and the local
+run's jobs use those idle cores. Select with `pytest -k slurm`; skipped (with the reason printed) only
+where apt cannot install slurm-wlm and munge, or where the test does not run as root."""
 
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -20,13 +23,17 @@ import yaml
 
 from paths import ROOT
 
-pytestmark = pytest.mark.slow
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(os.geteuid() != 0, reason="the SLURM test installs and starts a cluster as root; not root here"),
+]
 
 CLUSTER = ROOT / "scripts" / "local_slurm.sh"
 SNAKEMAKE = [sys.executable, "-m", "snakemake"]
-# Enough episodes that a job whose time limit is cut after its first episode is still running when
-# slurmctld next enforces limits (it checks every 30 s).
-EPISODES = 8
+# Enough episodes that a job whose time limit is cut after a cell's first episode is still running when
+# slurmctld next enforces limits: it checks every 30 s (PERIODIC_TIMEOUT in slurmctld, not configurable)
+# and an episode here takes about 10 s (2 cores, beside the local run), so 4-5 are left at the cut.
+EPISODES = 6
 TABLE_CELLS = [
     "libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn",
     "libero/libero_spatial/pi05/calib_ah-W4A4-ah-onlyself_attn",
@@ -46,9 +53,23 @@ CPU_ONLY = [
 
 
 @pytest.fixture(scope="module")
+def local_run(tmp_path_factory):
+    """The uninterrupted reference: the demo study run locally, started before the cluster is installed
+    and left running beside the cluster run (the test waits for it after). Two jobs at a time."""
+    checkout = demo_checkout(tmp_path_factory.mktemp("slurm_local") / "local")
+    with (checkout.parent / "snakemake.log").open("w") as log:
+        process = subprocess.Popen(
+            [*SNAKEMAKE, "tables/lattice.tex", "--cores", "2", "--set-threads", "rollout=1", "calibrate=1"],
+            cwd=checkout, stdout=log, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+        )
+    yield checkout, process
+    if process.poll() is None:  # the test failed before waiting for it: stop its jobs and their LIBERO workers too
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+
+
+@pytest.fixture(scope="module")
 def slurm_cluster():
-    if os.geteuid() != 0:
-        pytest.skip("the SLURM test installs and starts a cluster as root; not root here")
     installed = subprocess.run(["bash", str(CLUSTER), "install"], capture_output=True, text=True, timeout=1500)
     if installed.returncode != 0:
         reason = f"apt cannot install slurm-wlm/munge: {(installed.stdout + installed.stderr)[-500:]}"
@@ -61,7 +82,7 @@ def slurm_cluster():
 
 
 def demo_checkout(path: Path) -> Path:
-    """The demo workflow shrunk to one task, eight 10-step episodes, three cells (one calibrated)."""
+    """The demo workflow shrunk to one task, EPISODES 10-step episodes, three cells (one calibrated)."""
     path.mkdir()
     for item in ("Snakefile", "rules", "workflow", "config", "profiles"):
         source = ROOT / item
@@ -102,10 +123,11 @@ def squeue() -> list[tuple[str, str, str]]:
 
 
 class FaultInjector(threading.Thread):
-    """Interrupts the first three rollout jobs once each, each after its cell has recorded an episode:
-    time limit cut to one second (slurmctld kills it with TIMEOUT at its next check: Snakemake retries
-    it with the profile's runtime), scancel (a failed job: Snakemake retries it), requeue (the same job
-    id runs again). The time limit goes first: it takes effect last."""
+    """Interrupts the first three rollout jobs once each, each after a cell has recorded an episode:
+    time limit cut to zero (its end time is now: slurmctld kills it with TIMEOUT at its next check,
+    within 30 s; Snakemake retries it with the profile's runtime), scancel (a failed job: Snakemake
+    retries it), requeue (the same job id runs again). The time limit goes first: it takes effect last.
+    (`TimeLimit=0:01` would be one minute after the job's start: slurm rounds limits up to minutes.)"""
 
     FAULTS = ("timeout", "scancel", "requeue")
 
@@ -133,7 +155,7 @@ class FaultInjector(threading.Thread):
                     elif fault == "scancel":
                         command = ["scancel", job]
                     else:
-                        command = ["scontrol", "update", f"JobId={job}", "TimeLimit=0:01"]
+                        command = ["scontrol", "update", f"JobId={job}", "TimeLimit=0"]
                     if subprocess.run(command, capture_output=True).returncode == 0:
                         hit.add(job)
                         self.done[fault] = job
@@ -141,12 +163,7 @@ class FaultInjector(threading.Thread):
             time.sleep(0.5)
 
 
-def test_slurm_demo_study_survives_requeue_scancel_and_time_limit(slurm_cluster, tmp_path):
-    local = demo_checkout(tmp_path / "local")
-    result = subprocess.run([*SNAKEMAKE, "--cores", "2", "tables/lattice.tex"], cwd=local,
-                            capture_output=True, text=True, timeout=1500)
-    assert result.returncode == 0, result.stderr[-3000:]
-
+def test_slurm_demo_study_survives_requeue_scancel_and_time_limit(local_run, slurm_cluster, tmp_path):
     cluster = demo_checkout(tmp_path / "cluster")
     injector = FaultInjector(cluster, deadline_s=1200)
     injector.start()
@@ -157,6 +174,8 @@ def test_slurm_demo_study_survives_requeue_scancel_and_time_limit(slurm_cluster,
     injector.stop.set()
     output = result.stdout + result.stderr
     assert result.returncode == 0, output[-4000:]
+    local, local_process = local_run
+    assert local_process.wait(timeout=1500) == 0, (local.parent / "snakemake.log").read_text()[-3000:]
 
     # One SLURM job per cell (3 rollouts), the calibration and download jobs and the analysis jobs,
     # each submitted through sbatch; the cancelled and timed-out rollouts once more.
