@@ -1,4 +1,4 @@
-"""A real `snakemake --cores 2 tables/lattice.tex` on a tiny demo study, in a copy of the workflow:
+"""A real `snakemake tables/lattice.tex --cores 2` on a tiny demo study, in a copy of the workflow:
 real LIBERO episodes -> cells -> table; a second run does nothing; changing one cell's preset reruns
 only that cell and the tables."""
 
@@ -18,7 +18,10 @@ from paths import ROOT
 
 pytestmark = pytest.mark.slow
 
-SNAKEMAKE = [sys.executable, "-m", "snakemake", "--cores", "2"]
+SNAKEMAKE = [sys.executable, "-m", "snakemake"]
+# After the targets (--set-threads takes every word after it). One thread per rollout: the first run's two
+# rollouts run at once (a rollout keeps about one core busy: its LIBERO worker and the policy take turns).
+OPTIONS = ["--cores", "2", "--set-threads", "rollout=1"]
 BASELINE = "libero/libero_spatial/pi05/rtn-BASELINE-e2e"
 ATTENTION = "libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn"
 
@@ -37,7 +40,8 @@ def tiny_study(checkout: Path) -> None:
 
 
 def snakemake(checkout: Path, *args: str, env: dict[str, str] | None = None) -> str:
-    result = subprocess.run([*SNAKEMAKE, *args], cwd=checkout, capture_output=True, text=True, timeout=1800, env=env)
+    result = subprocess.run([*SNAKEMAKE, *args, *OPTIONS], cwd=checkout, capture_output=True, text=True,
+                            timeout=1800, env=env)
     assert result.returncode == 0, (result.stdout[-2000:], result.stderr[-4000:])
     return result.stdout + result.stderr
 
