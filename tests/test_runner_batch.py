@@ -1,5 +1,6 @@
 """Two real LIBERO episodes run as one batch of two and one at a time give identical actions and outcomes,
-for every model with an adapter (demo policies of the real architectures)."""
+for every model with an adapter (demo policies of the real architectures). The batched run holds ready
+slots for a batch of two (`min_batch`), so every one of its policy calls really is a batch of two."""
 
 from collections import defaultdict
 
@@ -29,9 +30,11 @@ def test_batch_of_two_equals_batch_of_one(model):
     report = quantize_(adapter.model, config, config.select(adapter.model, adapter.components))
 
     chunks = defaultdict(list)  # episode seed -> [(state observed, chunk predicted)]
+    batches = []  # batch size of every policy call
     act = adapter.act
 
     def recording_act(observations, generators):
+        batches.append(len(observations))
         out = act(observations, generators)
         for obs, generator, chunk in zip(observations, generators, out):
             chunks[generator.initial_seed()].append((obs["state"].copy(), chunk.copy()))
@@ -41,15 +44,18 @@ def test_batch_of_two_equals_batch_of_one(model):
 
     def run(num_envs):
         chunks.clear()
+        batches.clear()
         records = []
         # X-VLA's client pins MuJoCo 3.1.6; this environment has 3.3.2 (cells record that as an override).
         with LiberoVectorEnv(suite, num_envs, camera_size=64, control_mode=adapter.control_mode,
                              mujoco=mujoco.__version__) as env:
-            run_episodes(adapter, env, specs, max_steps=12, on_finished=records.extend)
+            run_episodes(adapter, env, specs, max_steps=12, on_finished=records.extend, min_batch=2)
         return sorted(records, key=lambda r: r["task_id"]), {seed: list(calls) for seed, calls in chunks.items()}
 
     batched, batched_chunks = run(2)
-    single, single_chunks = run(1)
+    assert batches == [2, 2]  # two chunks per episode, each call the pair
+    single, single_chunks = run(1)  # one slot: each call as soon as it is ready, nothing else stepping
+    assert batches == [1, 1, 1, 1]
 
     assert [(r["task_id"], r["episode"], r["seed"]) for r in batched] == [(0, 0, 0), (1, 0, 1009)]
     for a, b in zip(batched, single):

@@ -13,6 +13,11 @@ comes from its own stream, and on the CPU the adapter's linears are batch-invari
 `overlap` every slot's chunk is collected before the next policy call (lockstep), which makes the
 batches themselves reproducible (rollout calibration records per-call statistics).
 
+`min_batch` (with `overlap`) holds the ready slots until at least that many are ready, or until no
+slot is still stepping: fewer, larger policy calls, each ready slot waiting a little longer. On a GPU
+whose chunk costs nearly as much at batch 8 as the rows it computes, fewer calls mean less GPU time
+per chunk (benchmarks/README.md, closed loop on an H200).
+
 Non-finite actions (a collapsed quantized policy outputs NaN) never reach MuJoCo: the episode ends
 as a failure after the finite actions before the first non-finite one (an action the episode would
 execute; a success before it ends the episode as usual), and its record says
@@ -74,8 +79,11 @@ def run_episodes(
     on_finished: Callable[[list[dict]], None],
     *,
     overlap: bool = True,
+    min_batch: int = 1,
 ) -> None:
     """Run `specs` to completion; `on_finished(records)` gets the episodes that finish together."""
+    if min_batch < 1:
+        raise ValueError(f"min_batch must be at least 1, got {min_batch}")
     pending = deque(specs)
     episodes: dict[int, _Episode] = {}
     task_names = {t.task_id: t.name for t in env.suite.tasks}
@@ -113,10 +121,10 @@ def run_episodes(
 
     for slot in range(env.num_envs):
         start(slot)
+    ready: dict[int, dict] = {}  # slot -> observation, waiting for the policy
     while episodes:
-        ready: dict[int, dict] = {}
         finished: list[tuple[int, dict]] = []
-        for reply in env.collect(every=not overlap):
+        for reply in env.collect(every=not overlap) if env.pending else ():
             episode = episodes[reply.slot]
             if episode.sent is not None:
                 episode.digest.update(episode.sent[: reply.applied].tobytes())
@@ -126,10 +134,11 @@ def run_episodes(
             else:
                 ready[reply.slot] = reply.observation
         finish(finished)
-        if ready:
+        if ready and (len(ready) >= min_batch or not env.pending):
             slots = list(ready)
+            observations = [ready.pop(i) for i in slots]
             began = time.perf_counter()
-            chunks = adapter.act([ready[i] for i in slots], [episodes[i].generator for i in slots])
+            chunks = adapter.act(observations, [episodes[i].generator for i in slots])
             latency = time.perf_counter() - began
             for slot, chunk in zip(slots, chunks):
                 episode = episodes[slot]
