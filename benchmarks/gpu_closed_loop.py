@@ -5,18 +5,32 @@ no quantization unless `--preset`), the real runner (`LiberoVectorEnv` workers e
 chunks, `runner.loop.run_episodes` overlapping the policy with stepping). For each N of
 `--num-envs`, on one set of N workers:
 
-  - `policy`: N x `--rounds` episodes (at least `--min-episodes`) driven by the policy;
+  - `simulator_bound`: the same episodes driven by a zero-cost policy (random actions drawn from each
+    episode's stream in microseconds): what the simulator alone allows on this machine; measured
+    first and, for N in `--bound-after`, again last (`simulator_bound_after`): the ratio divides by
+    the mean of the two, so that a drift of the machine during the runs does not favour either side;
+  - `policy`: N x `--rounds` episodes (at least `--min-episodes`) driven by the policy, once per
+    `--min-batch` value (`runner.loop.run_episodes`' `min_batch`; `policy` is the first,
+    `policy_by_min_batch` has them all);
+  - `latency_model` (N in `--latency-model`): the same episodes driven by a policy that computes
+    nothing on the GPU and sleeps, per call, as long as a policy call of that batch took in the warm-up
+    (same padding): the policy's latency without its GPU work and host CPU, which tells how much of
+    the policy's cost is latency and how much is contention with the simulator (EGL renders share the GPU);
   - `lockstep` (N in `--lockstep`): the same episodes, every slot's chunk collected before the next
     policy call (`overlap=False`): the policy's time is not hidden;
-  - `simulator_bound`: the same episodes driven by a zero-cost policy (random actions drawn from each
-    episode's stream in microseconds): what the simulator alone allows on this machine.
+  - `policy_reniced` (with `--renice`): the policy again, the workers at that niceness.
+
+Every run records the machine's busy cores (/proc/stat) and the main process's CPU (all its
+threads), and each policy call's batch, padded graph size, wall and GPU time. The main process runs
+`--torch-threads` intra-op threads (1, as a cell: `ExecutionConfig.torch_threads`).
 
 Episodes go task-major as in a cell (task 0's init states 0, 1, ..., then task 1's); each slot's
 first task environment is built before timing, so every run meets the same builds. Random weights
 never succeed: every episode runs to the step limit (the suite's, or `--max-steps`). Worker
 start-up, the first capture of each batch size (powers of two up to the largest N, at most
 `MAX_GRAPH_BATCH`: the captured sampler pads a batch to the smallest captured size at least as large
-and runs larger batches in slices) and one short simulator
+and runs larger batches in slices; the CUDA cache is emptied afterwards, for the workers' EGL
+contexts) and one short simulator
 warm-up episode are timed apart and excluded. Writes after every N, so a run cut short keeps what
 it measured.
 
@@ -33,6 +47,7 @@ import json
 import os
 import platform
 import time
+from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -75,6 +90,47 @@ class Meter:
         }
 
 
+def busy_cores() -> tuple[float, float]:
+    """(busy, total) CPU ticks of the machine since boot, summed over cores (/proc/stat)."""
+    fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    idle = fields[3] + fields[4]  # idle, iowait
+    return sum(fields) - idle, sum(fields)
+
+
+def padded(batch: int, max_batch: int = MAX_GRAPH_BATCH) -> int:
+    """The captured graph size a batch replays (the next power of two; larger batches in slices)."""
+    return min(1 << (batch - 1).bit_length(), max_batch) if batch <= max_batch else max_batch
+
+
+class CallLog:
+    """Batch, wall ms and GPU ms of every policy call; summarized by the padded graph size."""
+
+    def __init__(self):
+        self.calls: list[tuple[int, float]] = []
+
+    def wrap(self, fn):
+        def timed(observations, generators):
+            began = time.perf_counter()
+            result = fn(observations, generators)
+            self.calls.append((len(observations), 1e3 * (time.perf_counter() - began)))
+            return result
+
+        return timed
+
+    def summary(self, gpu_ms: list[float] | None) -> dict:
+        by_size = defaultdict(lambda: {"calls": 0, "rows": 0, "ms": 0.0, "gpu_ms": 0.0})
+        for index, (batch, ms) in enumerate(self.calls):
+            entry = by_size[padded(batch)]
+            entry["calls"] += 1
+            entry["rows"] += batch
+            entry["ms"] += ms
+            entry["gpu_ms"] += gpu_ms[index] if gpu_ms else 0.0
+        return {str(size): {"calls": e["calls"], "mean_batch": round(e["rows"] / e["calls"], 2),
+                            "mean_ms": round(e["ms"] / e["calls"], 2),
+                            **({"mean_gpu_ms": round(e["gpu_ms"] / e["calls"], 2)} if gpu_ms else {})}
+                for size, e in sorted(by_size.items())}
+
+
 class ZeroCostPolicy:
     """The adapter interface at no cost: small random arm motions, gripper open, from each episode's stream."""
 
@@ -90,25 +146,51 @@ class ZeroCostPolicy:
         return chunks
 
 
+class LatencyModelPolicy(ZeroCostPolicy):
+    """The zero-cost policy that sleeps, per call, the warm-up's wall time of a policy call at that
+    batch's padded size: the real policy's latency without its GPU work or its host CPU."""
+
+    def __init__(self, executed_chunk: int, predicted_chunk: int, call_s_by_size: dict[int, float]):
+        super().__init__(executed_chunk, predicted_chunk)
+        self.call_s_by_size = call_s_by_size
+
+    def act(self, observations, generators) -> np.ndarray:
+        batch = len(observations)
+        slices = [MAX_GRAPH_BATCH] * (batch // MAX_GRAPH_BATCH) + ([batch % MAX_GRAPH_BATCH] if batch % MAX_GRAPH_BATCH else [])
+        time.sleep(sum(self.call_s_by_size[padded(rows)] for rows in slices))
+        return super().act(observations, generators)
+
+
 def episode_order(suite: LiberoSuite, count: int, per_task: int = 50) -> list:
     return [suite.episode_spec(t, e) for t in range(suite.n_tasks) for e in range(per_task)][:count]
+
+
+def stand_in_call(adapter, suite: LiberoSuite, camera_size: int, batch: int) -> float:
+    """Seconds of one policy call on `batch` blank observations."""
+    blank = np.zeros((camera_size, camera_size, 3), np.uint8)
+    obs = {"agentview": blank, "wrist": blank, "state": np.zeros(8, np.float32),
+           "instruction": suite.tasks[0].instruction}
+    began = time.perf_counter()
+    adapter.act([obs] * batch, [adapter.reset(i) for i in range(batch)])
+    return time.perf_counter() - began
+
+
+def on_cuda(adapter) -> bool:
+    return torch.cuda.is_available() and adapter.model is not None and next(adapter.model.parameters()).is_cuda
+
+
+def gpu_memory() -> dict:
+    return {"allocated_gib": round(torch.cuda.memory_allocated() / 2**30, 2),
+            "reserved_gib": round(torch.cuda.memory_reserved() / 2**30, 2),
+            "peak_gib": round(torch.cuda.max_memory_allocated() / 2**30, 2)}
 
 
 def warm_up(adapter, suite: LiberoSuite, camera_size: int, batch: int) -> dict:
     """One chunk at `batch` on stand-in observations: captures that batch size's graph. Returns its
     time and, on CUDA, the GPU memory afterwards (every captured graph keeps memory in proportion to
     its batch: `captured.MAX_GRAPH_BATCH`)."""
-    blank = np.zeros((camera_size, camera_size, 3), np.uint8)
-    obs = {"agentview": blank, "wrist": blank, "state": np.zeros(8, np.float32),
-           "instruction": suite.tasks[0].instruction}
-    began = time.perf_counter()
-    adapter.act([obs] * batch, [adapter.reset(i) for i in range(batch)])
-    result = {"s": round(time.perf_counter() - began, 2)}
-    if torch.cuda.is_available() and adapter.model is not None and next(adapter.model.parameters()).is_cuda:
-        result |= {"allocated_gib": round(torch.cuda.memory_allocated() / 2**30, 2),
-                   "reserved_gib": round(torch.cuda.memory_reserved() / 2**30, 2),
-                   "peak_gib": round(torch.cuda.max_memory_allocated() / 2**30, 2)}
-    return result
+    result = {"s": round(stand_in_call(adapter, suite, camera_size, batch), 2)}
+    return result | gpu_memory() if on_cuda(adapter) else result
 
 
 class GpuMeter:
@@ -129,9 +211,12 @@ class GpuMeter:
 
         return timed
 
-    def summary(self) -> dict:
+    def milliseconds(self) -> list[float]:
         torch.cuda.synchronize()
-        ms = [start.elapsed_time(end) for start, end in self.events]
+        return [start.elapsed_time(end) for start, end in self.events]
+
+    def summary(self) -> dict:
+        ms = self.milliseconds()
         return {"calls": len(ms), "mean_ms": round(float(np.mean(ms)), 2) if ms else None,
                 "seconds": round(sum(ms) / 1e3, 3)}
 
@@ -143,19 +228,23 @@ def build_first_tasks(env: LiberoVectorEnv, specs: list) -> None:
         env.release(slot)
 
 
-def measure(policy, env: LiberoVectorEnv, specs: list, max_steps: int, overlap: bool) -> dict:
-    calls, waits = Meter(), Meter()
+def measure(policy, env: LiberoVectorEnv, specs: list, max_steps: int, overlap: bool, min_batch: int = 1) -> dict:
+    calls, waits, log = Meter(), Meter(), CallLog()
     real_act, real_collect = policy.act, env.collect
-    policy.act = calls.wrap(real_act, items=lambda observations, generators: len(observations))
+    policy.act = calls.wrap(log.wrap(real_act), items=lambda observations, generators: len(observations))
     env.collect = waits.wrap(real_collect)
     gpu = GpuMeter() if hasattr(policy, "_sample") and torch.cuda.is_available() else None
     if gpu:
         policy._sample = gpu.wrap(policy._sample)  # an instance attribute over the class's method
     records: list[dict] = []
     try:
+        busy0, total0 = busy_cores()
+        cpu0 = time.process_time()
         began = time.perf_counter()
-        run_episodes(policy, env, specs, max_steps, on_finished=records.extend, overlap=overlap)
+        run_episodes(policy, env, specs, max_steps, on_finished=records.extend, overlap=overlap, min_batch=min_batch)
         wall = time.perf_counter() - began
+        cpu = time.process_time() - cpu0
+        busy1, total1 = busy_cores()
     finally:
         policy.act, env.collect = real_act, real_collect
         if gpu:
@@ -163,6 +252,10 @@ def measure(policy, env: LiberoVectorEnv, specs: list, max_steps: int, overlap: 
     steps = int(sum(r["steps"] for r in records))
     extra = {"policy_gpu": gpu.summary()} if gpu else {}
     return {**extra,
+        "min_batch": min_batch,
+        "busy_cores": round((os.cpu_count() or 1) * (busy1 - busy0) / max(total1 - total0, 1), 2),
+        "main_process_cores": round(cpu / wall, 2),
+        "calls_by_padded_size": log.summary(gpu.milliseconds() if gpu else None),
         "episodes": len(records),
         "policy_steps": steps,
         "successes": int(sum(r["success"] for r in records)),
@@ -184,6 +277,15 @@ def main() -> None:
     parser.add_argument("--preset", default=None, help="e.g. W4A4: end-to-end fake quantization via quantize_")
     parser.add_argument("--num-envs", type=int, nargs="+", default=[1, 16, 32, 64])
     parser.add_argument("--lockstep", type=int, nargs="*", default=[], help="N also measured without overlap")
+    parser.add_argument("--min-batch", type=int, nargs="+", default=[1],
+                        help="run_episodes' min_batch values measured at each N (the first is `policy`)")
+    parser.add_argument("--latency-model", type=int, nargs="*", default=[],
+                        help="N also driven by the sleeping stand-in for the policy (`latency_model`)")
+    parser.add_argument("--bound-after", type=int, nargs="*", default=[],
+                        help="N whose simulator bound is measured again after the policy runs")
+    parser.add_argument("--renice", type=int, default=None,
+                        help="finally, the workers at this niceness (vs the worker's own) with the first min_batch (`policy_reniced`)")
+    parser.add_argument("--torch-threads", type=int, default=1, help="intra-op threads of this process, as a cell's")
     parser.add_argument("--rounds", type=int, default=1, help="episodes per slot")
     parser.add_argument("--min-episodes", type=int, default=2)
     parser.add_argument("--max-steps", type=int, default=None, help="default: the suite's limit for pi0.5")
@@ -193,6 +295,7 @@ def main() -> None:
                              "larger batches run as slices)")
     parser.add_argument("--out", default="benchmarks/results/closed_loop_gpu.json")
     args = parser.parse_args()
+    torch.set_num_threads(args.torch_threads)
 
     suite = LiberoSuite(args.suite)
     max_steps = args.max_steps or suite.max_steps("pi05")
@@ -213,15 +316,30 @@ def main() -> None:
     powers = {1 << k for k in range(largest.bit_length())}
     sizes = sorted({*(powers if args.captures is None else args.captures), *(n for n in args.num_envs if n <= largest)})
     warmups = {b: warm_up(adapter, suite, args.camera_size, b) for b in sizes}
-    print(f"policy load {load_s:.1f} s, first chunk per batch size (capture) {warmups}", flush=True)
+    # Once every size is captured, the whole `act` per size on the idle machine: the latency model's call times.
+    for b in sizes:
+        warmups[b]["call_ms"] = round(1e3 * float(np.median([stand_in_call(adapter, suite, args.camera_size, b)
+                                                               for _ in range(3)])), 2)
+    memory = None
+    if on_cuda(adapter):
+        # What the captures' uncaptured first runs left cached goes back to the driver: the workers'
+        # EGL contexts need it (64 workers beside 115.9 GiB reserved could not create theirs).
+        torch.cuda.empty_cache()
+        memory = gpu_memory()
+    print(f"policy load {load_s:.1f} s, first chunk per batch size (capture) {warmups}; after empty_cache {memory}",
+          flush=True)
     zero_cost = ZeroCostPolicy(adapter.executed_chunk, adapter.predicted_chunk)
+    latency_model = LatencyModelPolicy(adapter.executed_chunk, adapter.predicted_chunk,
+                                       {b: w["call_ms"] / 1e3 for b, w in warmups.items()})
 
     gpu = torch.cuda.get_device_name() if torch.device(args.device).type == "cuda" else None
     result = {
         "suite": args.suite, "model": "pi05", "variant": args.variant, "dtype": args.dtype,
         "preset": args.preset or "BASELINE", "quant_report": quant_header, "inference": inference,
         "max_steps": max_steps, "executed_chunk": adapter.executed_chunk, "camera_size": args.camera_size,
-        "policy_load_s": round(load_s, 2), "first_chunk_s_by_batch": warmups, "runs": [],
+        "torch_threads": args.torch_threads,
+        "policy_load_s": round(load_s, 2), "first_chunk_s_by_batch": warmups, "gpu_memory_after_warmup": memory,
+        "runs": [],
         "machine": {
             "device": args.device, "gpu": gpu, "cpus": os.cpu_count(), "platform": platform.platform(),
             "versions": {**versions(), "transformers": transformers.__version__},
@@ -238,12 +356,28 @@ def main() -> None:
         with LiberoVectorEnv(suite, n, camera_size=args.camera_size) as env:
             build_first_tasks(env, specs)
             run = {"num_envs": n, "worker_startup_s": round(time.perf_counter() - began, 2)}
-            run["policy"] = measure(adapter, env, specs, max_steps, overlap=True)
+            run["simulator_bound"] = measure(zero_cost, env, specs, max_steps, overlap=True)
+            by_min_batch = {k: measure(adapter, env, specs, max_steps, overlap=True, min_batch=k) for k in args.min_batch}
+            run["policy"] = by_min_batch[args.min_batch[0]]
+            if len(by_min_batch) > 1:
+                run["policy_by_min_batch"] = {str(k): v for k, v in by_min_batch.items()}
+            if n in args.latency_model:
+                run["latency_model"] = measure(latency_model, env, specs, max_steps, overlap=True)
             if n in args.lockstep:
                 run["lockstep"] = measure(adapter, env, specs, max_steps, overlap=False)
-            run["simulator_bound"] = measure(zero_cost, env, specs, max_steps, overlap=True)
-        run["vs_simulator_bound"] = round(run["policy"]["episodes_per_hour"] /
-                                          run["simulator_bound"]["episodes_per_hour"], 3)
+            if n in args.bound_after:
+                run["simulator_bound_after"] = measure(zero_cost, env, specs, max_steps, overlap=True)
+            if args.renice is not None:
+                for pid in env.worker_pids:
+                    os.setpriority(os.PRIO_PROCESS, pid, args.renice)
+                run["policy_reniced"] = measure(adapter, env, specs, max_steps, overlap=True, min_batch=args.min_batch[0])
+                run["policy_reniced"]["niceness"] = args.renice
+        bounds = [run[k]["episodes_per_hour"] for k in ("simulator_bound", "simulator_bound_after") if k in run]
+        bound = run["simulator_bound_episodes_per_hour"] = round(float(np.mean(bounds)), 1)
+        run["vs_simulator_bound"] = round(run["policy"]["episodes_per_hour"] / bound, 3)
+        for variant in [*run.get("policy_by_min_batch", {}).values(), run.get("policy_reniced"), run.get("latency_model")]:
+            if variant:
+                variant["vs_simulator_bound"] = round(variant["episodes_per_hour"] / bound, 3)
         if "lockstep" in run:
             run["overlap_vs_lockstep"] = round(run["policy"]["episodes_per_hour"] /
                                                run["lockstep"]["episodes_per_hour"], 3)
@@ -251,8 +385,16 @@ def main() -> None:
         print(f"num_envs={n}: policy {run['policy']['episodes_per_hour']} episodes/h "
               f"(batch {run['policy']['policy_call']['mean_items']}, {run['policy']['policy_call']['mean_ms']} ms/call, "
               f"GPU {run['policy'].get('policy_gpu', {}).get('mean_ms')} ms/call), "
-              f"simulator bound {run['simulator_bound']['episodes_per_hour']} -> {run['vs_simulator_bound']}"
+              f"simulator bound {bound} ({' and '.join(map(str, bounds))}) -> {run['vs_simulator_bound']}"
               + (f"; lockstep {run['lockstep']['episodes_per_hour']}" if "lockstep" in run else ""), flush=True)
+        for label, variant in [*((f"min_batch {k}", v) for k, v in run.get("policy_by_min_batch", {}).items()),
+                               *([("latency model", run["latency_model"])] if "latency_model" in run else []),
+                               *([("workers reniced", run["policy_reniced"])] if "policy_reniced" in run else []),
+                               ("simulator bound", run["simulator_bound"]),
+                               *([("simulator bound after", run["simulator_bound_after"])] if "simulator_bound_after" in run else [])]:
+            print(f"  {label}: {variant['episodes_per_hour']} episodes/h ({variant.get('vs_simulator_bound', 1.0)}), "
+                  f"busy cores {variant['busy_cores']}, main process {variant['main_process_cores']}, "
+                  f"calls {variant['policy_call']['calls']}, by padded size {variant['calls_by_padded_size']}", flush=True)
         best = max(result["runs"], key=lambda r: r["policy"]["episodes_per_hour"])
         result["best"] = {
             "num_envs": best["num_envs"], "episodes_per_hour": best["policy"]["episodes_per_hour"],
@@ -269,7 +411,7 @@ def main() -> None:
     for run in result["runs"]:
         policy = run["policy"]
         print(f"{run['num_envs']:>4}{policy['episodes']:>9}{policy['episodes_per_hour']:>9}"
-              f"{run['simulator_bound']['episodes_per_hour']:>12}{run['vs_simulator_bound']:>7}"
+              f"{run['simulator_bound_episodes_per_hour']:>12}{run['vs_simulator_bound']:>7}"
               f"{run.get('lockstep', {}).get('episodes_per_hour', '-'):>10}{policy['policy_call']['mean_items']:>7}"
               f"{policy['policy_call']['mean_ms']:>9}{policy['env_steps_per_s']:>9}")
     print(f"best: {result['best']}")
