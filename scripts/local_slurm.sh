@@ -86,6 +86,14 @@ stop() {
     pkill -x slurmctld 2>/dev/null || true
     # (two pgreps: pgrep matches nothing when its pattern is longer than a process name's 15 characters)
     for _ in $(seq 20); do pgrep -x slurmd >/dev/null || pgrep -x slurmctld >/dev/null || break; sleep 0.5; done
+    # Clients of the stopped cluster give up at once: scontrol would retry the controller once a second
+    # for MessageTimeout (10 s), and Snakemake's SLURM executor plugin runs `scontrol show config` at
+    # every Snakemake start, local runs included (`snakemake -n`: 11 s instead of 2 s). `start` rewrites
+    # the file; a slurm.conf that is not this script's is left alone.
+    if grep -qx 'ClusterName=vqb-local' /etc/slurm/slurm.conf 2>/dev/null; then
+        sed -i '/^MessageTimeout=/d' /etc/slurm/slurm.conf
+        echo "MessageTimeout=1" >> /etc/slurm/slurm.conf
+    fi
     echo "local_slurm: stopped"
 }
 

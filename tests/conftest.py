@@ -1,17 +1,9 @@
-"""Session fixtures shared by test modules (expensive built artefacts, built once per run), and the suite's order."""
+"""Session fixtures shared by test modules: expensive built artefacts, built once per run."""
 
 import pytest
 import yaml
 
 from paths import ROOT
-
-
-def pytest_collection_modifyitems(items):
-    """The SLURM cluster test runs last. It installs Debian's slurm client and stops its cluster after
-    it, and from then on every Snakemake start waits ~9 s: the SLURM executor plugin runs `scontrol show
-    config` when Snakemake loads it, and scontrol retries the stopped controller for MessageTimeout
-    (10 s) before giving up (`snakemake -n` here: 11.2 s instead of 2.2 s). Stable: the rest keep their order."""
-    items.sort(key=lambda item: item.path.name == "test_slurm_cluster.py")
 
 
 @pytest.fixture(scope="session")
