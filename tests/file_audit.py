@@ -15,6 +15,7 @@ folder it writes in is its clean-up. Listing any other folder is never declared.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -43,7 +44,10 @@ def _real(path: str | Path) -> Path:
 
 
 def _within(path: Path, folders: list[Path]) -> bool:
-    return any(path == folder or folder in path.parents for folder in folders)
+    # By string prefix (both sides resolved): `folder in path.parents` builds a Path per level, and a
+    # job's audit holds ~10^4 events.
+    text = str(path)
+    return any(text == str(folder) or text.startswith(str(folder).rstrip(os.sep) + os.sep) for folder in folders)
 
 
 def job_audits(audit_dir: Path) -> list[dict]:
@@ -52,18 +56,19 @@ def job_audits(audit_dir: Path) -> list[dict]:
 
 def undeclared(audit_dir: Path, workdir: Path) -> dict[str, list[str]]:
     """`<rule>` -> sorted `<action> <path>` of every data file a job of the rule touched undeclared."""
-    data = [_real(workdir), _real(SHARED)]
-    skip = [_real(workdir / ".snakemake"), *(_real(top / name) for top in (ROOT, workdir) for name in CODE)]
+    real = functools.cache(_real)  # one realpath per distinct path: every job imports the same modules
+    data = [real(workdir), real(SHARED)]
+    skip = [real(workdir / ".snakemake"), *(real(top / name) for top in (ROOT, workdir) for name in CODE)]
     found: dict[str, set[str]] = {}
     for job in job_audits(audit_dir):
-        declared = {kind: {_real(p) for p in paths} for kind, paths in job["declared"].items()}
+        declared = {kind: {real(p) for p in paths} for kind, paths in job["declared"].items()}
         may_read = declared["input"] | declared["output"] | declared["log"] | declared["state"]
         may_write = declared["output"] | declared["log"] | declared["state"]
-        import_path = {_real(p) for p in job["import_path"]}  # Python's import system lists these
+        import_path = {real(p) for p in job["import_path"]}  # Python's import system lists these
         # atomic_write lists the folder of the file it writes, to remove a killed writer's temporary files
         write_folders = {path.parent for path in may_write}
-        for action, raw in job["events"]:
-            path = _real(raw)
+        for action, raw in {tuple(event) for event in job["events"]}:  # a repeated event: one verdict
+            path = real(raw)
             if not _within(path, data) or _within(path, skip):
                 continue
             if action == "list" and (path in import_path | write_folders or not path.is_dir()):
