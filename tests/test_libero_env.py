@@ -173,3 +173,24 @@ def test_a_chunk_renders_only_its_last_steps_and_observes_as_stepping_each_actio
         for key in ("agentview", "wrist", "state"):
             np.testing.assert_array_equal(observation[key], reference[key])
     assert len(renders) == 2 * RENDERED_TAIL * len(chunked)  # two cameras, the last steps of each chunk
+
+
+def test_a_hung_worker_is_stopped_and_named_instead_of_waited_on_forever(suite, episodes):
+    # SIGSTOP freezes a real worker as a render context that never comes up would: no reply, no exit.
+    with LiberoVectorEnv(suite, num_envs=1, camera_size=CAMERA, reply_timeout_s=3) as env:
+        first = env.worker_pids[0]
+        os.kill(first, signal.SIGSTOP)
+        with pytest.raises(LiberoWorkerError, match=r"slot 0 failed to load:\nno reply within 3 s: the worker hung"):
+            env.preload([0])
+        assert not os.path.exists(f"/proc/{first}")  # killed and reaped, not left stopped
+        # The slot's next episode gets a new worker; a hang there is named with the episode (collect path).
+        env.submit_reset(0, episodes[1])
+        second = env.worker_pids[0]
+        assert second != first
+        os.kill(second, signal.SIGSTOP)
+        with pytest.raises(LiberoWorkerError, match=r"slot 0 failed to reset libero_spatial task 0 .* episode 1 .*\n"
+                                                    r"no reply within 3 s"):
+            env.collect()
+        assert env.live == [False] and env.pending == []
+    with pytest.raises(UserError, match="reply_timeout_s must be a positive number of seconds, got 0"):
+        LiberoVectorEnv(suite, num_envs=1, reply_timeout_s=0)

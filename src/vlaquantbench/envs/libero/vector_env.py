@@ -20,6 +20,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -44,6 +45,10 @@ CAMERA_SIZE = 256  # the render size of lerobot's and openpi's LIBERO evaluation
 # worker switching the controller to `use_delta=False` after the settle steps, as X-VLA's client does.
 CONTROL_MODES = ("delta", "absolute")
 _SHUTDOWN_TIMEOUT_S = 10
+# A request (worker start-up, env build, reset, chunk) that gets no reply for this long is a hung worker
+# (e.g. a render context that never comes up when the GPU is out of memory), reported instead of waited
+# on forever. Generous: env builds took minutes on a 2-core machine at load 15.
+REPLY_TIMEOUT_S = 1800.0
 _WORKER_MAIN = "import sys; from vlaquantbench.envs.libero.worker import main; main(sys.argv[1:])"
 
 
@@ -112,6 +117,7 @@ class LiberoVectorEnv:
         control_mode: str = "delta",
         mujoco: str | None = None,  # None: the active software environment's pin
         allow_mujoco_mismatch: bool = False,
+        reply_timeout_s: float = REPLY_TIMEOUT_S,
     ):
         if num_envs < 1:
             raise UserError(f"num_envs must be at least 1, got {num_envs}")
@@ -121,11 +127,14 @@ class LiberoVectorEnv:
             raise UserError(f"settle_steps must not be negative, got {settle_steps}")
         if control_mode not in CONTROL_MODES:
             raise UserError(f"control_mode must be one of {', '.join(CONTROL_MODES)}, got {control_mode!r}")
+        if not reply_timeout_s > 0:
+            raise UserError(f"reply_timeout_s must be a positive number of seconds, got {reply_timeout_s}")
         self.suite = suite if isinstance(suite, LiberoSuite) else LiberoSuite(suite)
         self.versions = simulator_versions(allow_mujoco_mismatch, pinned=mujoco)
         self.camera_size = camera_size
         self.settle_steps = settle_steps
         self.control_mode = control_mode
+        self.reply_timeout_s = reply_timeout_s
         config_dir()  # the workers inherit LIBERO_CONFIG_PATH and MUJOCO_GL
         self._slots: list[_Slot] = []
         self._finalizer = weakref.finalize(self, _close_slots, self._slots)
@@ -242,9 +251,12 @@ class LiberoVectorEnv:
         waiting = {self._slots[i].conn: i for i in self.pending}
         if not waiting:
             raise RuntimeError("collect() with no submitted request pending")
-        arrived = set()
+        arrived, deadline = set(), time.monotonic() + self.reply_timeout_s
         while waiting and not (arrived and not every):
-            for conn in wait(list(waiting)):
+            replied = wait(list(waiting), timeout=max(0.0, deadline - time.monotonic()))
+            if not replied:
+                self._fail_hung(sorted(waiting.values()))
+            for conn in replied:
                 arrived.add(waiting.pop(conn))
         commands = {i: self._slots[i].request for i in arrived}
         replies = []
@@ -339,6 +351,10 @@ class LiberoVectorEnv:
         """The replies of `slots` to their pending requests; LiberoWorkerError naming every failure."""
         failures: dict[int, tuple[str, str]] = {}
         results = {}
+        deadline = time.monotonic() + self.reply_timeout_s
+        hung = [i for i in slots if not self._slots[i].conn.poll(max(0.0, deadline - time.monotonic()))]
+        if hung:
+            self._fail_hung(hung)
         for i in slots:
             command, self._slots[i].request = self._slots[i].request, None
             try:
@@ -357,6 +373,19 @@ class LiberoVectorEnv:
                 "\n\n".join(self._describe(i, command, detail) for i, (command, detail) in failures.items())
             )
         return results
+
+    def _fail_hung(self, slots: Sequence[int]) -> None:
+        """Stop the workers of `slots`, which did not answer within `reply_timeout_s`, and raise
+        LiberoWorkerError naming each; a slot's next episode gets a new worker."""
+        details = []
+        for i in slots:
+            command, self._slots[i].request = self._slots[i].request, None
+            self._slots[i].live = False
+            self._slots[i].process.kill()
+            self._slots[i].process.wait()
+            details.append(self._describe(i, command, f"no reply within {self.reply_timeout_s:g} s: the worker "
+                                                      f"hung and was stopped (pid {self._slots[i].process.pid})"))
+        raise LiberoWorkerError("\n\n".join(details))
 
     def _exit_status(self, i: int) -> str:
         try:
