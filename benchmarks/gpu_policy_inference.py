@@ -84,7 +84,7 @@ def fused_kernel_check(device) -> dict:
                 ref = InputTransform(smooth=sm, clip=cl, act_bits=bits)(x)
                 got = fused_fake_quant(x, bits, sm, cl)
                 key = f"{rows}x{cols}_{str(dtype)[6:]}_a{bits}{'_smooth_clip' if sm is not None else ''}"
-                out[key] = (got == ref).float().mean().item()
+                out[key] = (got == ref).double().mean().item()
     return out
 
 
@@ -104,14 +104,59 @@ def fused_norm_quant_check(device) -> dict:
         x = (torch.randn(4, 50, 1024, generator=g) * torch.rand(4, 50, 1, generator=g) * 8).to(device, torch.bfloat16)
         modulation = (torch.randn(4, 3 * 1024, generator=g) * 0.5).to(device, torch.bfloat16)
         bare = torch.compile(fake_quant_activation, dynamic=False, options=pi05_static._EAGER_NUMERICS)
-        out[f"quant_a{bits}"] = (bare(x, bits) == fake_quant_activation(x, bits)).float().mean().item()
+        out[f"quant_a{bits}"] = (bare(x, bits) == fake_quant_activation(x, bits)).double().mean().item()
         scale, shift = modulation[:, None, :1024], modulation[:, None, 1024:2048]
         fused = quantizing_op(pi05_static.ada_rms_norm, bits, pi05_static.inductor)(x, scale, shift, 1e-6)
         compiled_norm = pi05_static.COMPILED_OPS(pi05_static.ada_rms_norm, x, scale, shift, 1e-6)
-        out[f"ada_rms_norm_quant_a{bits}_vs_compiled_norm"] = (fused == fake_quant_activation(compiled_norm, bits)).float().mean().item()
+        out[f"ada_rms_norm_quant_a{bits}_vs_compiled_norm"] = (fused == fake_quant_activation(compiled_norm, bits)).double().mean().item()
         eager = fake_quant_activation(pi05_static.ada_rms_norm(x, scale, shift, 1e-6), bits)
-        out[f"ada_rms_norm_quant_a{bits}_vs_eager_norm"] = (fused == eager).float().mean().item()
+        out[f"ada_rms_norm_quant_a{bits}_vs_eager_norm"] = (fused == eager).double().mean().item()
+        # The VLM's GELU product (968 x 16,384 values; a hand-written kernel, `gelu_quant`) and the
+        # vision tower's float32 LayerNorm (rows reduced in one pass, `WHOLE_ROW_LIMIT`).
+        gate, up = ((torch.randn(968, 16384, generator=g) * 2).to(device, torch.bfloat16) for _ in range(2))
+        fused = quantizing_op(pi05_static.gelu_tanh_mul, bits, pi05_static.inductor)(gate, up)
+        compiled_op = pi05_static.COMPILED_OPS(pi05_static.gelu_tanh_mul, gate, up)
+        out[f"gelu_tanh_mul_quant_a{bits}_vs_compiled_op"] = (fused == fake_quant_activation(compiled_op, bits)).double().mean().item()
+        out[f"gelu_tanh_mul_quant_a{bits}_vs_eager_op"] = (
+            fused == fake_quant_activation(pi05_static.gelu_tanh_mul(gate, up), bits)).double().mean().item()
+        # The vision tower's float32 GELU (768 x 4,304): its hand-written kernel too (`gelu_quant`).
+        x32 = (torch.randn(768, 4304, generator=g) * 2).to(device)
+        fused = quantizing_op(pi05_static.gelu_tanh, bits, pi05_static.inductor)(x32)
+        out[f"gelu_tanh_quant_a{bits}_vs_eager_op"] = (
+            fused == fake_quant_activation(pi05_static.gelu_tanh(x32), bits)).double().mean().item()
+        h, upd = ((torch.randn(768, 1152, generator=g) * 3).to(device) for _ in range(2))
+        w, b = (torch.randn(1152, generator=g).to(device) for _ in range(2))
+        _, fused = quantizing_op(pi05_static.add_layer_norm, bits, pi05_static.inductor)(h, upd, w, b, 1e-6)
+        _, compiled_op = pi05_static.COMPILED_OPS(pi05_static.add_layer_norm, h, upd, w, b, 1e-6)
+        out[f"add_layer_norm_quant_a{bits}_vs_compiled_op"] = (fused == fake_quant_activation(compiled_op, bits)).double().mean().item()
     return out
+
+
+def whole_row_ab(model, sampler, inputs, batches, steps, repeats, rounds, options) -> dict:
+    """Captured chunk time with inductor's own reduction choice (`Inductor(whole_row_limit=0)`: rows
+    over 1,024 values reduced in two passes) against the default one-pass rows, alternating, same
+    process, same quantized model. Each variant's graphs are dropped after its turn (both variants'
+    graphs at batch 1, 8 and 32 do not fit beside each other in 140 GiB) and captured again on its
+    next turn, outside the timed calls."""
+    from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
+
+    samplers = {"inductor_choice": CapturedSampler(model, num_steps=steps, compiler=pi05_static.Inductor(0), **options),
+                "whole_rows": sampler}
+    times = {name: {b: [] for b in batches} for name in samplers}
+    for _ in range(rounds):
+        for name, s in samplers.items():
+            for other in samplers.values():
+                other.reset()
+            torch.cuda.empty_cache()
+            for b in batches:
+                s(*inputs[b])  # capture
+                times[name][b] += time_chunks(lambda: s(*inputs[b]), warmup=2, repeats=repeats)
+    for s in samplers.values():
+        s.reset()
+    torch.cuda.empty_cache()
+    ms = {name: {b: 1e3 * statistics.median(t) for b, t in by_b.items()} for name, by_b in times.items()}
+    return {"median_ms": ms, "whole_rows_vs_inductor_choice": {b: ms["whole_rows"][b] / ms["inductor_choice"][b] for b in batches},
+            "rounds": rounds, "repeats_per_round": repeats}
 
 
 def main() -> None:
@@ -121,6 +166,11 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=["BASELINE", "W4A8", "W4A4"])
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--eager-repeats-large", type=int, default=5, help="repeats for eager at batch >= 8")
+    parser.add_argument("--no-sweep", action="store_true",
+                        help="skip the kernel-choice sweep; use the sampler's defaults (the sweep's winner so far)")
+    parser.add_argument("--whole-row-ab", type=int, default=0, metavar="ROUNDS",
+                        help="per preset, captured time with inductor's own reduction choice against one-pass rows, "
+                             "alternating ROUNDS times")
     args = parser.parse_args()
 
     device = torch.device("cuda")
@@ -150,7 +200,7 @@ def main() -> None:
                (True, True, "cudnn"), (True, True, "folded")]
     sweep = {}
     b1 = chunk_inputs(1, device)
-    for tf32, fuse, prefix in choices:
+    for tf32, fuse, prefix in [] if args.no_sweep else choices:
         t0 = time.perf_counter()
         options = {"tf32": tf32, "fuse_elementwise": fuse, "prefix_sdpa": prefix != "folded",
                    "attention_backends": backend_sets.get(prefix, backend_sets["efficient"])}
@@ -166,9 +216,12 @@ def main() -> None:
               flush=True)
         del sampler
     results["kernel_choice_sweep_b1_ms"] = {k: ms for k, (ms, _) in sweep.items()}
-    best = min((k for k in sweep if sweep[k][0] == sweep[k][0]), key=lambda k: sweep[k][0])
-    captured_options = sweep[best][1]
-    results["captured_kernel_choice"] = best
+    if sweep:
+        best = min((k for k in sweep if sweep[k][0] == sweep[k][0]), key=lambda k: sweep[k][0])
+        captured_options = sweep[best][1]
+        results["captured_kernel_choice"] = best
+    else:
+        captured_options, results["captured_kernel_choice"] = {}, "defaults (no sweep)"
     torch.cuda.empty_cache()
 
     for preset in args.presets:
@@ -229,6 +282,11 @@ def main() -> None:
                 results["profiles"][preset]["captured_form_without_graph"] = kernel_profile(
                     lambda: pi05_static.sample_actions(model, images, img_masks, tokens, masks, noise, sampler.times,
                                                        sampler.ops, sampler._groups, sampler.prefix_sdpa))
+        if args.whole_row_ab:
+            cell["whole_row_ab"] = whole_row_ab(model, sampler, inputs, args.batches, steps, args.repeats,
+                                                args.whole_row_ab, captured_options)
+            print(f"[{preset}] whole rows / inductor's choice:", cell["whole_row_ab"]["whole_rows_vs_inductor_choice"],
+                  flush=True)
         report.remove_hooks()
         results["cells"].append(cell)
         del sampler

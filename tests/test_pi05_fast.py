@@ -134,3 +134,64 @@ def test_float_format_members_share_one_product_and_their_hooks_result():
     got = group(group.input_from(torch.clone, (x,)))
     assert all(torch.allclose(a, b, rtol=1e-6, atol=1e-6) for a, b in zip(got, expected))
     assert [h.calls for h in hooks] == [2, 2, 2]
+
+
+def test_quantizing_gelu_runs_its_hand_written_kernel_only_where_it_applies():
+    """The GELU ops name a hand-written GELU + per-token quantization kernel (`gelu_quant`, CUDA;
+    checked bit for bit against the hooks on the GPU by benchmarks/gpu_policy_inference.py). Where it
+    does not apply -- a CPU tensor here -- the compiled composition runs, so the result is the
+    composition's: the op, then `quant.grid`."""
+    from vlaquantbench.models.pi05.fast import gelu_quant
+    from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
+    from vlaquantbench.quant.grid import fake_quant_activation
+    from vlaquantbench.quant.hooks import quantizing_op
+
+    g = torch.Generator().manual_seed(5)
+    gate_up = (torch.randn(3, 7, 2 * 96, generator=g) * 2).to(torch.bfloat16)
+    gate, up = gate_up.split(96, dim=-1)
+    assert not gelu_quant.supports(gate)
+    compiled = []
+
+    def compiler(fn):  # stands in for inductor on the CPU; records that the composition was compiled
+        compiled.append(fn.__name__)
+        return fn
+
+    got = quantizing_op(pi05_static.gelu_tanh_mul, 4, compiler)(gate, up)
+    assert compiled == ["gelu_tanh_mul_then_int4"]
+    assert torch.equal(got, fake_quant_activation(pi05_static.gelu_tanh_mul(gate, up), 4))
+    siglip = torch.randn(5, 4304, generator=g)
+    assert torch.equal(quantizing_op(pi05_static.gelu_tanh, 8, compiler)(siglip),
+                       fake_quant_activation(pi05_static.gelu_tanh(siglip), 8))
+    # The kernel reads the gate and up halves of the grouped gate/up product in place: rows with a
+    # stride, no copy (a copy of both halves per call cost the W4A4 chunk 8% at batch 32 on an H200).
+    rows = gelu_quant._rows(gate)
+    assert rows.shape == (21, 96) and rows.stride() == (192, 1) and rows.data_ptr() == gate.data_ptr()
+
+
+@pytest.mark.parametrize("kernel", ["gelu_quant", "fused_kernel"])
+def test_quantizing_triton_kernels_compile_for_hopper_with_ieee_division(kernel):
+    """No GPU here, but Triton's own compiler runs: each quantizing kernel compiles to PTX for an
+    H100/H200 (sm_90) and keeps the hooks' rounding -- IEEE division (`div.rn`) and round-half-even
+    (`cvt.rni`), not the approximate `/`."""
+    triton = pytest.importorskip("triton")
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    from vlaquantbench.models.pi05.fast import gelu_quant
+    from vlaquantbench.quant import fused_kernel
+
+    if kernel == "gelu_quant":
+        scalars = ("n_cols:i32", "gate_row_stride:i64", "up_row_stride:i64", "q_max:fp32", "inv_q_max:fp32",
+                   "scale_floor:fp32", "k_beta:fp32", "k_kappa:fp32")
+        fn, pointers, constexprs = gelu_quant._gelu_fake_quant_rows, ("gate_ptr", "up_ptr", "out_ptr"), {"HAS_UP": True, "BLOCK": 16384}
+    else:
+        scalars = ("n_cols:i32", "q_max:fp32", "inv_q_max:fp32", "scale_floor:fp32")
+        fn, pointers = fused_kernel._per_token_fake_quant, ("x_ptr", "y_ptr")
+        scalars += ("smooth_ptr:*fp32", "clip_ptr:*fp32")  # per-channel vectors, float32
+        constexprs = {"HAS_SMOOTH": True, "HAS_CLIP": True, "BLOCK": 2048}
+    signature = {name: "*bf16" for name in pointers} | dict(s.split(":") for s in scalars)
+    signature |= {name: "constexpr" for name in constexprs}
+    compiled = triton.compile(ASTSource(fn=fn, signature=signature, constexprs=constexprs),
+                              target=GPUTarget("cuda", 90, 32), options={"num_warps": 32})
+    ptx = compiled.asm["ptx"]
+    assert ".target sm_90" in ptx and "div.rn.f32" in ptx and "cvt.rni.f32.f32" in ptx

@@ -32,6 +32,16 @@ except ImportError:  # pragma: no cover - torch CPU wheels without Triton
 if triton is not None:
 
     @triton.jit
+    def fake_quant_row(x, q_max, inv_q_max, scale_floor):
+        """`quant.grid.fake_quant_sym` of one row of float32 values (padding lanes 0), in float32:
+        for Triton kernels that quantize the row they compute."""
+        absmax = tl.max(tl.abs(x), axis=0)
+        # torch divides a CUDA tensor by a Python scalar as a product with its float32 reciprocal.
+        scale = tl.maximum(absmax, scale_floor) * inv_q_max
+        q = libdevice.rint(tl.div_rn(x, scale))
+        return tl.minimum(tl.maximum(q, -q_max - 1.0), q_max) * scale
+
+    @triton.jit
     def _per_token_fake_quant(
         x_ptr, y_ptr, smooth_ptr, clip_ptr, n_cols, q_max, inv_q_max, scale_floor,
         HAS_SMOOTH: tl.constexpr, HAS_CLIP: tl.constexpr, BLOCK: tl.constexpr,
@@ -48,12 +58,8 @@ if triton is not None:
         if HAS_CLIP:
             c = tl.load(clip_ptr + cols, mask=inside, other=1.0)
             x = tl.maximum(tl.minimum(x, c), -c).to(dtype).to(tl.float32)
-        absmax = tl.max(tl.abs(x), axis=0)
-        # torch divides a CUDA tensor by a Python scalar as a product with its float32 reciprocal.
-        scale = tl.maximum(absmax, scale_floor) * inv_q_max
-        q = libdevice.rint(tl.div_rn(x, scale))
-        q = tl.minimum(tl.maximum(q, -q_max - 1.0), q_max)
-        tl.store(y_ptr + row * n_cols + cols, (q * scale).to(dtype), mask=inside)
+        y = fake_quant_row(x, q_max, inv_q_max, scale_floor)
+        tl.store(y_ptr + row * n_cols + cols, y.to(dtype), mask=inside)
 
 
 def fused_fake_quant(x: torch.Tensor, bits: int, smooth: torch.Tensor | None = None,

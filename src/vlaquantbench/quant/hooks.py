@@ -123,7 +123,12 @@ _LAST_FUSED = _LastFused()
 @functools.cache
 def quantizing_op(op: Callable, quantization: int | FloatFormat | None, compiler: Callable | None = None) -> Callable:
     """`op` followed by the quantization of its (last) output -- per-token with `quantization` bits,
-    or in a float format -- as one function (None: `op` alone), compiled once by `compiler` when given."""
+    or in a float format -- as one function (None: `op` alone), compiled once by `compiler` when given.
+
+    An op may name a hand-written kernel for itself followed by per-token quantization,
+    `op.per_token_kernel(*args, bits=)`, bit-identical to the composition, with
+    `op.per_token_kernel_supports(first_arg)`; where the compiled form is asked for and the kernel
+    supports the input, it runs instead of the compiled composition."""
     if quantization is None:
         return compiler(op) if compiler is not None else op
 
@@ -138,8 +143,17 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | None, compiler
     # A code object of its own per op and bit width: dynamo keeps its compilations (and their
     # recompile limit) per code object, and every `fn` closure would otherwise share one.
     name = f"{op.__name__}_then_" + (quantization.name if isinstance(quantization, FloatFormat) else f"int{quantization}")
-    return compiler(types.FunctionType(fn.__code__.replace(co_name=name, co_qualname=name), fn.__globals__, name,
-                                       None, fn.__closure__))
+    compiled = compiler(types.FunctionType(fn.__code__.replace(co_name=name, co_qualname=name), fn.__globals__, name,
+                                           None, fn.__closure__))
+    kernel = getattr(op, "per_token_kernel", None)
+    if kernel is None or isinstance(quantization, FloatFormat):
+        return compiled
+    supports = op.per_token_kernel_supports
+
+    def kernel_or_compiled(*args):
+        return kernel(*args, bits=quantization) if supports(args[0]) else compiled(*args)
+
+    return kernel_or_compiled
 
 
 def _quantized(x: torch.Tensor, quantization: int | FloatFormat) -> torch.Tensor:

@@ -38,7 +38,7 @@ use TF32 tensor cores, as lerobot's own `compile_model` path does (`set_float32_
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -66,7 +66,8 @@ class CapturedSampler:
 
     def __init__(self, model: nn.Module, num_steps: int, *, use_graphs: bool | None = None, tf32: bool = True,
                  attention_backends: Sequence = SDPA_ORDER, prefix_sdpa: bool = False,
-                 fuse_elementwise: bool | None = None, max_batch: int = MAX_GRAPH_BATCH):
+                 fuse_elementwise: bool | None = None, compiler: Callable = static_sampling.inductor,
+                 max_batch: int = MAX_GRAPH_BATCH):
         self.model = model
         self.max_batch = max_batch
         self.num_steps = num_steps
@@ -80,7 +81,7 @@ class CapturedSampler:
         # whole loop took over three minutes on an H100); the graph is then captured around the
         # compiled kernels as around eager ones.
         fuse = self.use_graphs if fuse_elementwise is None else fuse_elementwise
-        self.ops = static_sampling.COMPILED_OPS if fuse else static_sampling.EAGER_OPS
+        self.ops = static_sampling.Ops(compiler) if fuse else static_sampling.EAGER_OPS
         self._graphs: dict[tuple, dict[int, _Graph]] = {}  # input shapes past the batch -> batch -> graph
         self._groups: static_sampling.ModelGroups | None = None
 

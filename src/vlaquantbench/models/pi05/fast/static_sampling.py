@@ -22,7 +22,8 @@ Mirrors lerobot 0.6.1 `PI05Pytorch.sample_actions` (prefix pass that fills the K
 * each SigLIP and Gemma layer's linears run as `linear_groups` groups (q/k/v as one
   product, gate/up as one), and where a group's quantizers only quantize per token, each
   member's quantizer quantizes inside the op that produces the group's input (the norm, the
-  GELU, the head merge: `Ops.feed`, `ActivationQuantizer.fused`), so it fuses into that kernel.
+  GELU, the head merge: `Ops.feed`, `ActivationQuantizer.fused`), so it fuses into that kernel (the
+  GELUs carry a hand-written kernel for it, `gelu_quant`; inductor compiles the rest).
 
 Layers a group cannot fuse (calibrated or wrapped transforms, packed real-kernel layers) and the
 layers outside the groups (projector, action and time projections, AdaRMS modulations) are called
@@ -33,6 +34,7 @@ lerobot's own `sample_actions` on the demo model, with and without quantization.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -43,6 +45,7 @@ from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 from torch import nn
 from transformers.models.gemma.modeling_gemma import apply_rotary_pos_emb
 
+from vlaquantbench.models.pi05.fast import gelu_quant
 from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
 from vlaquantbench.quant.hooks import quantizing_op
 
@@ -113,6 +116,11 @@ def gelu_tanh_mul(gate: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     return F.gelu(gate, approximate="tanh") * up
 
 
+# With down_proj's per-token input quantization: one hand-written kernel (see `gelu_quant`).
+gelu_tanh_mul.per_token_kernel = gelu_quant.gelu_fake_quant
+gelu_tanh_mul.per_token_kernel_supports = gelu_quant.supports
+
+
 def layer_norm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, eps: float):
     """`nn.LayerNorm` (the vision tower's)."""
     return F.layer_norm(x, x.shape[-1:], weight, bias, eps)
@@ -127,6 +135,11 @@ def add_layer_norm(hidden, update, weight, bias, eps: float):
 def gelu_tanh(x: torch.Tensor) -> torch.Tensor:
     """SigLIP's MLP activation (`gelu_pytorch_tanh`)."""
     return F.gelu(x, approximate="tanh")
+
+
+# With fc2's per-token input quantization: one hand-written kernel (see `gelu_quant`).
+gelu_tanh.per_token_kernel = functools.partial(gelu_quant.gelu_fake_quant, up=None)
+gelu_tanh.per_token_kernel_supports = gelu_quant.supports
 
 
 def rotary_into_cache(query, key, value, cos, sin, cache_keys, cache_values, start: int):
@@ -156,14 +169,63 @@ def attention_probs(scores: torch.Tensor, scaling: float, bias: torch.Tensor, dt
 # (`division_rounding`; Triton's `/` is approximate), so a fused quantization rounds as the hook.
 _EAGER_NUMERICS = {"emulate_precision_casts": True, "eager_numerics.division_rounding": True}
 
+# Longest row (values along the last dimension) that a compiled op reduces in one pass over the row
+# held in registers: the Gemma MLP's 16,384 activations, which per-token quantization reduces to
+# their absmax. Inductor's own limit is 1,024: past it, it loops over the row once for the absmax
+# and again for the result, which on an H200 made the W4A4 GELU products 2.4x the plain ones.
+WHOLE_ROW_LIMIT = 16384
 
-def inductor(fn: Callable) -> Callable:
-    """One elementwise op (with the quantization of its output, if any) compiled on its own:
-    seconds per op and shape, not minutes like the whole loop."""
-    # One compilation per op, input shape (VLM or expert, batch size) and bit width: more than
-    # dynamo's default limit of 8, past which it would silently run the op uncompiled.
-    torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
-    return torch.compile(fn, dynamic=False, options=_EAGER_NUMERICS)
+
+def _whole_row_choices(limit: int):
+    """Inductor's heuristics (its documented `InductorChoices` extension point), except that an
+    inner reduction over at most `limit` values is a persistent (one-pass) reduction."""
+    from torch._inductor import config
+    from torch._inductor.choices import InductorChoices
+    from torch._inductor.runtime.hints import ReductionHint
+    from torch._inductor.virtualized import V
+
+    class WholeRowChoices(InductorChoices):
+        def should_use_persistent_reduction(self, features, cooperative_reduction: bool) -> bool:
+            if (config.triton.persistent_reductions and not cooperative_reduction
+                    and features.get_reduction_hint() == ReductionHint.INNER
+                    and V.graph.sizevars.statically_known_leq(features.reduction_numel, limit)):
+                return True
+            return super().should_use_persistent_reduction(features, cooperative_reduction)
+
+    return WholeRowChoices()
+
+
+@dataclass(frozen=True)
+class Inductor:
+    """Compiles one elementwise op (with the quantization of its output, if any) on its own:
+    seconds per op and shape, not minutes like the whole loop. Reductions along rows of at most
+    `whole_row_limit` values run in one pass (0: inductor's own choice)."""
+
+    whole_row_limit: int = WHOLE_ROW_LIMIT
+
+    def __call__(self, fn: Callable) -> Callable:
+        # One compilation per op, input shape (VLM or expert, batch size) and bit width: more than
+        # dynamo's default limit of 8, past which it would silently run the op uncompiled.
+        torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
+        if not self.whole_row_limit:
+            return torch.compile(fn, dynamic=False, options=_EAGER_NUMERICS)
+        from torch._inductor.virtualized import V
+
+        choices = _whole_row_choices(self.whole_row_limit)
+        # The limit is also a compile option, only so that inductor's on-disk cache keys the
+        # kernels by it (the handler itself is thread state, which the cache key does not see).
+        options = {**_EAGER_NUMERICS, "inductor_choices_class": functools.partial(_whole_row_choices, self.whole_row_limit)}
+        compiled = torch.compile(fn, dynamic=False, options=options)
+
+        @functools.wraps(fn)
+        def with_whole_rows(*args):
+            with V.set_choices_handler(choices):  # inductor compiles on the first call of a shape
+                return compiled(*args)
+
+        return with_whole_rows
+
+
+inductor = Inductor()
 
 
 @dataclass(frozen=True)
