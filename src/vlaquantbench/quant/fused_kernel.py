@@ -62,6 +62,13 @@ if triton is not None:
         tl.store(y_ptr + row * n_cols + cols, y.to(dtype), mask=inside)
 
 
+def fake_quant_row_args(bits: int) -> tuple[float, float, float]:
+    """`fake_quant_row`'s (q_max, inv_q_max, scale_floor) for a bit width: the float32 reciprocal
+    of q_max that torch multiplies by when it divides a CUDA tensor by the Python scalar."""
+    q_max = float(2 ** (bits - 1) - 1)
+    return q_max, float(np.float32(1.0) / np.float32(q_max)), SCALE_FLOOR
+
+
 def fused_fake_quant(x: torch.Tensor, bits: int, smooth: torch.Tensor | None = None,
                      clip: torch.Tensor | None = None) -> torch.Tensor:
     """`InputTransform(smooth, clip, bits)(x)` in one kernel (CUDA tensors only)."""
@@ -69,11 +76,10 @@ def fused_fake_quant(x: torch.Tensor, bits: int, smooth: torch.Tensor | None = N
     n_cols = x.shape[-1]
     y = torch.empty_like(x)
     block = triton.next_power_of_2(n_cols)
-    q_max = float(2 ** (bits - 1) - 1)
     smooth_arg = smooth.float().contiguous() if smooth is not None else x
     clip_arg = clip.float().contiguous() if clip is not None else x
     _per_token_fake_quant[(x.numel() // n_cols,)](
-        x, y, smooth_arg, clip_arg, n_cols, q_max, float(np.float32(1.0) / np.float32(q_max)), SCALE_FLOOR,
+        x, y, smooth_arg, clip_arg, n_cols, *fake_quant_row_args(bits),
         HAS_SMOOTH=smooth is not None, HAS_CLIP=clip is not None, BLOCK=block,
         num_warps=min(16, max(1, block // 512)),
     )

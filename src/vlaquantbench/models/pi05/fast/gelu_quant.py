@@ -24,8 +24,7 @@ import math
 import numpy as np
 import torch
 
-from vlaquantbench.quant.fused_kernel import triton
-from vlaquantbench.quant.grid import SCALE_FLOOR
+from vlaquantbench.quant.fused_kernel import fake_quant_row_args, triton
 
 # ATen's GeluCUDAKernelImpl (tanh): constexpr float kBeta = M_SQRT2 * M_2_SQRTPI * 0.5, kKappa = 0.044715.
 K_BETA = float(np.float32(math.sqrt(2.0) * (2.0 / math.sqrt(math.pi)) * 0.5))
@@ -89,10 +88,9 @@ def gelu_fake_quant(gate: torch.Tensor, up: torch.Tensor | None, bits: int, num_
     rows, n_cols = gate_rows.shape
     out = torch.empty(gate.shape, dtype=gate.dtype, device=gate.device)
     block = triton.next_power_of_2(n_cols)
-    q_max = float(2 ** (bits - 1) - 1)
     _gelu_fake_quant_rows[(rows,)](
-        gate_rows, up_rows, out, n_cols, gate_rows.stride(0), up_rows.stride(0), q_max,
-        float(np.float32(1.0) / np.float32(q_max)), SCALE_FLOOR, K_BETA, K_KAPPA,
+        gate_rows, up_rows, out, n_cols, gate_rows.stride(0), up_rows.stride(0), *fake_quant_row_args(bits),
+        K_BETA, K_KAPPA,
         HAS_UP=up is not None, BLOCK=block, num_warps=num_warps or _warps(block, rows, gate.device),
     )
     return out

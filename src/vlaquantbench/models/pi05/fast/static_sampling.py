@@ -176,6 +176,7 @@ _EAGER_NUMERICS = {"emulate_precision_casts": True, "eager_numerics.division_rou
 WHOLE_ROW_LIMIT = 16384
 
 
+@functools.cache  # one handler per limit, made once
 def _whole_row_choices(limit: int):
     """Inductor's heuristics (its documented `InductorChoices` extension point), except that an
     inner reduction over at most `limit` values is a persistent (one-pass) reduction."""
