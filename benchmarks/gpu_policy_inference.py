@@ -2,7 +2,8 @@
 W4A8 / W4A4 end-to-end fake quantization, measured side by side in one process.
 
 Model: lerobot 0.6.1 `PI05Pytorch` at full size, random weights, bf16 (lerobot keeps the SigLIP
-tower, projector and norms in float32), 3 cameras at 224 px, 200 prompt tokens, 10 flow steps.
+tower, projector and norms in float32), 3 cameras at 224 px (`--cameras 2`: LIBERO's two, as the
+released LIBERO checkpoint and every LIBERO cell has them), 200 prompt tokens, 10 flow steps.
 Quantization: `vlaquantbench.quant.quantize_` with scope e2e (all 456 selectable linears); the
 captured form swaps its hooks' transforms for the fused kernel (`quant.fused_kernel`).
 Timing: CUDA-synchronized wall clock per chunk, warm-up discarded, median of the repeats.
@@ -26,10 +27,10 @@ from vlaquantbench.models import get_model_spec
 from vlaquantbench.quant import QuantConfig, quantize_, select_layers
 
 
-def chunk_inputs(batch: int, device, seed: int = 0):
+def chunk_inputs(batch: int, device, seed: int = 0, cameras: int = 3):
     g = torch.Generator(device="cpu").manual_seed(seed)
-    images = [(torch.rand(batch, 3, 224, 224, generator=g) * 2 - 1).to(device) for _ in range(3)]
-    img_masks = [torch.ones(batch, dtype=torch.bool, device=device) for _ in range(3)]
+    images = [(torch.rand(batch, 3, 224, 224, generator=g) * 2 - 1).to(device) for _ in range(cameras)]
+    img_masks = [torch.ones(batch, dtype=torch.bool, device=device) for _ in range(cameras)]
     tokens = torch.randint(0, 257152, (batch, 200), generator=g).to(device)
     masks = torch.ones(batch, 200, dtype=torch.bool, device=device)
     noise = torch.randn(batch, 50, 32, generator=g).to(device)
@@ -132,16 +133,11 @@ def fused_norm_quant_check(device) -> dict:
     return out
 
 
-def whole_row_ab(model, sampler, inputs, batches, steps, repeats, rounds, options) -> dict:
-    """Captured chunk time with inductor's own reduction choice (`Inductor(whole_row_limit=0)`: rows
-    over 1,024 values reduced in two passes) against the default one-pass rows, alternating, same
-    process, same quantized model. Each variant's graphs are dropped after its turn (both variants'
-    graphs at batch 1, 8 and 32 do not fit beside each other in 140 GiB) and captured again on its
-    next turn, outside the timed calls."""
-    from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
-
-    samplers = {"inductor_choice": CapturedSampler(model, num_steps=steps, compiler=pi05_static.Inductor(0), **options),
-                "whole_rows": sampler}
+def alternate(samplers: dict, inputs, batches, repeats: int, rounds: int) -> dict[str, dict[int, float]]:
+    """Median captured chunk ms per sampler and batch, the samplers taking turns `rounds` times, so
+    that drift of the machine falls on all of them alike. Each sampler's graphs are dropped after its
+    turn (two forms' graphs at batch 1, 8 and 32 do not fit beside each other in 140 GiB) and
+    captured again on its next turn, outside the timed calls."""
     times = {name: {b: [] for b in batches} for name in samplers}
     for _ in range(rounds):
         for name, s in samplers.items():
@@ -154,9 +150,48 @@ def whole_row_ab(model, sampler, inputs, batches, steps, repeats, rounds, option
     for s in samplers.values():
         s.reset()
     torch.cuda.empty_cache()
-    ms = {name: {b: 1e3 * statistics.median(t) for b, t in by_b.items()} for name, by_b in times.items()}
+    return {name: {b: 1e3 * statistics.median(t) for b, t in by_b.items()} for name, by_b in times.items()}
+
+
+def whole_row_ab(model, sampler, inputs, batches, steps, repeats, rounds, options) -> dict:
+    """Captured chunk time with inductor's own reduction choice (`Inductor(whole_row_limit=0)`: rows
+    over 1,024 values reduced in two passes) against the default one-pass rows, same quantized model."""
+    from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
+
+    samplers = {"inductor_choice": CapturedSampler(model, num_steps=steps, compiler=pi05_static.Inductor(0), **options),
+                "whole_rows": sampler}
+    ms = alternate(samplers, inputs, batches, repeats, rounds)
     return {"median_ms": ms, "whole_rows_vs_inductor_choice": {b: ms["whole_rows"][b] / ms["inductor_choice"][b] for b in batches},
             "rounds": rounds, "repeats_per_round": repeats}
+
+
+def preset_ab(spec, device, presets, inputs, batches, steps, repeats, rounds) -> dict:
+    """Captured chunk time of one model per preset (built alike, quantized by `quantize_` with the
+    fused hooks, as the main loop does), taking turns: the overhead of each preset against the first
+    without the drift between one preset's timings and the next's (the main loop times them minutes
+    apart)."""
+    samplers, reports = {}, {}
+    for preset in presets:
+        model = spec.build(variant="full", device=device, seed=0).eval()
+        config = QuantConfig.from_preset(preset, scope="e2e")
+        reports[preset] = quantize_(model, config, config.select(model, spec.components))
+        fuse_activation_hooks(reports[preset])
+        samplers[preset] = CapturedSampler(model, num_steps=steps)
+    ms = alternate(samplers, inputs, batches, repeats, rounds)
+    first = presets[0]
+    return {"median_ms": ms, f"vs_{first}": {p: {b: ms[p][b] / ms[first][b] for b in batches} for p in presets[1:]},
+            "hooks": {p: len(r.result.hooks) for p, r in reports.items()},
+            "unfired_after_capture": {p: r.unfired() for p, r in reports.items()},
+            "rounds": rounds, "repeats_per_round": repeats}
+
+
+def machine() -> dict:
+    import lerobot
+    import transformers
+
+    return {"gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda,
+            "python": platform.python_version(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "lerobot": lerobot.__version__, "transformers": transformers.__version__}
 
 
 def main() -> None:
@@ -165,21 +200,35 @@ def main() -> None:
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 8, 32])
     parser.add_argument("--presets", nargs="+", default=["BASELINE", "W4A8", "W4A4"])
     parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--cameras", type=int, default=3, help="camera images per observation (LIBERO: 2)")
     parser.add_argument("--eager-repeats-large", type=int, default=5, help="repeats for eager at batch >= 8")
     parser.add_argument("--no-sweep", action="store_true",
                         help="skip the kernel-choice sweep; use the sampler's defaults (the sweep's winner so far)")
     parser.add_argument("--whole-row-ab", type=int, default=0, metavar="ROUNDS",
                         help="per preset, captured time with inductor's own reduction choice against one-pass rows, "
                              "alternating ROUNDS times")
+    parser.add_argument("--preset-ab", type=int, default=0, metavar="ROUNDS",
+                        help="only this: one captured model per preset, taking turns ROUNDS times (no eager timings, "
+                             "checks or profiles)")
     args = parser.parse_args()
 
     device = torch.device("cuda")
     spec = get_model_spec("pi05")
+    steps = 10
+    setup = {"model": "pi05 PI05Pytorch full, random weights, bf16 (vision fp32 as lerobot)",
+             "cameras": args.cameras, "image_px": 224, "prompt_tokens": 200, "flow_steps": steps,
+             "repeats": args.repeats, "warmup": 3}
+    if args.preset_ab:
+        inputs = {b: chunk_inputs(b, device, cameras=args.cameras) for b in args.batches}
+        ab = preset_ab(spec, device, args.presets, inputs, args.batches, steps, args.repeats, args.preset_ab)
+        with open(args.out, "w") as f:
+            json.dump({"preset_ab": ab, "machine": machine(), "setup": {**setup, "warmup": 2}}, f, indent=1)
+        print(json.dumps(ab, indent=1))
+        return
     t0 = time.perf_counter()
     model = spec.build(variant="full", device=device, seed=0).eval()
     build_s = time.perf_counter() - t0
-    steps = 10
-    inputs = {b: chunk_inputs(b, device) for b in args.batches}
+    inputs = {b: chunk_inputs(b, device, cameras=args.cameras) for b in args.batches}
     # Each cell rounds weights in place; keep the released ones to restore before the next cell.
     originals = {n: m.weight.detach().clone()
                  for n, m in select_layers(model, spec.components, "e2e", None, None).flat().items()}
@@ -199,7 +248,7 @@ def main() -> None:
     choices = [(False, False, "efficient"), (True, False, "efficient"), (True, True, "efficient"),
                (True, True, "cudnn"), (True, True, "folded")]
     sweep = {}
-    b1 = chunk_inputs(1, device)
+    b1 = chunk_inputs(1, device, cameras=args.cameras)
     for tf32, fuse, prefix in [] if args.no_sweep else choices:
         t0 = time.perf_counter()
         options = {"tf32": tf32, "fuse_elementwise": fuse, "prefix_sdpa": prefix != "folded",
@@ -304,18 +353,9 @@ def main() -> None:
                 "captured_overhead_vs_baseline": cell["captured"][b]["median_ms"] / base["BASELINE"]["captured"][b]["median_ms"],
             }
     results["ratios"] = ratios
-    results["machine"] = {
-        "gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda,
-        "python": platform.python_version(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    }
-    import lerobot
-    import transformers
-
-    results["machine"].update(lerobot=lerobot.__version__, transformers=transformers.__version__)
+    results["machine"] = machine()
     results["model_build_s"] = build_s
-    results["setup"] = {"model": "pi05 PI05Pytorch full, random weights, bf16 (vision fp32 as lerobot)",
-                        "cameras": 3, "image_px": 224, "prompt_tokens": 200, "flow_steps": steps,
-                        "repeats": args.repeats, "warmup": 3}
+    results["setup"] = setup
     with open(args.out, "w") as f:
         json.dump(results, f, indent=1)
     print(f"\n{'cell':<14}{'eager ms':>10}{'captured ms':>13}{'speedup':>9}{'eager/base':>11}{'capt/base':>10}{'chunks/s':>10}")

@@ -13,13 +13,17 @@ compiled MJCF (meshes and textures MuJoCo reads in C). It then writes xz tarball
     machine already has (`PRESENT`) and the two trees below;
   - `robosuite` and `libero` (hf-libero): all Python code and dist-info, and of their other files only
     those the suite opened or referenced (robosuite's robot meshes are 418 MB; the suite needs a few);
-  - `assets`: the LIBERO assets folder pruned to the files the suite opened or referenced.
+  - `assets`: the LIBERO assets folder pruned to the files the suite opened or referenced;
+  - `gl`: the vendor-neutral GL loaders the probe's renderer mapped (libglvnd's libEGL.so.1,
+    libOpenGL.so.0, libGLdispatch.so.0, ...): a GPU machine may ship only NVIDIA's vendor libraries
+    (libEGL_nvidia.so.0 and its glvnd vendor file) without the loaders that dispatch to them.
 Tarballs are split so that none exceeds the part limit and packed into `part1/`, `part2/`, ... folders
 of at most 58 MiB, each small enough to travel as one carried path of one device call.
 
-`unpack` extracts every part into `TARGET/site` (PYTHONPATH) and `TARGET/assets` (VQB_LIBERO_ASSETS),
-and writes `TARGET/env.sh` with the export lines. `check` (run with env.sh sourced) steps every task
-of the suite with rendering on and fails unless everything the simulator read came from TARGET.
+`unpack` extracts every part into `TARGET/site` (PYTHONPATH), `TARGET/assets` (VQB_LIBERO_ASSETS) and
+`TARGET/lib` (LD_LIBRARY_PATH), and writes `TARGET/env.sh` with the export lines. `check` (run with
+env.sh sourced) steps every task of the suite with rendering on and fails unless everything the
+simulator read came from TARGET.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import argparse
 import importlib.metadata
 import json
 import os
+import re
 import subprocess
 import sys
 import sysconfig
@@ -55,6 +60,9 @@ CARRY_ALWAYS = {"transformers", "tokenizers", "mujoco"}
 # Imported by lerobot/transformers only because they are installed: hidden during the probe (which
 # proves the stack runs without them), so they and their dependencies are not carried.
 OPTIONAL = ("datasets", "av", "opentelemetry")
+# libglvnd's dispatching front ends (not a vendor's implementation, which stays the machine's own).
+# /proc/self/maps names the files (libEGL.so.1.1.0); the soname keeps the major version (libEGL.so.1).
+GL_LOADERS = re.compile(r"(lib(?:EGL|OpenGL|GL|GLX|GLdispatch|GLESv2)\.so\.\d+)(?:\.\d+)*$")
 
 _PROBE = r"""
 import json, os, re, sys
@@ -85,7 +93,9 @@ from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 adapter = make_adapter(AdapterConfig(model="pi05", variant="demo"))
 adapter.load()
 modules = {name.split(".")[0]: m.__file__ for name, m in list(sys.modules.items()) if getattr(m, "__file__", None)}
-json.dump({"opened": sorted(opened), "referenced": sorted(referenced), "modules": modules}, open(sys.argv[3], "w"))
+mapped = sorted({line.split()[-1] for line in open("/proc/self/maps") if line.rstrip().endswith(".so") or ".so." in line})
+json.dump({"opened": sorted(opened), "referenced": sorted(referenced), "modules": modules, "mapped": mapped},
+          open(sys.argv[3], "w"))
 """
 
 
@@ -98,6 +108,11 @@ def probe(suite: str, camera_size: int) -> dict:
         out = Path(tmp) / "probe.json"
         subprocess.run([sys.executable, "-c", _PROBE, suite, str(camera_size), str(out), ",".join(OPTIONAL)], check=True)
         return json.loads(out.read_text())
+
+
+def gl_loaders(mapped: list[str]) -> dict[str, Path]:
+    """Soname -> file of the GL loaders among a process's mapped files."""
+    return {m.group(1): Path(p) for p in mapped if (m := GL_LOADERS.match(Path(p).name))}
 
 
 def _needed_dists(modules: dict[str, str]) -> dict[str, str]:
@@ -172,6 +187,11 @@ def pack(suite: str, out: Path, camera_size: int) -> list[Path]:
     ]
     if referenced_outside:
         raise SystemExit(f"MJCF files outside the packed trees: {referenced_outside[:5]}")
+    loaders = gl_loaders(found["mapped"])
+    if "libEGL.so.1" not in loaders:
+        raise SystemExit(f"the probe's renderer did not map libEGL.so.1 (MUJOCO_GL={os.environ.get('MUJOCO_GL')}; "
+                         "pack with MUJOCO_GL=egl)")
+    groups["gl"] = [(path.resolve(), f"lib/{soname}") for soname, path in sorted(loaders.items())]
 
     out.mkdir(parents=True, exist_ok=True)
     for old in out.glob("part*/*.tar.xz"):  # a previous pack
@@ -232,6 +252,7 @@ def unpack(source: Path, target: Path) -> Path:
     env.write_text(
         f"export PYTHONPATH={target / 'site'}${{PYTHONPATH:+:$PYTHONPATH}}\n"
         f"export VQB_LIBERO_ASSETS={target / 'assets'}\n"
+        f"export LD_LIBRARY_PATH={target / 'lib'}${{LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}}\n"
         "export MUJOCO_GL=egl\n"
     )
     print(env.read_text(), end="")
