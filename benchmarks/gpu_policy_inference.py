@@ -113,7 +113,7 @@ def fused_norm_quant_check(device) -> dict:
         eager = fake_quant_activation(pi05_static.ada_rms_norm(x, scale, shift, 1e-6), bits)
         out[f"ada_rms_norm_quant_a{bits}_vs_eager_norm"] = (fused == eager).double().mean().item()
         # The VLM's GELU product (968 x 16,384 values; a hand-written kernel, `gelu_quant`) and the
-        # vision tower's float32 LayerNorm (rows reduced in one pass, `WHOLE_ROW_LIMIT`).
+        # vision tower's float32 LayerNorm (compiled alone, then `quant.fused_kernel`'s quantization).
         gate, up = ((torch.randn(968, 16384, generator=g) * 2).to(device, torch.bfloat16) for _ in range(2))
         fused = quantizing_op(pi05_static.gelu_tanh_mul, bits, pi05_static.inductor)(gate, up)
         compiled_op = pi05_static.COMPILED_OPS(pi05_static.gelu_tanh_mul, gate, up)

@@ -136,20 +136,21 @@ def test_float_format_members_share_one_product_and_their_hooks_result():
     assert [h.calls for h in hooks] == [2, 2, 2]
 
 
-def test_quantizing_gelu_runs_its_hand_written_kernel_only_where_it_applies():
+def test_quantizing_ops_run_their_hand_written_kernels_only_where_they_apply():
     """The GELU ops name a hand-written GELU + per-token quantization kernel (`gelu_quant`, CUDA;
     checked bit for bit against the hooks on the GPU by benchmarks/gpu_policy_inference.py). Where it
     does not apply -- a CPU tensor here -- the compiled composition runs, so the result is the
     composition's: the op, then `quant.grid`."""
     from vlaquantbench.models.pi05.fast import gelu_quant
     from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
+    from vlaquantbench.quant import fused_kernel
     from vlaquantbench.quant.grid import fake_quant_activation
     from vlaquantbench.quant.hooks import quantizing_op
 
     g = torch.Generator().manual_seed(5)
     gate_up = (torch.randn(3, 7, 2 * 96, generator=g) * 2).to(torch.bfloat16)
     gate, up = gate_up.split(96, dim=-1)
-    assert not gelu_quant.supports(gate)
+    assert not fused_kernel.supports(gate)
     compiled = []
 
     def compiler(fn):  # stands in for inductor on the CPU; records that the composition was compiled
@@ -166,13 +167,23 @@ def test_quantizing_gelu_runs_its_hand_written_kernel_only_where_it_applies():
     # stride, no copy (a copy of both halves per call cost the W4A4 chunk 8% at batch 32 on an H200).
     rows = gelu_quant._rows(gate)
     assert rows.shape == (21, 96) and rows.stride() == (192, 1) and rows.data_ptr() == gate.data_ptr()
+    # The vision tower's LayerNorms name a kernel for their output's quantization alone: the op is
+    # compiled twice, with its quantization (run here) and by itself (on CUDA, then the kernel).
+    compiled.clear()
+    hidden, update = (torch.randn(2, 5, 1152, generator=g) * 3 for _ in range(2))
+    weight, bias = torch.randn(1152, generator=g), torch.randn(1152, generator=g)
+    _, normed = quantizing_op(pi05_static.add_layer_norm, 4, compiler)(hidden, update, weight, bias, 1e-6)
+    assert compiled == ["add_layer_norm_then_int4", "add_layer_norm"]
+    _, reference = pi05_static.add_layer_norm(hidden, update, weight, bias, 1e-6)
+    assert torch.equal(normed, fake_quant_activation(reference, 4))
 
 
-@pytest.mark.parametrize("kernel", ["gelu_quant", "fused_kernel"])
-def test_quantizing_triton_kernels_compile_for_hopper_with_ieee_division(kernel):
+@pytest.mark.parametrize("kernel", ["gelu_quant_rows", "gelu_quant_row_chunks", "fused_kernel"])
+def test_quantizing_triton_kernels_compile_for_hopper_with_ieee_quotients(kernel):
     """No GPU here, but Triton's own compiler runs: each quantizing kernel compiles to PTX for an
-    H100/H200 (sm_90) and keeps the hooks' rounding -- IEEE division (`div.rn`) and round-half-even
-    (`cvt.rni`), not the approximate `/`."""
+    H100/H200 (sm_90) and keeps the hooks' rounding -- the IEEE quotient (a correctly rounded
+    reciprocal `div.rn` per row and the fused multiply-adds `fma.rn` of its exact correction, see
+    the next test) and round-half-even (`cvt.rni`), not the approximate `/`."""
     triton = pytest.importorskip("triton")
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
@@ -180,10 +191,16 @@ def test_quantizing_triton_kernels_compile_for_hopper_with_ieee_division(kernel)
     from vlaquantbench.models.pi05.fast import gelu_quant
     from vlaquantbench.quant import fused_kernel
 
-    if kernel == "gelu_quant":
+    warps = 32
+    if kernel.startswith("gelu_quant"):
         scalars = ("n_cols:i32", "gate_row_stride:i64", "up_row_stride:i64", "q_max:fp32", "inv_q_max:fp32",
                    "scale_floor:fp32", "k_beta:fp32", "k_kappa:fp32")
-        fn, pointers, constexprs = gelu_quant._gelu_fake_quant_rows, ("gate_ptr", "up_ptr", "out_ptr"), {"HAS_UP": True, "BLOCK": 16384}
+        pointers = ("gate_ptr", "up_ptr", "out_ptr")
+        if kernel == "gelu_quant_rows":
+            fn, constexprs = gelu_quant._gelu_fake_quant_rows, {"HAS_UP": True, "BLOCK": 16384}
+        else:
+            fn, constexprs = gelu_quant._gelu_fake_quant_row_chunks, {"HAS_UP": True, "CHUNK": gelu_quant.CHUNK}
+            warps = gelu_quant.CHUNK_WARPS
     else:
         scalars = ("n_cols:i32", "q_max:fp32", "inv_q_max:fp32", "scale_floor:fp32")
         fn, pointers = fused_kernel._per_token_fake_quant, ("x_ptr", "y_ptr")
@@ -192,6 +209,6 @@ def test_quantizing_triton_kernels_compile_for_hopper_with_ieee_division(kernel)
     signature = {name: "*bf16" for name in pointers} | dict(s.split(":") for s in scalars)
     signature |= {name: "constexpr" for name in constexprs}
     compiled = triton.compile(ASTSource(fn=fn, signature=signature, constexprs=constexprs),
-                              target=GPUTarget("cuda", 90, 32), options={"num_warps": 32})
+                              target=GPUTarget("cuda", 90, 32), options={"num_warps": warps})
     ptx = compiled.asm["ptx"]
-    assert ".target sm_90" in ptx and "div.rn.f32" in ptx and "cvt.rni.f32.f32" in ptx
+    assert ".target sm_90" in ptx and "div.rn.f32" in ptx and "fma.rn.f32" in ptx and "cvt.rni.f32.f32" in ptx

@@ -126,7 +126,9 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | None, compiler
     or in a float format -- as one function (None: `op` alone), compiled once by `compiler` when given.
 
     An op may name a hand-written kernel for itself followed by per-token quantization,
-    `op.per_token_kernel(*args, bits=)`, bit-identical to the composition, with
+    `op.per_token_kernel(*args, bits=)`, bit-identical to the composition, or one for the
+    quantization of its (last) output alone, `op.per_token_quantizer(x, bits)`, run after the op
+    compiled by itself (for ops whose compiled composition is slower than the two), with
     `op.per_token_kernel_supports(first_arg)`; where the compiled form is asked for and the kernel
     supports the input, it runs instead of the compiled composition."""
     if quantization is None:
@@ -145,10 +147,16 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | None, compiler
     name = f"{op.__name__}_then_" + (quantization.name if isinstance(quantization, FloatFormat) else f"int{quantization}")
     compiled = compiler(types.FunctionType(fn.__code__.replace(co_name=name, co_qualname=name), fn.__globals__, name,
                                            None, fn.__closure__))
-    kernel = getattr(op, "per_token_kernel", None)
-    if kernel is None or isinstance(quantization, FloatFormat):
+    supports = getattr(op, "per_token_kernel_supports", None)
+    if supports is None or isinstance(quantization, FloatFormat):
         return compiled
-    supports = op.per_token_kernel_supports
+    kernel = getattr(op, "per_token_kernel", None)
+    if kernel is None:
+        plain, quantizer = compiler(op), op.per_token_quantizer
+
+        def kernel(*args, bits):
+            out = plain(*args)
+            return (*out[:-1], quantizer(out[-1], bits)) if isinstance(out, tuple) else quantizer(out, bits)
 
     def kernel_or_compiled(*args):
         return kernel(*args, bits=quantization) if supports(args[0]) else compiled(*args)

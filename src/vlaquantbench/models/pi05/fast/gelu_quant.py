@@ -5,15 +5,16 @@ input per token, so the activation that produces it must also reduce each row to
 it can write anything. Inductor compiles that as a reduction whose row stays in registers (or, past
 1,024 values, loops over it twice); on an H200 the VLM's 968 x 16,384 GELU product then took
 69 us per call against 24 us unquantized, and the vision tower's 768 x 4,304 float32 GELU 20 us
-against 6 us. Here one program holds a row (16,384 values at most), computes the activation once,
-reduces, quantizes and writes it, with as many warps as the row needs.
+against 6 us. Here one program per row computes the activation once, reduces, quantizes and writes
+it: holding the row in registers (one read, one write) or, for many long rows, in chunks written
+out and read back from L2 (`_launch` chooses).
 
 The arithmetic is eager PyTorch's, operation by operation, so the result is bit-identical to the
 hook path (`F.gelu(gate, approximate="tanh") * up`, then `quant.grid.fake_quant_activation`):
 float32 opmath, `0.5 x (1 + tanh(k_beta (x + k_kappa x^3)))` with the CUDA kernel's constants and
 its one fused multiply-add, the activation rounded to the tensor's dtype before the product and the
-product rounded before it is quantized; the quantization is `quant.fused_kernel`'s (IEEE division,
-round-half-even, the scale floor). `benchmarks/gpu_policy_inference.py` checks the equality on the
+product rounded before it is quantized; the quantization is `quant.fused_kernel`'s (IEEE division's
+quotient, round-half-even, the scale floor). `benchmarks/gpu_policy_inference.py` checks the equality on the
 GPU (`checks.fused_norm_quant_equal_fraction`).
 """
 
@@ -35,16 +36,13 @@ if triton is not None:  # Triton ships with torch's CUDA wheels; without it the 
     import triton.language as tl
     from triton.language.extra import libdevice
 
-    from vlaquantbench.quant.fused_kernel import fake_quant_row
+    from vlaquantbench.quant.fused_kernel import fake_quant_row, fake_quant_scaled
 
     @triton.jit
-    def _gelu_fake_quant_rows(
-        gate_ptr, up_ptr, out_ptr, n_cols, gate_row_stride, up_row_stride, q_max, inv_q_max, scale_floor, k_beta,
-        k_kappa, HAS_UP: tl.constexpr, BLOCK: tl.constexpr,
-    ):
-        row = tl.program_id(0).to(tl.int64)
-        cols = tl.arange(0, BLOCK)
-        inside = cols < n_cols
+    def _gelu_product(gate_ptr, up_ptr, row, cols, inside, gate_row_stride, up_row_stride, k_beta, k_kappa,
+                      HAS_UP: tl.constexpr):
+        """`gelu(gate) * up` (`HAS_UP` False: the GELU alone) at some columns of one row, in the
+        tensors' dtype, rounded where eager rounds; padding lanes 0 (gelu(0) = 0)."""
         gate = tl.load(gate_ptr + row * gate_row_stride + cols, mask=inside, other=0.0)
         dtype = gate.dtype
         x = gate.to(tl.float32)
@@ -53,21 +51,67 @@ if triton is not None:  # Triton ships with torch's CUDA wheels; without it the 
         if HAS_UP:
             up = tl.load(up_ptr + row * up_row_stride + cols, mask=inside, other=0.0)
             act = (act.to(tl.float32) * up.to(tl.float32)).to(dtype)
-        quantized = fake_quant_row(act.to(tl.float32), q_max, inv_q_max, scale_floor)  # padding lanes: gelu(0) = 0
-        tl.store(out_ptr + row * n_cols + cols, quantized.to(dtype), mask=inside)
+        return act
+
+    @triton.jit
+    def _gelu_fake_quant_rows(
+        gate_ptr, up_ptr, out_ptr, n_cols, gate_row_stride, up_row_stride, q_max, inv_q_max, scale_floor, k_beta,
+        k_kappa, HAS_UP: tl.constexpr, BLOCK: tl.constexpr,
+    ):
+        """A row per program, held in registers: one read, one write."""
+        row = tl.program_id(0).to(tl.int64)
+        cols = tl.arange(0, BLOCK)
+        inside = cols < n_cols
+        act = _gelu_product(gate_ptr, up_ptr, row, cols, inside, gate_row_stride, up_row_stride, k_beta, k_kappa,
+                            HAS_UP)
+        quantized = fake_quant_row(act.to(tl.float32), q_max, inv_q_max, scale_floor)
+        tl.store(out_ptr + row * n_cols + cols, quantized.to(act.dtype), mask=inside)
+
+    @triton.jit
+    def _gelu_fake_quant_row_chunks(
+        gate_ptr, up_ptr, out_ptr, n_cols, gate_row_stride, up_row_stride, q_max, inv_q_max, scale_floor, k_beta,
+        k_kappa, HAS_UP: tl.constexpr, CHUNK: tl.constexpr,
+    ):
+        """A row per program, in chunks: the activation is written out while the absmax is taken,
+        then read back (from L2: a row is at most 64 KiB) and quantized in place. Small programs,
+        many per multiprocessor, so that one row's loads overlap another's arithmetic."""
+        row = tl.program_id(0).to(tl.int64)
+        absmax = tl.zeros((), dtype=tl.float32)
+        for start in range(0, n_cols, CHUNK):
+            cols = start + tl.arange(0, CHUNK)
+            inside = cols < n_cols
+            act = _gelu_product(gate_ptr, up_ptr, row, cols, inside, gate_row_stride, up_row_stride, k_beta,
+                                k_kappa, HAS_UP)
+            tl.store(out_ptr + row * n_cols + cols, act, mask=inside)
+            absmax = tl.maximum(absmax, tl.max(tl.abs(act.to(tl.float32)), axis=0))
+        tl.debug_barrier()  # every chunk written before any is read back
+        for start in range(0, n_cols, CHUNK):
+            cols = start + tl.arange(0, CHUNK)
+            inside = cols < n_cols
+            act = tl.load(out_ptr + row * n_cols + cols, mask=inside, other=0.0)
+            quantized = fake_quant_scaled(act.to(tl.float32), absmax, q_max, inv_q_max, scale_floor)
+            tl.store(out_ptr + row * n_cols + cols, quantized.to(act.dtype), mask=inside)
 
 
-def _warps(block: int, rows: int, device: torch.device) -> int:
-    """Warps per row (measured on an H200): as many as a row can use (32) while there are no more
-    rows than about two per multiprocessor, where a call's time is one row's latency (the action
-    expert's 50 rows at batch 1: 3.3 us with 32 warps, 4.9 with 8); otherwise 16 values per thread."""
-    if rows <= 2 * torch.cuda.get_device_properties(device).multi_processor_count:
-        return 32
-    return min(32, max(4, block // 512))
+# Chunked programs (`_gelu_fake_quant_row_chunks`): values per chunk, warps per program.
+CHUNK, CHUNK_WARPS = 2048, 8
+# Rows of at most this many values are held whole whatever their number (the action expert's 4,096).
+WHOLE_ROW_COLS = 4096
 
 
-def supports(x: torch.Tensor) -> bool:
-    return triton is not None and x.is_cuda and x.shape[-1] <= MAX_ROW
+def _launch(rows: int, n_cols: int, device: torch.device) -> tuple[int, int]:
+    """(chunk, warps), chunk 0 for a row held whole; measured on an H200 (`gpu_gelu_quant.py`).
+    While there are no more rows than about two per multiprocessor, a call's time is one row's
+    latency: the row is held whole with as many warps as it can use (32; the action expert's 50
+    rows at batch 1: 2.7 us, 4.9 with 8 warps). With more rows, rows up to `WHOLE_ROW_COLS` are still
+    held whole (16 values per thread); longer ones are chunked, so that a row of 16,384 does not
+    leave one 1,024-thread program per multiprocessor and the vision tower's 4,304 values are not
+    padded to 8,192 (712 x 16,384: 34 against 36 us; 512 x 4,304 float32: 8 against 9 us)."""
+    if rows <= 2 * torch.cuda.get_device_properties(device).multi_processor_count and n_cols <= MAX_ROW:
+        return 0, 32
+    if n_cols <= WHOLE_ROW_COLS:
+        return 0, max(4, triton.next_power_of_2(n_cols) // 512)
+    return CHUNK, CHUNK_WARPS
 
 
 def _rows(x: torch.Tensor) -> torch.Tensor:
@@ -77,20 +121,28 @@ def _rows(x: torch.Tensor) -> torch.Tensor:
     return rows if rows.stride(-1) == 1 else rows.contiguous()
 
 
-def gelu_fake_quant(gate: torch.Tensor, up: torch.Tensor | None, bits: int, num_warps: int | None = None) -> torch.Tensor:
+def gelu_fake_quant(gate: torch.Tensor, up: torch.Tensor | None, bits: int, *, chunk: int | None = None,
+                    num_warps: int | None = None) -> torch.Tensor:
     """`fake_quant_activation(F.gelu(gate, approximate="tanh") * up, bits)` (`up` None: the GELU
-    alone) in one kernel; CUDA tensors with rows of at most `MAX_ROW` values (`supports`). The
-    result is contiguous."""
+    alone) in one kernel on CUDA tensors (`quant.fused_kernel.supports`). The result is contiguous. `chunk` and
+    `num_warps` override `_launch`'s choice (chunk 0: each row held whole, at most `MAX_ROW` values)."""
     if up is not None and (up.shape != gate.shape or up.dtype != gate.dtype):
         raise ValueError(f"gate {tuple(gate.shape)} {gate.dtype} and up {tuple(up.shape)} {up.dtype} differ")
     gate_rows = _rows(gate)
     up_rows = gate_rows if up is None else _rows(up)
     rows, n_cols = gate_rows.shape
     out = torch.empty(gate.shape, dtype=gate.dtype, device=gate.device)
-    block = triton.next_power_of_2(n_cols)
-    _gelu_fake_quant_rows[(rows,)](
-        gate_rows, up_rows, out, n_cols, gate_rows.stride(0), up_rows.stride(0), *fake_quant_row_args(bits),
-        K_BETA, K_KAPPA,
-        HAS_UP=up is not None, BLOCK=block, num_warps=num_warps or _warps(block, rows, gate.device),
-    )
+    if chunk is None:
+        chunk, warps = _launch(rows, n_cols, gate.device)
+    else:
+        warps = CHUNK_WARPS if chunk else 32
+    if not chunk and n_cols > MAX_ROW:
+        raise ValueError(f"a row held whole has at most {MAX_ROW} values, not {n_cols}")
+    args = (gate_rows, up_rows, out, n_cols, gate_rows.stride(0), up_rows.stride(0), *fake_quant_row_args(bits),
+            K_BETA, K_KAPPA)
+    if chunk:
+        _gelu_fake_quant_row_chunks[(rows,)](*args, HAS_UP=up is not None, CHUNK=chunk, num_warps=num_warps or warps)
+    else:
+        _gelu_fake_quant_rows[(rows,)](*args, HAS_UP=up is not None, BLOCK=triton.next_power_of_2(n_cols),
+                                       num_warps=num_warps or warps)
     return out

@@ -23,7 +23,8 @@ Mirrors lerobot 0.6.1 `PI05Pytorch.sample_actions` (prefix pass that fills the K
   product, gate/up as one), and where a group's quantizers only quantize per token, each
   member's quantizer quantizes inside the op that produces the group's input (the norm, the
   GELU, the head merge: `Ops.feed`, `ActivationQuantizer.fused`), so it fuses into that kernel (the
-  GELUs carry a hand-written kernel for it, `gelu_quant`; inductor compiles the rest).
+  GELUs carry a hand-written kernel for it, `gelu_quant`; the vision tower's LayerNorms are followed
+  by `quant.fused_kernel`'s; inductor compiles the rest).
 
 Layers a group cannot fuse (calibrated or wrapped transforms, packed real-kernel layers) and the
 layers outside the groups (projector, action and time projections, AdaRMS modulations) are called
@@ -47,6 +48,7 @@ from transformers.models.gemma.modeling_gemma import apply_rotary_pos_emb
 
 from vlaquantbench.models.pi05.fast import gelu_quant
 from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
+from vlaquantbench.quant import fused_kernel
 from vlaquantbench.quant.hooks import quantizing_op
 
 
@@ -118,7 +120,7 @@ def gelu_tanh_mul(gate: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
 
 # With down_proj's per-token input quantization: one hand-written kernel (see `gelu_quant`).
 gelu_tanh_mul.per_token_kernel = gelu_quant.gelu_fake_quant
-gelu_tanh_mul.per_token_kernel_supports = gelu_quant.supports
+gelu_tanh_mul.per_token_kernel_supports = fused_kernel.supports
 
 
 def layer_norm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, eps: float):
@@ -132,6 +134,13 @@ def add_layer_norm(hidden, update, weight, bias, eps: float):
     return hidden, layer_norm(hidden, weight, bias, eps)
 
 
+# With q/k/v's or fc1's per-token input quantization: the LayerNorm compiled alone, then one Triton
+# kernel for the quantization (`quant.fused_kernel`). Compiled together, inductor split the absmax of
+# the vision tower's 512 rows of 1,152 (batch 1, two cameras) into two kernels and rounded in a third.
+layer_norm.per_token_quantizer = add_layer_norm.per_token_quantizer = fused_kernel.fused_fake_quant
+layer_norm.per_token_kernel_supports = add_layer_norm.per_token_kernel_supports = fused_kernel.supports
+
+
 def gelu_tanh(x: torch.Tensor) -> torch.Tensor:
     """SigLIP's MLP activation (`gelu_pytorch_tanh`)."""
     return F.gelu(x, approximate="tanh")
@@ -139,7 +148,7 @@ def gelu_tanh(x: torch.Tensor) -> torch.Tensor:
 
 # With fc2's per-token input quantization: one hand-written kernel (see `gelu_quant`).
 gelu_tanh.per_token_kernel = functools.partial(gelu_quant.gelu_fake_quant, up=None)
-gelu_tanh.per_token_kernel_supports = gelu_quant.supports
+gelu_tanh.per_token_kernel_supports = fused_kernel.supports
 
 
 def rotary_into_cache(query, key, value, cos, sin, cache_keys, cache_values, start: int):
