@@ -165,17 +165,33 @@ def whole_row_ab(model, sampler, inputs, batches, steps, repeats, rounds, option
             "rounds": rounds, "repeats_per_round": repeats}
 
 
+def quantized_model(spec, device, preset: str):
+    """A full-size model built as every cell of this script builds it, quantized by `quantize_`
+    (scope e2e) with the fused hooks: (model, report)."""
+    model = spec.build(variant="full", device=device, seed=0).eval()
+    config = QuantConfig.from_preset(preset, scope="e2e")
+    report = quantize_(model, config, config.select(model, spec.components))
+    fuse_activation_hooks(report)
+    return model, report
+
+
+def uncaptured_chunk(model, sampler: CapturedSampler, inputs):
+    """One chunk of the captured form's code without its graph (for kernel profiles): call it
+    inside `sampler._kernel_choices()`, after one captured call has compiled everything."""
+    from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
+
+    images, img_masks, tokens, masks, noise = inputs
+    return lambda: pi05_static.sample_actions(model, images, img_masks, tokens, masks, noise, sampler.times,
+                                              sampler.ops, sampler._groups, sampler.prefix_sdpa)
+
+
 def preset_ab(spec, device, presets, inputs, batches, steps, repeats, rounds) -> dict:
-    """Captured chunk time of one model per preset (built alike, quantized by `quantize_` with the
-    fused hooks, as the main loop does), taking turns: the overhead of each preset against the first
-    without the drift between one preset's timings and the next's (the main loop times them minutes
-    apart)."""
+    """Captured chunk time of one model per preset (`quantized_model`, as the main loop quantizes),
+    taking turns: the overhead of each preset against the first without the drift between one
+    preset's timings and the next's (the main loop times them minutes apart)."""
     samplers, reports = {}, {}
     for preset in presets:
-        model = spec.build(variant="full", device=device, seed=0).eval()
-        config = QuantConfig.from_preset(preset, scope="e2e")
-        reports[preset] = quantize_(model, config, config.select(model, spec.components))
-        fuse_activation_hooks(reports[preset])
+        model, reports[preset] = quantized_model(spec, device, preset)
         samplers[preset] = CapturedSampler(model, num_steps=steps)
     ms = alternate(samplers, inputs, batches, repeats, rounds)
     first = presets[0]
@@ -325,12 +341,9 @@ def main() -> None:
             rel = ((captured.float() - eager.float()).norm() / eager.float().norm()).item()
             cell["captured_vs_eager_rel_l2_b1"] = rel
             print(f"[{preset}] captured vs eager actions, relative L2: {rel:.2e}", flush=True)
-            from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
-
             with sampler._kernel_choices():
                 results["profiles"][preset]["captured_form_without_graph"] = kernel_profile(
-                    lambda: pi05_static.sample_actions(model, images, img_masks, tokens, masks, noise, sampler.times,
-                                                       sampler.ops, sampler._groups, sampler.prefix_sdpa))
+                    uncaptured_chunk(model, sampler, inputs[b_check]))
         if args.whole_row_ab:
             cell["whole_row_ab"] = whole_row_ab(model, sampler, inputs, args.batches, steps, args.repeats,
                                                 args.whole_row_ab, captured_options)
