@@ -18,6 +18,7 @@ import json
 import platform
 import statistics
 import time
+from pathlib import Path
 
 import torch
 
@@ -201,6 +202,14 @@ def preset_ab(spec, device, presets, inputs, batches, steps, repeats, rounds) ->
             "rounds": rounds, "repeats_per_round": repeats}
 
 
+def inductor_cache_files() -> int:
+    """Files in inductor's on-disk cache: 0 on a fresh machine, where the first captures compile
+    every op (the warm-up times depend on it)."""
+    from torch._inductor.runtime.cache_dir_utils import cache_dir
+
+    return sum(1 for path in Path(cache_dir()).rglob("*") if path.is_file())
+
+
 def machine() -> dict:
     import lerobot
     import transformers
@@ -241,6 +250,7 @@ def main() -> None:
             json.dump({"preset_ab": ab, "machine": machine(), "setup": {**setup, "warmup": 2}}, f, indent=1)
         print(json.dumps(ab, indent=1))
         return
+    cache_files_at_start = inductor_cache_files()
     t0 = time.perf_counter()
     model = spec.build(variant="full", device=device, seed=0).eval()
     build_s = time.perf_counter() - t0
@@ -368,6 +378,7 @@ def main() -> None:
     results["ratios"] = ratios
     results["machine"] = machine()
     results["model_build_s"] = build_s
+    results["inductor_cache_files_at_start"] = cache_files_at_start
     results["setup"] = setup
     with open(args.out, "w") as f:
         json.dump(results, f, indent=1)

@@ -87,6 +87,8 @@ def main() -> None:
                               "note": "captures of batch 1, 8 and 32 in one cell, each compiling the fused "
                                       "elementwise/quantization ops for a bit width or batch size new to the "
                                       "process (0.5 s per batch size once compiled); a runner cell captures one",
+                              # None: a run from before the script recorded it
+                              "inductor_cache_files_at_start": policy.get("inductor_cache_files_at_start"),
                               "goal": "<= 60", "machine": policy_machine},
         **{f"fakequant_w4a4_e2e_overhead_b{b}": {
             "value": ab[2]["preset_ab"]["vs_BASELINE"]["W4A4"][str(b)], "cameras": 2,
