@@ -33,12 +33,11 @@ import statistics
 import time
 
 import torch
-from gpu_policy_inference import chunk_inputs
+from gpu_policy_inference import chunk_inputs, released_weights, requantize
 
 from vlaquantbench.models import get_model_spec
 from vlaquantbench.models.adapter import PROBE_BOUNDS
 from vlaquantbench.models.pi05.fast import CapturedSampler
-from vlaquantbench.quant import QuantConfig, quantize_, select_layers
 from vlaquantbench.quant.fused_kernel import fuse_activation_hooks
 
 EQUAL_SPEED = 1.05  # compiled may be this much slower than captured and still count as "equal speed"
@@ -98,18 +97,14 @@ def main() -> None:
     model = spec.build(variant="full" if device.type == "cuda" else "demo", device=device, seed=0).eval()
     torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     inputs = {b: chunk_inputs(b, device) for b in args.batches}
-    originals = {n: m.weight.detach().clone() for n, m in select_layers(model, spec.components, "e2e").flat().items()}
+    originals = released_weights(model, spec)
     metric, bound = PROBE_BOUNDS[device.type]
     results = {"device": torch.cuda.get_device_name() if device.type == "cuda" else platform.processor() or "cpu",
                "torch": torch.__version__, "backend": args.backend, "flow_steps": args.flow_steps,
                "probe_bound": {metric: bound}, "cells": []}
 
     for preset in args.presets:
-        with torch.no_grad():
-            for name, weight in originals.items():
-                model.get_submodule(name).weight.copy_(weight)
-        config = QuantConfig.from_preset(preset, scope="e2e")
-        report = quantize_(model, config, config.select(model, spec.components))
+        report = requantize(model, spec, originals, preset)
         cell = {"preset": preset, "hooks": len(report.result.hooks), "batches": {}}
         compiled = compiled_sampler(model, args.flow_steps, args.backend)
         eager_chunks = {}

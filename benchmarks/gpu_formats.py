@@ -28,11 +28,10 @@ import statistics
 import time
 
 import torch
-from gpu_policy_inference import chunk_inputs, time_chunks
+from gpu_policy_inference import chunk_inputs, released_weights, requantize, time_chunks
 
 from vlaquantbench.models import get_model_spec
 from vlaquantbench.models.pi05.fast import CapturedSampler
-from vlaquantbench.quant import QuantConfig, quantize_, select_layers
 from vlaquantbench.quant.fused_kernel import fused_fake_quant, fuse_activation_hooks
 from vlaquantbench.quant.presets import FORMATS
 
@@ -100,8 +99,7 @@ def main() -> None:
     model = spec.build(variant="full", device=device, seed=0).eval()
     steps = 10
     inputs = {b: chunk_inputs(b, device) for b in args.batches}
-    originals = {n: m.weight.detach().clone()
-                 for n, m in select_layers(model, spec.components, "e2e", None, None).flat().items()}
+    originals = released_weights(model, spec)
     results = {"device": torch.cuda.get_device_name(device), "torch": torch.__version__,
                "python": platform.python_version(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                "block_scaled_real_kernels": block_scaled_probe(device),
@@ -109,11 +107,7 @@ def main() -> None:
     print("real block-scaled kernels:", results["block_scaled_real_kernels"], flush=True)
 
     for preset in args.presets:
-        with torch.no_grad():
-            for name, weight in originals.items():
-                model.get_submodule(name).weight.copy_(weight)
-        config = QuantConfig.from_preset(preset, scope="e2e")
-        report = quantize_(model, config, config.select(model, spec.components))
+        report = requantize(model, spec, originals, preset)
         fuse_activation_hooks(report)  # integer per-token transforms only; float formats fall back to theirs
         sampler = CapturedSampler(model, num_steps=steps)
         cell = {"format": report.result.format, "hooks": len(report.result.hooks), "captured_ms": {}}

@@ -166,12 +166,31 @@ def whole_row_ab(model, sampler, inputs, batches, steps, repeats, rounds, option
             "rounds": rounds, "repeats_per_round": repeats}
 
 
+def released_weights(model, spec) -> dict:
+    """Copies of the weights of every layer a preset may round in place (scope e2e)."""
+    return {n: m.weight.detach().clone() for n, m in select_layers(model, spec.components, "e2e", None, None).flat().items()}
+
+
+def requantize(model, spec, originals: dict, preset: str):
+    """The model's weights restored from `released_weights`, then quantized by `quantize_` (scope
+    e2e) for `preset`: one model serves preset after preset. Returns the report (its hooks installed;
+    remove them before the next preset)."""
+    with torch.no_grad():
+        for name, weight in originals.items():
+            model.get_submodule(name).weight.copy_(weight)
+    return _quantize(model, spec, preset)
+
+
+def _quantize(model, spec, preset: str):
+    config = QuantConfig.from_preset(preset, scope="e2e")
+    return quantize_(model, config, config.select(model, spec.components))
+
+
 def quantized_model(spec, device, preset: str):
     """A full-size model built as every cell of this script builds it, quantized by `quantize_`
     (scope e2e) with the fused hooks: (model, report)."""
     model = spec.build(variant="full", device=device, seed=0).eval()
-    config = QuantConfig.from_preset(preset, scope="e2e")
-    report = quantize_(model, config, config.select(model, spec.components))
+    report = _quantize(model, spec, preset)
     fuse_activation_hooks(report)
     return model, report
 
@@ -255,9 +274,7 @@ def main() -> None:
     model = spec.build(variant="full", device=device, seed=0).eval()
     build_s = time.perf_counter() - t0
     inputs = {b: chunk_inputs(b, device, cameras=args.cameras) for b in args.batches}
-    # Each cell rounds weights in place; keep the released ones to restore before the next cell.
-    originals = {n: m.weight.detach().clone()
-                 for n, m in select_layers(model, spec.components, "e2e", None, None).flat().items()}
+    originals = released_weights(model, spec)  # each cell rounds weights in place
     results = {"cells": [], "checks": {"fused_equal_fraction": fused_kernel_check(device)}, "profiles": {}}
     print("fused kernel == reference:", results["checks"]["fused_equal_fraction"], flush=True)
     results["checks"]["fused_norm_quant_equal_fraction"] = fused_norm_quant_check(device)
@@ -300,11 +317,7 @@ def main() -> None:
     torch.cuda.empty_cache()
 
     for preset in args.presets:
-        with torch.no_grad():
-            for name, weight in originals.items():
-                model.get_submodule(name).weight.copy_(weight)
-        config = QuantConfig.from_preset(preset, scope="e2e")
-        report = quantize_(model, config, config.select(model, spec.components))
+        report = requantize(model, spec, originals, preset)
         cell = {"preset": preset, "format": report.result.format, "hooks": len(report.result.hooks),
                 "layers": report.components, "eager": {}, "captured": {}}
 
