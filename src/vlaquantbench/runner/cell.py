@@ -32,7 +32,6 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.records import write_cell
 from vlaquantbench.records.cell import JOURNAL_FILE
-from vlaquantbench.runner.interrupt import raise_if_interrupted, sigint_recorded
 from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal, recorded_keys
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.quant.apply import hook_summary
@@ -223,8 +222,7 @@ class CellRun:
     def run(self) -> Path:
         """Run the missing episodes, check hook coverage, write the records; returns the episodes file."""
         try:
-            with sigint_recorded():
-                return self._run()
+            return self._run()
         finally:
             self.close_env()
 
@@ -245,7 +243,6 @@ class CellRun:
             journal.record(records, fired)
             bar.update(len(records))
             bar.set_postfix(successes=sum(e["success"] for e in journal.episodes))
-            raise_if_interrupted()  # a Ctrl-C that a finalizer swallowed stops the cell here
 
         if missing:
             if self._env is None:  # no `start_env`, or it found the journal complete
