@@ -9,9 +9,9 @@ patch rows per image x 4,304), at batch 1, 8 and 32 where they differ in kind. P
 of elements equal to `fake_quant_activation(F.gelu(gate, approximate="tanh") * up, bits)` computed
 eagerly (4 and 8 bits for the kernel's own launch choice, 4 bits for every other launch; must be
 1.0), then microseconds per call (median of 20 replays of a CUDA graph of 20 calls) of the
-unquantized op compiled by `static_sampling.inductor` (the floor), the kernel with each row held whole (warps as before the
-chunked form: 32 up to two rows per multiprocessor, else 16 values per thread), the chunked kernel
-at several chunk sizes and warps, and the kernel's own choice (`gelu_quant._launch`).
+unquantized op compiled by `static_sampling.inductor` (the floor), the kernel with each row held whole (32 warps
+up to two rows per multiprocessor, else 16 values per thread; 8 and 16 warps for rows of up to 4,096),
+the chunked kernel at several chunk sizes and warps, and the kernel's own choice (`gelu_quant._launch`).
 
     python benchmarks/gpu_gelu_quant.py --out benchmarks/results/gpu_gelu_quant.json
 """
@@ -82,6 +82,7 @@ def main() -> None:
         whole_warps = 32 if rows <= 2 * torch.cuda.get_device_properties(device).multi_processor_count else \
             min(32, max(4, triton.next_power_of_2(cols) // 512))
         launches = {"chosen": {}, f"whole_row_w{whole_warps}": {"chunk": 0, "num_warps": whole_warps}}
+        launches |= {f"whole_row_w{w}": {"chunk": 0, "num_warps": w} for w in (8, 16) if cols <= 4096}
         launches |= {f"chunk{c}_w{w}": {"chunk": c, "num_warps": w} for c, w in CHUNKED}
         for key, launch in launches.items():
             for bits in (4, 8) if key == "chosen" else (4,):

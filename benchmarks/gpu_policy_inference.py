@@ -90,6 +90,16 @@ def fused_kernel_check(device) -> dict:
     return out
 
 
+def binade_rows(device) -> torch.Tensor:
+    """128 bf16 rows, one per bf16 absmax in [1, 2): every bf16 value of magnitude up to that absmax
+    (the others zeroed), then the absmax itself."""
+    values = (torch.arange(2 ** 16, dtype=torch.int32) << 16).view(torch.float32)
+    values = values[values.isfinite() & (values.abs() <= 2)].sort().values
+    absmaxes = 1 + torch.arange(128) / 128
+    rows = torch.where(values.abs() <= absmaxes[:, None], values, 0.0)
+    return torch.cat([rows, absmaxes[:, None]], dim=1).to(device, torch.bfloat16)
+
+
 def fused_norm_quant_check(device) -> dict:
     """Fraction of elements where inductor's quantization fused into a norm (`models.pi05.fast.static_sampling`, the
     captured form's producers) equals `quant.grid` applied eagerly to the same input: the bare
@@ -107,6 +117,12 @@ def fused_norm_quant_check(device) -> dict:
         modulation = (torch.randn(4, 3 * 1024, generator=g) * 0.5).to(device, torch.bfloat16)
         bare = torch.compile(fake_quant_activation, dynamic=False, options=pi05_static._EAGER_NUMERICS)
         out[f"quant_a{bits}"] = (bare(x, bits) == fake_quant_activation(x, bits)).double().mean().item()
+        # The quantization as the captured form's compiled ops write it (x / scale as `fma_quotient`),
+        # on random rows and on every bf16 value up to each bf16 absmax of a binade (a row per absmax).
+        as_compiled = quantizing_op(torch.clone, bits, pi05_static.inductor)
+        for name, rows in (("random", x), ("binade", binade_rows(device))):
+            out[f"quant_a{bits}_inductor_quotient_{name}"] = (
+                as_compiled(rows) == fake_quant_activation(rows, bits)).double().mean().item()
         scale, shift = modulation[:, None, :1024], modulation[:, None, 1024:2048]
         fused = quantizing_op(pi05_static.ada_rms_norm, bits, pi05_static.inductor)(x, scale, shift, 1e-6)
         compiled_norm = pi05_static.COMPILED_OPS(pi05_static.ada_rms_norm, x, scale, shift, 1e-6)

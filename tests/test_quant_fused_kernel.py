@@ -83,3 +83,29 @@ def test_kernels_quotient_by_corrected_reciprocal_is_the_ieee_quotient():
         got, expected, uncorrected = (np.concatenate(v) for v in (got, expected, uncorrected))
         assert got.size > 700_000 and np.array_equal(got, expected)
         assert (uncorrected != expected).sum() > 10
+
+
+def test_inductor_compiles_the_corrected_reciprocal_quotient_to_the_ieee_quotient():
+    """The compiled norms and head merges quantize with `quant.grid.fma_quotient` (the quotient the
+    `Inductor` compiler names): inductor under `emulate_precision_casts` makes its `addcmul`s fused
+    multiply-adds (`std::fma` here on the CPU, `tl.fma` in Triton), and the quantized values equal
+    IEEE division's, the hooks', for every bf16 value up to the row's absmax and every bf16 absmax
+    in a binade, where the uncorrected product rounds some values to the other level. (Eager CUDA
+    rounds `addcmul`'s product before adding, so the form is for compiled code only.)"""
+    from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
+    from vlaquantbench.quant.grid import fake_quant_activation, fma_quotient
+    from vlaquantbench.quant.hooks import quantizing_op
+
+    assert pi05_static.inductor.quotient is fma_quotient
+    bf16 = (np.arange(2 ** 16, dtype=np.uint32) << 16).view(np.float32)
+    bf16 = np.sort(bf16[np.isfinite(bf16) & (np.abs(bf16) <= 2)])
+    rows = []
+    for significand in range(128):  # one row per absmax; values above it are zeroed (0 stays 0)
+        absmax = np.float32(1 + significand / 128)
+        rows.append(np.concatenate([np.where(np.abs(bf16) <= absmax, bf16, 0), [absmax]]))
+    x = torch.from_numpy(np.stack(rows).astype(np.float32)).to(torch.bfloat16)
+    for bits in (4, 8):
+        compiled = quantizing_op(torch.clone, bits, pi05_static.inductor)(x)
+        assert torch.equal(compiled, fake_quant_activation(x, bits))
+        uncorrected = fake_quant_activation(x, bits, lambda values, scale: values * torch.div(1.0, scale))
+        assert (uncorrected != compiled).sum() > 10

@@ -14,18 +14,34 @@ A "group" is a run of consecutive values along the last dimension that shares on
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 SCALE_FLOOR = 1e-8
 
 
-def fake_quant_sym(x: torch.Tensor, bits: int) -> torch.Tensor:
-    """Symmetric b-bit RTN with one scale per row of the last dimension."""
+def fake_quant_sym(x: torch.Tensor, bits: int,
+                   quotient: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = torch.div) -> torch.Tensor:
+    """Symmetric b-bit RTN with one scale per row of the last dimension. `quotient(x, scale)` is
+    x / scale; `fma_quotient` is the same value for code compiled by inductor."""
     xf = x.float()
     q_max = 2 ** (bits - 1) - 1
     scale = xf.abs().amax(dim=-1, keepdim=True).clamp_min(SCALE_FLOOR) / q_max
-    q = torch.clamp(torch.round(xf / scale), -(q_max + 1), q_max)
+    q = torch.clamp(torch.round(quotient(xf, scale)), -(q_max + 1), q_max)
     return (q * scale).to(x.dtype)
+
+
+def fma_quotient(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """x / scale rounded as IEEE division rounds it, with one division per row instead of one per
+    value: the product with the row's correctly rounded reciprocal y, corrected once by its exact
+    residual, RN(q + RN(x - scale q) y) (Markstein; `quant.fused_kernel.fake_quant_scaled` is the
+    same in Triton). Exact only where `addcmul` with value 1 is a fused multiply-add, as inductor
+    compiles it under `emulate_precision_casts` (Triton's `tl.fma`, C++'s `std::fma`); eager CUDA
+    rounds its product before adding, so this is for compiled code only."""
+    inverse = torch.div(1.0, scale)  # a row's scale is [..., 1]: one division per row
+    estimate = x * inverse
+    return torch.addcmul(estimate, torch.addcmul(x, -estimate, scale), inverse)
 
 
 def fake_quant_asym(x: torch.Tensor, bits: int) -> torch.Tensor:
@@ -55,7 +71,8 @@ def fake_quant_weight(weight: torch.Tensor, bits: int, group_size: int | None, s
     return torch.cat(pieces, dim=-1)
 
 
-def fake_quant_activation(x: torch.Tensor, bits: int) -> torch.Tensor:
+def fake_quant_activation(x: torch.Tensor, bits: int,
+                          quotient: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = torch.div) -> torch.Tensor:
     """Dynamic symmetric per-token quantization: one absmax scale per vector along the last
-    dimension, all leading dimensions treated as tokens."""
-    return fake_quant_sym(x, bits)
+    dimension, all leading dimensions treated as tokens (`quotient` as in `fake_quant_sym`)."""
+    return fake_quant_sym(x, bits, quotient)

@@ -133,12 +133,14 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | None, compiler
     supports the input, it runs instead of the compiled composition."""
     if quantization is None:
         return compiler(op) if compiler is not None else op
+    # A compiler may name the form of x / scale its code computes exactly (`Inductor.quotient`).
+    quotient = getattr(compiler, "quotient", torch.div)
 
     def fn(*args):
         out = op(*args)
         if isinstance(out, tuple):
-            return (*out[:-1], _quantized(out[-1], quantization))
-        return _quantized(out, quantization)
+            return (*out[:-1], _quantized(out[-1], quantization, quotient))
+        return _quantized(out, quantization, quotient)
 
     if compiler is None:
         return fn
@@ -164,12 +166,12 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | None, compiler
     return kernel_or_compiled
 
 
-def _quantized(x: torch.Tensor, quantization: int | FloatFormat) -> torch.Tensor:
+def _quantized(x: torch.Tensor, quantization: int | FloatFormat, quotient: Callable = torch.div) -> torch.Tensor:
     """What the hook's `InputTransform` does to `x`, written so that a compiler fusing it into the op
     that made `x` still quantizes the rounded `x` a hook would see."""
     if isinstance(quantization, FloatFormat):
         return quantization.quantize_activation(_as_float32(x)).to(x.dtype)
-    return fake_quant_activation(_as_float32(x), quantization).to(x.dtype)
+    return fake_quant_activation(_as_float32(x), quantization, quotient).to(x.dtype)
 
 
 def _as_float32(x: torch.Tensor) -> torch.Tensor:

@@ -49,6 +49,7 @@ from transformers.models.gemma.modeling_gemma import apply_rotary_pos_emb
 from vlaquantbench.models.pi05.fast import gelu_quant
 from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
 from vlaquantbench.quant import fused_kernel
+from vlaquantbench.quant.grid import fma_quotient
 from vlaquantbench.quant.hooks import quantizing_op
 
 
@@ -212,6 +213,11 @@ class Inductor:
     `whole_row_limit` values run in one pass (0: inductor's own choice)."""
 
     whole_row_limit: int = WHOLE_ROW_LIMIT
+
+    # The quantization's x / scale as compiled code computes it exactly (`quant.hooks.quantizing_op`):
+    # under `emulate_precision_casts` inductor makes `addcmul` one fused multiply-add, so the
+    # quotient needs one division per row, not one per value.
+    quotient = staticmethod(fma_quotient)
 
     def __call__(self, fn: Callable) -> Callable:
         # One compilation per op, input shape (VLM or expert, batch size) and bit width: more than
