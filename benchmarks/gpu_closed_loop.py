@@ -90,11 +90,23 @@ class Meter:
         }
 
 
-def busy_cores() -> tuple[float, float]:
-    """(busy, total) CPU ticks of the machine since boot, summed over cores (/proc/stat)."""
+def cpu_ticks(worker_pids: list[int]) -> dict[str, int]:
+    """CPU ticks since boot: the machine's, summed over cores and split by kind (/proc/stat), and the
+    workers' (/proc/PID/stat, user and system)."""
     fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
-    idle = fields[3] + fields[4]  # idle, iowait
-    return sum(fields) - idle, sum(fields)
+    user, nice, system, idle, iowait, irq, softirq = fields[:7]
+    workers = 0
+    for pid in worker_pids:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        workers += sum(int(v) for v in stat[stat.rindex(")") + 2:].split()[11:13])  # utime, stime
+    return {"total": sum(fields), "busy": sum(fields) - idle - iowait, "user": user + nice, "system": system,
+            "irq": irq + softirq, "workers": workers}
+
+
+def cores_used(before: dict[str, int], after: dict[str, int]) -> dict[str, float]:
+    """Cores busy between two `cpu_ticks` readings, in total and by kind."""
+    scale = (os.cpu_count() or 1) / max(after["total"] - before["total"], 1)
+    return {key: round(scale * (after[key] - before[key]), 2) for key in before if key != "total"}
 
 
 def padded(batch: int, max_batch: int = MAX_GRAPH_BATCH) -> int:
@@ -238,13 +250,13 @@ def measure(policy, env: LiberoVectorEnv, specs: list, max_steps: int, overlap: 
         policy._sample = gpu.wrap(policy._sample)  # an instance attribute over the class's method
     records: list[dict] = []
     try:
-        busy0, total0 = busy_cores()
+        ticks = cpu_ticks(env.worker_pids)
         cpu0 = time.process_time()
         began = time.perf_counter()
         run_episodes(policy, env, specs, max_steps, on_finished=records.extend, overlap=overlap, min_batch=min_batch)
         wall = time.perf_counter() - began
         cpu = time.process_time() - cpu0
-        busy1, total1 = busy_cores()
+        cores = cores_used(ticks, cpu_ticks(env.worker_pids))
     finally:
         policy.act, env.collect = real_act, real_collect
         if gpu:
@@ -253,8 +265,9 @@ def measure(policy, env: LiberoVectorEnv, specs: list, max_steps: int, overlap: 
     extra = {"policy_gpu": gpu.summary()} if gpu else {}
     return {**extra,
         "min_batch": min_batch,
-        "busy_cores": round((os.cpu_count() or 1) * (busy1 - busy0) / max(total1 - total0, 1), 2),
+        "busy_cores": cores.pop("busy"),
         "main_process_cores": round(cpu / wall, 2),
+        "cores": cores,  # the machine's busy cores by kind (user, system, irq) and the workers' share
         "calls_by_padded_size": log.summary(gpu.milliseconds() if gpu else None),
         "episodes": len(records),
         "policy_steps": steps,
@@ -393,7 +406,7 @@ def main() -> None:
                                ("simulator bound", run["simulator_bound"]),
                                *([("simulator bound after", run["simulator_bound_after"])] if "simulator_bound_after" in run else [])]:
             print(f"  {label}: {variant['episodes_per_hour']} episodes/h ({variant.get('vs_simulator_bound', 1.0)}), "
-                  f"busy cores {variant['busy_cores']}, main process {variant['main_process_cores']}, "
+                  f"busy cores {variant['busy_cores']} {variant['cores']}, main process {variant['main_process_cores']}, "
                   f"calls {variant['policy_call']['calls']}, by padded size {variant['calls_by_padded_size']}", flush=True)
         best = max(result["runs"], key=lambda r: r["policy"]["episodes_per_hour"])
         result["best"] = {

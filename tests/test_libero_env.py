@@ -143,11 +143,11 @@ def test_bad_requests_fail_before_any_work_and_worker_errors_name_the_episode(su
         env.step(np.zeros((1, 7)))
 
 
-def test_a_chunk_renders_only_its_last_steps_and_observes_as_stepping_each_action(suite, episodes):
-    """The worker's chunk skips the camera renders whose images no observation carries; every chunk's
-    final observation still equals stepping the same actions one by one with rendering on."""
+def test_a_chunk_renders_each_camera_once_and_observes_as_stepping_each_action(suite, episodes):
+    """The worker's chunk renders only the images its final observation carries, one per camera; every
+    chunk's final observation still equals stepping the same actions one by one with rendering on."""
     from vlaquantbench.envs.libero.offline import load_libero
-    from vlaquantbench.envs.libero.worker import RENDERED_TAIL, EpisodeStart, SlotSimulator
+    from vlaquantbench.envs.libero.worker import EpisodeStart, SlotSimulator
 
     load_libero()
     episode, chunk = episodes[0], 10
@@ -172,7 +172,46 @@ def test_a_chunk_renders_only_its_last_steps_and_observes_as_stepping_each_actio
         reference = stepped[(k + 1) * chunk - 1]
         for key in ("agentview", "wrist", "state"):
             np.testing.assert_array_equal(observation[key], reference[key])
-    assert len(renders) == 2 * RENDERED_TAIL * len(chunked)  # two cameras, the last steps of each chunk
+    assert len(renders) == 2 * len(chunked)  # two cameras, once per chunk
+
+
+@pytest.mark.parametrize(
+    ("substep", "rate", "offset"),
+    [(0.002, 20, 0), (0.002, 20, 1), (0.002, 20, 24), (0.002, 20, 25),  # LIBERO's, after 0 to 25 forced updates
+     (0.005, 20, 0),  # float drift stretches one period to 11 substeps
+     (0.01, 20, 0),  # the timer lands exactly on the period
+     (0.002, 15, 0)])  # periods of 33 and 34 substeps
+def test_sampled_again_predicts_robosuites_next_sample(substep, rate, offset):
+    """`sampled_again` against a real robosuite Observable stepped substep by substep: from every
+    sample, it tells whether another comes within the substeps left, whatever the timer's start (a
+    reset's forced updates advance it), its float drift and periods of varying substeps."""
+    from robosuite.utils.observables import Observable, sensor
+
+    from vlaquantbench.envs.libero.worker import sampled_again
+
+    sampled_at, timers, observables = [], [], []
+    clock = {"substep": 0}
+
+    @sensor(modality="image")
+    def camera(obs_cache):
+        if observables:  # not the constructor's validity check
+            sampled_at.append(clock["substep"])
+            timers.append(observables[0]._time_since_last_sample)
+        return np.zeros((2, 2, 3))
+
+    observables.append(Observable("camera", camera, sampling_rate=rate))
+    observable = observables[0]
+    for clock["substep"] in range(offset):  # forced updates, as at a reset
+        observable.update(substep, {}, force=True)
+    sampled_at.clear(), timers.clear()
+    total = 6000
+    for clock["substep"] in range(total):
+        observable.update(substep, {})
+    assert len(sampled_at) > 100
+    for position, (at, timer) in enumerate(zip(sampled_at, timers)):
+        following = sampled_at[position + 1] if position + 1 < len(sampled_at) else total
+        for end in range(at + 1, min(following + 3, total + 1)):  # the chunk ends after substep end - 1
+            assert sampled_again(timer, 1 / rate, substep, end - at - 1) == (following < end), (at, end)
 
 
 def test_a_hung_worker_is_stopped_and_named_instead_of_waited_on_forever(suite, episodes):

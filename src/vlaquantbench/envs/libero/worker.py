@@ -4,8 +4,8 @@ LiberoVectorEnv starts it as `main([FD, CAMERA_SIZE, SETTLE_STEPS, CONTROL_MODE]
 `(command, payload)` pairs; every request gets one reply, `("ok", result)` or `("error", traceback)`.
 `reset` starts an episode, `step` applies one action, `chunk` applies a sequence of actions here, in
 the worker, and replies once with the observation after the last one: a chunk costs one round trip
-instead of one per action, no intermediate observation crosses the socket, and the cameras render
-only in the chunk's last `RENDERED_TAIL` steps (`SlotSimulator.chunk`).
+instead of one per action, no intermediate observation crosses the socket, and each camera renders
+only the image that observation carries (`SlotSimulator.chunk`).
 """
 
 from __future__ import annotations
@@ -24,12 +24,21 @@ from vlaquantbench.envs.libero.suite import EpisodeSpec
 # LIBERO's no-op: arm still (zero delta pose), gripper open (-1). Used to let objects settle after an
 # init state is loaded, as lerobot's LiberoEnv (num_steps_wait=10) and openpi's LIBERO client do.
 DUMMY_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)
-# robosuite samples every observable once per sampling period (LIBERO: the control period of 25
-# physics substeps), in the substep after its timer wraps; float drift of that timer can stretch a
-# period to 26 substeps, so the image in a step's observation was rendered during that step or the
-# one before. Rendering in a chunk's last two steps therefore produces every image its final
-# observation can carry; the earlier steps' renders would be overwritten unseen.
-RENDERED_TAIL = 2
+
+
+def sampled_again(timer: float, period: float, substep: float, substeps_left: int) -> bool:
+    """Whether a robosuite observable that samples now samples again within `substeps_left` more substeps.
+
+    Mirrors `robosuite.utils.observables.Observable.update` without delay, with the same float
+    operations: each substep adds `substep` to the timer; a timer at or past `period` wraps, and the
+    substep after a wrap samples. `timer` is the value of the substep sampling now. Which substep of
+    a step samples depends on the timer's history (a reset's forced updates advance it; float drift
+    can move it across a step's boundary), so it is followed, not assumed."""
+    for _ in range(substeps_left):
+        if timer >= period:
+            return True
+        timer += substep
+    return False
 
 
 @dataclass(frozen=True)
@@ -72,7 +81,9 @@ class SlotSimulator:
         self._env = None
         self._bddl_file: str | None = None
         self._instruction = ""
-        self._render = True  # False: camera sensors return their last image instead of rendering
+        # While a chunk runs: (simulation time at its start, its substeps). A camera then renders only
+        # the sample that no later sample of the chunk overwrites.
+        self._chunk: tuple[float, int] | None = None
 
     def load(self, bddl_file: str) -> None:
         """Build the env of a task (unless it is the one built): what `start` does first, so that a
@@ -110,36 +121,55 @@ class SlotSimulator:
     def chunk(self, actions: np.ndarray) -> tuple[dict, int, bool]:
         """Apply `actions` in order, stopping early on success: (observation, actions applied, success).
 
-        The cameras render only during the last `RENDERED_TAIL` actions, so the observation equals
-        stepping every action with rendering on; after an early success its images may be an earlier
-        step's (the episode is over: no policy sees them)."""
+        Each camera renders once, the sample that the final observation carries, so the observation
+        equals stepping every action with rendering on; after an early success its images may be an
+        earlier sample's (the episode is over: no policy sees them)."""
         if len(actions) == 0:
             raise ValueError("a chunk needs at least one action")
+        robosuite_env = self._env.env
+        # Substeps per step as robosuite's step loop counts them.
+        substeps = len(actions) * int(robosuite_env.control_timestep / robosuite_env.model_timestep)
+        self._chunk = (robosuite_env.sim.data.time, substeps)
         applied, done = 0, False
         try:
-            for index, action in enumerate(actions):
-                self._render = index >= len(actions) - RENDERED_TAIL
+            for action in actions:
                 raw, _, done, _ = self._env.step(action)
                 applied += 1
                 if done:
                     break
         finally:
-            self._render = True
+            self._chunk = None
         return format_observation(raw, self._instruction), applied, bool(done)
 
+    def _overwritten_later(self, observable) -> bool:
+        """Whether the sample `observable` takes now is replaced by another before the running chunk ends."""
+        if self._chunk is None:
+            return False
+        began, substeps = self._chunk
+        robosuite_env = self._env.env
+        done = round((robosuite_env.sim.data.time - began) / robosuite_env.model_timestep)
+        return sampled_again(observable._time_since_last_sample, observable._sampling_timestep,
+                             robosuite_env.model_timestep, substeps - done)
+
     def _gate_camera_renders(self) -> None:
-        """Wrap each camera sensor: it renders while `_render` is set, else returns its cached image."""
-        from robosuite.utils.observables import sensor
+        """Wrap each camera sensor: inside a chunk, a sample that a later one overwrites returns the cached
+        image instead of rendering. Prediction needs the sampling instants fixed: no sampling delay."""
+        from robosuite.utils.observables import NO_DELAY, sensor
 
         robosuite_env = self._env.env
         for name, observable in robosuite_env._observables.items():
             if observable.modality != "image":
                 continue
+            if observable._delayer is not NO_DELAY:
+                raise ValueError(f"camera observable {name!r} samples with a delay: its renders cannot be "
+                                 "skipped exactly; configure it without one")
             render = observable._sensor
 
             @sensor(modality="image")
-            def gated(obs_cache, name=name, render=render):
-                return render(obs_cache) if self._render or name not in obs_cache else obs_cache[name]
+            def gated(obs_cache, name=name, render=render, observable=observable):
+                if name in obs_cache and self._overwritten_later(observable):
+                    return obs_cache[name]
+                return render(obs_cache)
 
             robosuite_env.modify_observable(name, "sensor", gated)
 
