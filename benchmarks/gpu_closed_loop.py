@@ -9,6 +9,10 @@ chunks, `runner.loop.run_episodes` overlapping the policy with stepping). For ea
     episode's stream in microseconds): what the simulator alone allows on this machine; measured
     first and, for N in `--bound-after`, again last (`simulator_bound_after`): the ratio divides by
     the mean of the two, so that a drift of the machine during the runs does not favour either side;
+    with `--repeats R`, R - 1 further pairs of a policy run and a bound run follow (`repeats`), each
+    policy run's ratio is to the mean of the bounds just before and after it (`pairs`), and
+    `vs_simulator_bound` is the median of the pairs' ratios: single runs' ratios spread by 0.06 on
+    one machine whose speed drifts by up to 21% within minutes;
   - `policy`: N x `--rounds` episodes (at least `--min-episodes`) driven by the policy, once per
     `--min-batch` value (`runner.loop.run_episodes`' `min_batch`; `policy` is the first,
     `policy_by_min_batch` has them all);
@@ -296,6 +300,8 @@ def main() -> None:
                         help="N also driven by the sleeping stand-in for the policy (`latency_model`)")
     parser.add_argument("--bound-after", type=int, nargs="*", default=[],
                         help="N whose simulator bound is measured again after the policy runs")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="policy runs per N of --bound-after, each followed by a bound run (ratio: the median)")
     parser.add_argument("--renice", type=int, default=None,
                         help="finally, the workers at this niceness (vs the worker's own) with the first min_batch (`policy_reniced`)")
     parser.add_argument("--torch-threads", type=int, default=1, help="intra-op threads of this process, as a cell's")
@@ -308,6 +314,8 @@ def main() -> None:
                              "larger batches run as slices)")
     parser.add_argument("--out", default="benchmarks/results/closed_loop_gpu.json")
     args = parser.parse_args()
+    if args.repeats < 1 or (args.repeats > 1 and not args.bound_after):
+        parser.error("--repeats needs a positive count, and above 1 the N it repeats in --bound-after")
     torch.set_num_threads(args.torch_threads)
 
     suite = LiberoSuite(args.suite)
@@ -380,14 +388,26 @@ def main() -> None:
                 run["lockstep"] = measure(adapter, env, specs, max_steps, overlap=False)
             if n in args.bound_after:
                 run["simulator_bound_after"] = measure(zero_cost, env, specs, max_steps, overlap=True)
+                for _ in range(args.repeats - 1):
+                    run.setdefault("repeats", []).append(
+                        {"policy": measure(adapter, env, specs, max_steps, overlap=True, min_batch=args.min_batch[0]),
+                         "simulator_bound": measure(zero_cost, env, specs, max_steps, overlap=True)})
             if args.renice is not None:
                 for pid in env.worker_pids:
                     os.setpriority(os.PRIO_PROCESS, pid, args.renice)
                 run["policy_reniced"] = measure(adapter, env, specs, max_steps, overlap=True, min_batch=args.min_batch[0])
                 run["policy_reniced"]["niceness"] = args.renice
         bounds = [run[k]["episodes_per_hour"] for k in ("simulator_bound", "simulator_bound_after") if k in run]
-        bound = run["simulator_bound_episodes_per_hour"] = round(float(np.mean(bounds)), 1)
-        run["vs_simulator_bound"] = round(run["policy"]["episodes_per_hour"] / bound, 3)
+        bound = round(float(np.mean(bounds)), 1)
+        policies = [run["policy"]["episodes_per_hour"]]
+        for repeat in run.get("repeats", []):
+            bounds.append(repeat["simulator_bound"]["episodes_per_hour"])
+            policies.append(repeat["policy"]["episodes_per_hour"])
+        run["pairs"] = [{"policy": policy, "bounds": bounds[i : i + 2],
+                         "ratio": round(policy / float(np.mean(bounds[i : i + 2])), 3)}
+                        for i, policy in enumerate(policies)]
+        run["simulator_bound_episodes_per_hour"] = round(float(np.mean(bounds)), 1)
+        run["vs_simulator_bound"] = round(float(np.median([pair["ratio"] for pair in run["pairs"]])), 3)
         for variant in [*run.get("policy_by_min_batch", {}).values(), run.get("policy_reniced"), run.get("latency_model")]:
             if variant:
                 variant["vs_simulator_bound"] = round(variant["episodes_per_hour"] / bound, 3)
@@ -398,8 +418,10 @@ def main() -> None:
         print(f"num_envs={n}: policy {run['policy']['episodes_per_hour']} episodes/h "
               f"(batch {run['policy']['policy_call']['mean_items']}, {run['policy']['policy_call']['mean_ms']} ms/call, "
               f"GPU {run['policy'].get('policy_gpu', {}).get('mean_ms')} ms/call), "
-              f"simulator bound {bound} ({' and '.join(map(str, bounds))}) -> {run['vs_simulator_bound']}"
+              f"simulator bound {run['simulator_bound_episodes_per_hour']} ({' and '.join(map(str, bounds))}) -> {run['vs_simulator_bound']}"
               + (f"; lockstep {run['lockstep']['episodes_per_hour']}" if "lockstep" in run else ""), flush=True)
+        if len(run["pairs"]) > 1:
+            print(f"  pairs (policy, bounds before and after, ratio): {run['pairs']}", flush=True)
         for label, variant in [*((f"min_batch {k}", v) for k, v in run.get("policy_by_min_batch", {}).items()),
                                *([("latency model", run["latency_model"])] if "latency_model" in run else []),
                                *([("workers reniced", run["policy_reniced"])] if "policy_reniced" in run else []),
