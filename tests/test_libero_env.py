@@ -175,6 +175,45 @@ def test_a_chunk_renders_each_camera_once_and_observes_as_stepping_each_action(s
     assert len(renders) == 2 * len(chunked)  # two cameras, once per chunk
 
 
+def test_a_start_renders_only_the_settled_images_and_observes_as_stepping_the_no_ops(suite, episodes, monkeypatch):
+    """The settle no-ops after an init state is loaded run as a chunk: each camera renders once for
+    them (its settled image), and the start's observation equals stepping the no-ops one by one with
+    rendering on, as LIBERO's evaluation clients do."""
+    from robosuite.utils.binding_utils import MjSim
+
+    from vlaquantbench.envs.libero.offline import load_libero
+    from vlaquantbench.envs.libero.worker import DUMMY_ACTION, EpisodeStart, SlotSimulator, format_observation
+
+    load_libero()
+    episode = episodes[1]
+    task = suite.task(episode.task_id)
+    start = EpisodeStart(episode, str(task.bddl_file), task.instruction,
+                         suite.init_state(episode.task_id, episode.init_state_id))
+    renders, render = [], MjSim.render
+    monkeypatch.setattr(MjSim, "render", lambda *args, **kwargs: renders.append(kwargs["camera_name"]) or render(*args, **kwargs))
+    counts = {}
+    for settle_steps in (0, 10):
+        simulator = SlotSimulator(CAMERA, settle_steps=settle_steps)
+        try:
+            simulator.load(start.bddl_file)
+            renders.clear()
+            observation = simulator.start(start)
+            counts[settle_steps] = len(renders)
+            if settle_steps:
+                libero_env = simulator._env  # the same start, every no-op stepped with its renders
+                libero_env.seed(episode.seed)
+                libero_env.reset()
+                libero_env.set_init_state(start.init_state)
+                for _ in range(settle_steps):
+                    raw, _, _, _ = libero_env.step(DUMMY_ACTION)
+                reference = format_observation(raw, task.instruction)
+        finally:
+            simulator.close()
+    for key in ("agentview", "wrist", "state"):
+        np.testing.assert_array_equal(observation[key], reference[key])
+    assert counts[10] == counts[0] + 2  # the reset and the init state's renders, then one per camera
+
+
 @pytest.mark.parametrize(
     ("substep", "rate", "offset"),
     [(0.002, 20, 0), (0.002, 20, 1), (0.002, 20, 24), (0.002, 20, 25),  # LIBERO's, after 0 to 25 forced updates

@@ -5,7 +5,7 @@ LiberoVectorEnv starts it as `main([FD, CAMERA_SIZE, SETTLE_STEPS, CONTROL_MODE]
 `reset` starts an episode, `step` applies one action, `chunk` applies a sequence of actions here, in
 the worker, and replies once with the observation after the last one: a chunk costs one round trip
 instead of one per action, no intermediate observation crosses the socket, and each camera renders
-only the image that observation carries (`SlotSimulator.chunk`).
+only the image that observation carries (`SlotSimulator.chunk`; a start's settle no-ops likewise).
 """
 
 from __future__ import annotations
@@ -81,8 +81,9 @@ class SlotSimulator:
         self._env = None
         self._bddl_file: str | None = None
         self._instruction = ""
-        # While a chunk runs: (simulation time at its start, its substeps). A camera then renders only
-        # the sample that no later sample of the chunk overwrites.
+        # While actions run as one chunk (a policy's chunk, or the settle no-ops of a start): (simulation
+        # time at its start, its substeps). A camera then renders only the sample that no later sample
+        # of the chunk overwrites.
         self._chunk: tuple[float, int] | None = None
 
     def load(self, bddl_file: str) -> None:
@@ -107,8 +108,9 @@ class SlotSimulator:
         self._env.reset()
         self._gate_camera_renders()  # a hard reset re-creates the sensors
         raw = self._env.set_init_state(start.init_state)
-        for _ in range(self.settle_steps):
-            raw, _, _, _ = self._env.step(DUMMY_ACTION)
+        if self.settle_steps:
+            # Rendered as a chunk: only the settled observation's images are rendered.
+            raw, _, _ = self._apply(np.tile(DUMMY_ACTION, (self.settle_steps, 1)), stop_on_success=False)
         for robot in self._env.env.robots:  # the settle no-ops are deltas in every mode
             robot.controller.use_delta = self.control_mode == "delta"
         return format_observation(raw, self._instruction)
@@ -126,6 +128,12 @@ class SlotSimulator:
         earlier sample's (the episode is over: no policy sees them)."""
         if len(actions) == 0:
             raise ValueError("a chunk needs at least one action")
+        raw, applied, done = self._apply(actions, stop_on_success=True)
+        return format_observation(raw, self._instruction), applied, done
+
+    def _apply(self, actions: np.ndarray, stop_on_success: bool) -> tuple[dict, int, bool]:
+        """Step `actions` with each camera rendering only the last sample it takes: (robosuite's last
+        observation, actions applied, LIBERO's success flag after the last)."""
         robosuite_env = self._env.env
         # Substeps per step as robosuite's step loop counts them.
         substeps = len(actions) * int(robosuite_env.control_timestep / robosuite_env.model_timestep)
@@ -135,11 +143,11 @@ class SlotSimulator:
             for action in actions:
                 raw, _, done, _ = self._env.step(action)
                 applied += 1
-                if done:
+                if done and stop_on_success:
                     break
         finally:
             self._chunk = None
-        return format_observation(raw, self._instruction), applied, bool(done)
+        return raw, applied, bool(done)
 
     def _overwritten_later(self, observable) -> bool:
         """Whether the sample `observable` takes now is replaced by another before the running chunk ends."""
