@@ -25,16 +25,15 @@ chunks, `runner.loop.run_episodes` overlapping the policy with stepping). For ea
   - `policy_reniced` (with `--renice`): the policy again, the workers at that niceness.
 
 Every run records the machine's busy cores (/proc/stat) and the main process's CPU (all its
-threads), and each policy call's batch, padded graph size, wall and GPU time. The main process runs
+threads), and each policy call's batch, graph plan (`captured.graph_plan`), wall and GPU time. The main process runs
 `--torch-threads` intra-op threads (1, as a cell: `ExecutionConfig.torch_threads`).
 
 Episodes go task-major as in a cell (task 0's init states 0, 1, ..., then task 1's); each slot's
 first task environment is built before timing, so every run meets the same builds. Random weights
 never succeed: every episode runs to the step limit (the suite's, or `--max-steps`). Worker
-start-up, the first capture of each batch size (powers of two up to the largest N, at most
-`MAX_GRAPH_BATCH`: the captured sampler pads a batch to the smallest captured size at least as large
-and runs larger batches in slices; the CUDA cache is emptied afterwards, for the workers' EGL
-contexts) and one short simulator
+start-up, the first capture of each graph size (`captured.GRAPH_SIZES`: the captured sampler runs a
+batch as the cheapest cover of its rows by these sizes, `graph_plan`; the CUDA cache is emptied
+afterwards, for the workers' EGL contexts) and one short simulator
 warm-up episode are timed apart and excluded. Writes after every N, so a run cut short keeps what
 it measured.
 
@@ -60,7 +59,7 @@ import transformers
 
 from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv
 from vlaquantbench.models.adapter import AdapterConfig, episode_generator, make_adapter
-from vlaquantbench.models.pi05.fast.captured import MAX_GRAPH_BATCH
+from vlaquantbench.models.pi05.fast.captured import GRAPH_SIZES, graph_plan
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.runner.provenance import versions
 
@@ -113,13 +112,8 @@ def cores_used(before: dict[str, int], after: dict[str, int]) -> dict[str, float
     return {key: round(scale * (after[key] - before[key]), 2) for key in before if key != "total"}
 
 
-def padded(batch: int, max_batch: int = MAX_GRAPH_BATCH) -> int:
-    """The captured graph size a batch replays (the next power of two; larger batches in slices)."""
-    return min(1 << (batch - 1).bit_length(), max_batch) if batch <= max_batch else max_batch
-
-
 class CallLog:
-    """Batch, wall ms and GPU ms of every policy call; summarized by the padded graph size."""
+    """Batch, wall ms and GPU ms of every policy call; summarized by graph plan ("12+1": the sizes replayed)."""
 
     def __init__(self):
         self.calls: list[tuple[int, float]] = []
@@ -136,15 +130,15 @@ class CallLog:
     def summary(self, gpu_ms: list[float] | None) -> dict:
         by_size = defaultdict(lambda: {"calls": 0, "rows": 0, "ms": 0.0, "gpu_ms": 0.0})
         for index, (batch, ms) in enumerate(self.calls):
-            entry = by_size[padded(batch)]
+            entry = by_size["+".join(map(str, graph_plan(batch)))]
             entry["calls"] += 1
             entry["rows"] += batch
             entry["ms"] += ms
             entry["gpu_ms"] += gpu_ms[index] if gpu_ms else 0.0
-        return {str(size): {"calls": e["calls"], "mean_batch": round(e["rows"] / e["calls"], 2),
+        return {plan: {"calls": e["calls"], "mean_batch": round(e["rows"] / e["calls"], 2),
                             "mean_ms": round(e["ms"] / e["calls"], 2),
                             **({"mean_gpu_ms": round(e["gpu_ms"] / e["calls"], 2)} if gpu_ms else {})}
-                for size, e in sorted(by_size.items())}
+                for plan, e in sorted(by_size.items(), key=lambda item: sum(map(int, item[0].split("+"))))}
 
 
 class ZeroCostPolicy:
@@ -163,17 +157,15 @@ class ZeroCostPolicy:
 
 
 class LatencyModelPolicy(ZeroCostPolicy):
-    """The zero-cost policy that sleeps, per call, the warm-up's wall time of a policy call at that
-    batch's padded size: the real policy's latency without its GPU work or its host CPU."""
+    """The zero-cost policy that sleeps, per call, the warm-up's wall times of the graphs its batch
+    replays (`graph_plan`): the real policy's latency without its GPU work or its host CPU."""
 
     def __init__(self, executed_chunk: int, predicted_chunk: int, call_s_by_size: dict[int, float]):
         super().__init__(executed_chunk, predicted_chunk)
         self.call_s_by_size = call_s_by_size
 
     def act(self, observations, generators) -> np.ndarray:
-        batch = len(observations)
-        slices = [MAX_GRAPH_BATCH] * (batch // MAX_GRAPH_BATCH) + ([batch % MAX_GRAPH_BATCH] if batch % MAX_GRAPH_BATCH else [])
-        time.sleep(sum(self.call_s_by_size[padded(rows)] for rows in slices))
+        time.sleep(sum(self.call_s_by_size[size] for size in graph_plan(len(observations))))
         return super().act(observations, generators)
 
 
@@ -204,7 +196,7 @@ def gpu_memory() -> dict:
 def warm_up(adapter, suite: LiberoSuite, camera_size: int, batch: int) -> dict:
     """One chunk at `batch` on stand-in observations: captures that batch size's graph. Returns its
     time and, on CUDA, the GPU memory afterwards (every captured graph keeps memory in proportion to
-    its batch: `captured.MAX_GRAPH_BATCH`)."""
+    its batch: `captured.GRAPH_SIZES`)."""
     result = {"s": round(stand_in_call(adapter, suite, camera_size, batch), 2)}
     return result | gpu_memory() if on_cuda(adapter) else result
 
@@ -272,7 +264,7 @@ def measure(policy, env: LiberoVectorEnv, specs: list, max_steps: int, overlap: 
         "busy_cores": cores.pop("busy"),
         "main_process_cores": round(cpu / wall, 2),
         "cores": cores,  # the machine's busy cores by kind (user, system, irq) and the workers' share
-        "calls_by_padded_size": log.summary(gpu.milliseconds() if gpu else None),
+        "calls_by_graph_plan": log.summary(gpu.milliseconds() if gpu else None),
         "episodes": len(records),
         "policy_steps": steps,
         "successes": int(sum(r["success"] for r in records)),
@@ -310,8 +302,7 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, default=None, help="default: the suite's limit for pi0.5")
     parser.add_argument("--camera-size", type=int, default=256)
     parser.add_argument("--captures", type=int, nargs="*", default=None,
-                        help="batch sizes to capture (default: powers of two up to the largest N, at most MAX_GRAPH_BATCH; "
-                             "larger batches run as slices)")
+                        help="batch sizes to capture before timing (default: the sampler's graph sizes, GRAPH_SIZES)")
     parser.add_argument("--out", default="benchmarks/results/closed_loop_gpu.json")
     args = parser.parse_args()
     if args.repeats < 1 or (args.repeats > 1 and not args.bound_after):
@@ -333,9 +324,7 @@ def main() -> None:
         report = quantize_(adapter.model, config, config.select(adapter.model, adapter.components))
         quant_header = report.to_header()["quant_report"]
     inference = adapter.prepare_inference(report)
-    largest = min(max(args.num_envs), MAX_GRAPH_BATCH)  # larger batches run as slices of this size
-    powers = {1 << k for k in range(largest.bit_length())}
-    sizes = sorted({*(powers if args.captures is None else args.captures), *(n for n in args.num_envs if n <= largest)})
+    sizes = sorted(GRAPH_SIZES if args.captures is None else args.captures)
     warmups = {b: warm_up(adapter, suite, args.camera_size, b) for b in sizes}
     # Once every size is captured, the whole `act` per size on the idle machine: the latency model's call times.
     for b in sizes:
@@ -429,7 +418,7 @@ def main() -> None:
                                *([("simulator bound after", run["simulator_bound_after"])] if "simulator_bound_after" in run else [])]:
             print(f"  {label}: {variant['episodes_per_hour']} episodes/h ({variant.get('vs_simulator_bound', 1.0)}), "
                   f"busy cores {variant['busy_cores']} {variant['cores']}, main process {variant['main_process_cores']}, "
-                  f"calls {variant['policy_call']['calls']}, by padded size {variant['calls_by_padded_size']}", flush=True)
+                  f"calls {variant['policy_call']['calls']}, by graph plan {variant['calls_by_graph_plan']}", flush=True)
         best = max(result["runs"], key=lambda r: r["policy"]["episodes_per_hour"])
         result["best"] = {
             "num_envs": best["num_envs"], "episodes_per_hour": best["policy"]["episodes_per_hour"],

@@ -212,3 +212,30 @@ def test_quantizing_triton_kernels_compile_for_hopper_with_ieee_quotients(kernel
                               target=GPUTarget("cuda", 90, 32), options={"num_warps": warps})
     ptx = compiled.asm["ptx"]
     assert ".target sm_90" in ptx and "div.rn.f32" in ptx and "fma.rn.f32" in ptx and "cvt.rni.f32.f32" in ptx
+
+
+def test_graph_plan_is_the_cheapest_cover_of_a_batch_by_the_captured_sizes():
+    """Against every multiset of graph sizes covering the batch: least cost (a graph costs its size
+    plus a fixed replay cost), then fewest graphs; each captured size runs alone, and larger batches
+    split instead of padding to a graph twice their size."""
+    import itertools
+
+    from vlaquantbench.models.pi05.fast.captured import GRAPH_SIZES, REPLAY_COST_ROWS, graph_plan
+
+    def cost(plan):
+        return sum(plan) + REPLAY_COST_ROWS * len(plan)
+
+    for batch in range(1, 37):
+        plan = graph_plan(batch)
+        assert list(plan) == sorted(plan, reverse=True) and set(plan) <= set(GRAPH_SIZES)
+        assert sum(plan) >= batch and sum(plan) - plan[-1] < batch  # only the last graph pads
+        covers = [c for n in range(1, 5) for c in itertools.combinations_with_replacement(GRAPH_SIZES, n) if sum(c) >= batch]
+        least = min(cost(c) for c in covers)
+        assert cost(plan) == pytest.approx(least), (batch, plan)
+        assert len(plan) == min(len(c) for c in covers if cost(c) == pytest.approx(least))
+    assert all(graph_plan(size) == (size,) for size in GRAPH_SIZES)
+    assert graph_plan(13) == (12, 1) and graph_plan(17) == (16, 1) and graph_plan(32) == (16, 16)
+    assert graph_plan(2, sizes=(1, 4), replay_cost_rows=0.5) == (1, 1)  # 3 rows of cost, not 4.5
+    assert graph_plan(3, sizes=(1, 4), replay_cost_rows=2) == (4,)
+    with pytest.raises(ValueError, match="at least one row"):
+        graph_plan(0)

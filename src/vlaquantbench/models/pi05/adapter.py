@@ -28,6 +28,7 @@ class Pi05Adapter(PiFamilyAdapter):
         if self.config.sampler != "captured":
             return super().prepare_inference(report)
         from vlaquantbench.models.pi05.fast import CapturedSampler
+        from vlaquantbench.models.pi05.fast.captured import REPLAY_COST_ROWS
         from vlaquantbench.quant import fused_kernel
         from vlaquantbench.quant.fused_kernel import fuse_activation_hooks
 
@@ -38,7 +39,11 @@ class Pi05Adapter(PiFamilyAdapter):
         # Graphs are captured on first use, so after the hooks are in place.
         self._captured = CapturedSampler(self.model, num_steps=self.config.flow_steps)
         graphs = self._captured.use_graphs
-        return {"sampler": "captured", "cuda_graph": graphs, "fused_quant": fused, "tf32": graphs and self._captured.tf32}
+        # With graphs a batch's rows run in the graphs of its plan, which sets their kernels' shapes
+        # (a cell recorded under other plans is not resumed with these).
+        plan = {"graph_plan": {"sizes": list(self._captured.graph_sizes), "replay_cost_rows": REPLAY_COST_ROWS}}
+        return {"sampler": "captured", "cuda_graph": graphs, **(plan if graphs else {}), "fused_quant": fused,
+                "tf32": graphs and self._captured.tf32}
 
     @torch.no_grad()
     def fast_path_probe(self) -> dict | None:

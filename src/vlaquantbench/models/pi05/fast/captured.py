@@ -13,16 +13,18 @@ recorded chunk, seconds at full size; the compiled elementwise kernels are kept 
 Quantizers count their runs only during the warm-up and recorded chunks (a replay runs no
 Python), which is enough to prove that every layer's quantizer ran.
 
-A batch smaller than one already captured (same image, prompt and chunk sizes) is padded to it
-with copies of its last observation and replays that graph, instead of capturing (and compiling
-for) every batch size a closed-loop runner meets as its episodes finish at different times. Rows
-do not interact, so the padding changes nothing in the real rows of that graph.
-
-A batch larger than `max_batch` (default `MAX_GRAPH_BATCH`) runs as consecutive slices of at most
-that many rows (rows do not interact): at full size each captured graph keeps memory in proportion
-to its batch (on an H200, capturing batch 1, 2, ..., 32 grew allocated memory by ≈ 0.48 GiB and
-reserved memory by ≈ 1.1 GiB per batch row, to 42.6 / 83.6 GiB with the weights; it grew the same
-with all graphs in one shared memory pool and one warm-up stream), so batch 64 does not fit in 140 GiB.
+A batch runs as one or more graphs of the sizes in `graph_sizes` (default `GRAPH_SIZES`: powers of
+two and the sizes halfway between, up to 16), each captured on first use: `graph_plan` picks the
+cheapest cover of the batch's rows, a replay costing its rows plus a fixed `REPLAY_COST_ROWS`, so
+that a closed-loop runner, whose batches take every size as its episodes become ready at different
+times, neither captures (and compiles for) every batch size nor pays much for padding (batch 13 runs
+as 12 + 1, 17 as 16 + 1; padded to powers of two, 13 rows cost 16 and 17 rows 32). The last graph
+of a plan may be padded with copies of its last observation. Rows do not interact, so neither the
+padding nor the split changes anything in the real rows of a graph. At full size each captured graph
+keeps memory in proportion to its batch (on an H200, capturing batch 1, 2, ..., 32 grew allocated
+memory by ≈ 0.48 GiB and reserved memory by ≈ 1.1 GiB per batch row, to 42.6 / 83.6 GiB with the
+weights; it grew the same with all graphs in one shared memory pool and one warm-up stream): the
+default sizes add up to 52 rows.
 
 Attention: the VLM prefix's 8 query heads share one KV head and are folded into one batched
 product by default (`static_sampling._attention`); `prefix_sdpa=True` runs SDPA there instead, with
@@ -49,9 +51,28 @@ from vlaquantbench.models.pi05.fast import static_sampling
 
 # Quantization methods whose layers cannot run inside a CUDA graph, with the reason.
 UNCAPTURABLE_METHODS = {"int8": "bitsandbytes LLM.int8() synchronizes with the host on its outlier columns"}
-MAX_GRAPH_BATCH = 32
+# Batch sizes a graph is captured for (`graph_plan`). Their sum bounds the graphs' memory.
+GRAPH_SIZES = (1, 2, 3, 4, 6, 8, 12, 16)
+# A replay's cost beyond its rows, in rows: pi0.5's captured chunk (2 cameras, bf16) took 21.8, 29.3,
+# 44.3, 78.1, 142.6 and 277.2 ms at batch 1, 2, 4, 8, 16 and 32 on an idle H200, 13.5 ms + 8.2 ms per row.
+REPLAY_COST_ROWS = 1.6
 SDPA_ORDER = (SDPBackend.EFFICIENT_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBackend.CUDNN_ATTENTION,
               SDPBackend.MATH)
+
+
+def graph_plan(batch: int, sizes: Sequence[int] = GRAPH_SIZES, replay_cost_rows: float = REPLAY_COST_ROWS) -> tuple[int, ...]:
+    """The graph sizes, largest first, that `batch` rows run as: the cover of at least `batch` rows by
+    `sizes` (each usable repeatedly) of least cost, a graph costing its size plus `replay_cost_rows`;
+    of equal costs, the one with fewer graphs."""
+    if batch < 1:
+        raise ValueError(f"a batch needs at least one row, got {batch}")
+    best: list[tuple[float, int, tuple[int, ...]]] = [(0.0, 0, ())]  # rows covered -> (cost, graphs, sizes)
+    for rows in range(1, batch + 1):
+        best.append(min((round(best[max(rows - size, 0)][0] + size + replay_cost_rows, 9),
+                         best[max(rows - size, 0)][1] + 1,
+                         tuple(sorted((size, *best[max(rows - size, 0)][2]), reverse=True)))
+                        for size in sizes))
+    return best[batch][2]
 
 
 @dataclass
@@ -67,9 +88,9 @@ class CapturedSampler:
     def __init__(self, model: nn.Module, num_steps: int, *, use_graphs: bool | None = None, tf32: bool = True,
                  attention_backends: Sequence = SDPA_ORDER, prefix_sdpa: bool = False,
                  fuse_elementwise: bool | None = None, compiler: Callable = static_sampling.inductor,
-                 max_batch: int = MAX_GRAPH_BATCH):
+                 graph_sizes: Sequence[int] = GRAPH_SIZES):
         self.model = model
-        self.max_batch = max_batch
+        self.graph_sizes = tuple(graph_sizes)
         self.num_steps = num_steps
         device = next(model.parameters()).device
         self.use_graphs = device.type == "cuda" if use_graphs is None else use_graphs
@@ -100,21 +121,27 @@ class CapturedSampler:
         if not self.use_graphs:
             return static_sampling.sample_actions(self.model, images, img_masks, tokens, masks, noise, self.times, self.ops,
                                               groups, self.prefix_sdpa)
-        batch = noise.shape[0]
-        if batch > self.max_batch:
-            return torch.cat([self(*_rows((images, img_masks, tokens, masks, noise), slice(start, start + self.max_batch)))
-                              for start in range(0, batch, self.max_batch)])
-        by_batch = self._graphs.setdefault(tuple(tuple(t.shape[1:]) for t in (*images, tokens, noise)), {})
-        size = min((b for b in by_batch if b >= batch), default=batch)
-        if size not in by_batch:
-            by_batch[size] = self._capture(images, img_masks, tokens, masks, noise, groups)
-        entry = by_batch[size]
-        for static, value in zip(_flatten(entry.inputs), _flatten((images, img_masks, tokens, masks, noise)), strict=True):
-            static[:batch].copy_(value, non_blocking=True)
-            if size > batch:
-                static[batch:].copy_(value[-1:].expand_as(static[batch:]), non_blocking=True)
+        batch, inputs = noise.shape[0], (images, img_masks, tokens, masks, noise)
+        by_size = self._graphs.setdefault(tuple(tuple(t.shape[1:]) for t in (*images, tokens, noise)), {})
+        outputs, start = [], 0
+        for size in graph_plan(batch, self.graph_sizes):
+            rows = _rows(inputs, slice(start, start + size))
+            if size not in by_size:
+                by_size[size] = self._capture(*_padded(rows, size), groups)
+            outputs.append(self._replay(by_size[size], rows))
+            start += size
+        return outputs[0] if len(outputs) == 1 else torch.cat(outputs)
+
+    @staticmethod
+    def _replay(entry: _Graph, inputs) -> torch.Tensor:
+        """Copy `inputs` (at most the graph's rows; the rest repeat the last row) in, replay, copy the rows out."""
+        rows = inputs[-1].shape[0]
+        for static, value in zip(_flatten(entry.inputs), _flatten(inputs), strict=True):
+            static[:rows].copy_(value, non_blocking=True)
+            if static.shape[0] > rows:
+                static[rows:].copy_(value[-1:].expand_as(static[rows:]), non_blocking=True)
         entry.graph.replay()
-        return entry.output[:batch].clone()
+        return entry.output[:rows].clone()
 
     @contextlib.contextmanager
     def _kernel_choices(self):
@@ -163,6 +190,13 @@ def capture_graph(fn):
 def _rows(inputs, rows: slice) -> tuple:
     """The sampler's inputs (tensors and lists of tensors) restricted to the batch rows `rows`."""
     return tuple([t[rows] for t in item] if isinstance(item, list | tuple) else item[rows] for item in inputs)
+
+
+def _padded(inputs, size: int) -> tuple:
+    """The sampler's inputs extended to `size` rows with copies of their last row."""
+    def pad(t):
+        return torch.cat([t, t[-1:].expand(size - t.shape[0], *t.shape[1:])]) if t.shape[0] < size else t
+    return tuple([pad(t) for t in item] if isinstance(item, list | tuple) else pad(item) for item in inputs)
 
 
 def _flatten(items) -> list[torch.Tensor]:
