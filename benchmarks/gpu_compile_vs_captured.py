@@ -133,7 +133,7 @@ def main() -> None:
 
             # The captured fork as the runner sets it up: fused Triton hook transforms on CUDA.
             cell["fused_hooks"] = fuse_activation_hooks(report) if device.type == "cuda" else 0
-            sampler = CapturedSampler(model, num_steps=args.flow_steps)
+            sampler = CapturedSampler(model, num_steps=args.flow_steps, graph_sizes=args.batches)  # one graph per batch
             for b in args.batches:
                 row = cell["batches"][b]
                 report.reset_hook_calls()

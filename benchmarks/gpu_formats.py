@@ -109,7 +109,7 @@ def main() -> None:
     for preset in args.presets:
         report = requantize(model, spec, originals, preset)
         fuse_activation_hooks(report)  # integer per-token transforms only; float formats fall back to theirs
-        sampler = CapturedSampler(model, num_steps=steps)
+        sampler = CapturedSampler(model, num_steps=steps, graph_sizes=args.batches)  # one graph per batch timed
         cell = {"format": report.result.format, "hooks": len(report.result.hooks), "captured_ms": {}}
         for b in args.batches:
             images, img_masks, tokens, masks, noise = inputs[b]

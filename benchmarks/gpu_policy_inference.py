@@ -175,7 +175,8 @@ def whole_row_ab(model, sampler, inputs, batches, steps, repeats, rounds, option
     over 1,024 values reduced in two passes) against the default one-pass rows, same quantized model."""
     from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
 
-    samplers = {"inductor_choice": CapturedSampler(model, num_steps=steps, compiler=pi05_static.Inductor(0), **options),
+    samplers = {"inductor_choice": CapturedSampler(model, num_steps=steps, compiler=pi05_static.Inductor(0),
+                                                   graph_sizes=batches, **options),
                 "whole_rows": sampler}
     ms = alternate(samplers, inputs, batches, repeats, rounds)
     return {"median_ms": ms, "whole_rows_vs_inductor_choice": {b: ms["whole_rows"][b] / ms["inductor_choice"][b] for b in batches},
@@ -228,7 +229,7 @@ def preset_ab(spec, device, presets, inputs, batches, steps, repeats, rounds) ->
     samplers, reports = {}, {}
     for preset in presets:
         model, reports[preset] = quantized_model(spec, device, preset)
-        samplers[preset] = CapturedSampler(model, num_steps=steps)
+        samplers[preset] = CapturedSampler(model, num_steps=steps, graph_sizes=batches)
     ms = alternate(samplers, inputs, batches, repeats, rounds)
     first = presets[0]
     return {"median_ms": ms, f"vs_{first}": {p: {b: ms[p][b] / ms[first][b] for b in batches} for p in presets[1:]},
@@ -350,7 +351,8 @@ def main() -> None:
             images, img_masks, tokens, masks, noise=noise.clone(), num_steps=steps))}
 
         fused = fuse_activation_hooks(report)
-        sampler = CapturedSampler(model, num_steps=steps, **captured_options)
+        # One graph per measured batch size (not the closed loop's plans): a batch-32 chunk is one graph.
+        sampler = CapturedSampler(model, num_steps=steps, graph_sizes=args.batches, **captured_options)
         for b in args.batches:
             images, img_masks, tokens, masks, noise = inputs[b]
             torch.cuda.synchronize()
