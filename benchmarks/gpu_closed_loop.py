@@ -276,7 +276,8 @@ def measure(policy, env: LiberoVectorEnv, specs: list, max_steps: int, overlap: 
     }
 
 
-def main() -> None:
+def main() -> Path:
+    """Runs the measurements; returns the path written (`--out`)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--suite", default="libero_spatial")
     parser.add_argument("--device", default="cuda")
@@ -302,7 +303,8 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, default=None, help="default: the suite's limit for pi0.5")
     parser.add_argument("--camera-size", type=int, default=256)
     parser.add_argument("--captures", type=int, nargs="*", default=None,
-                        help="batch sizes to capture before timing (default: the sampler's graph sizes, GRAPH_SIZES)")
+                        help="batch sizes run once before timing, capturing their plans' graphs (default: GRAPH_SIZES; "
+                             "--latency-model needs every graph size its batches use)")
     parser.add_argument("--out", default="benchmarks/results/closed_loop_gpu.json")
     args = parser.parse_args()
     if args.repeats < 1 or (args.repeats > 1 and not args.bound_after):
@@ -440,6 +442,7 @@ def main() -> None:
               f"{policy['policy_call']['mean_ms']:>9}{policy['env_steps_per_s']:>9}")
     print(f"best: {result['best']}")
     print(f"camera {args.camera_size} px, {os.cpu_count()} cores, {gpu or args.device}, {result['machine']['versions']}")
+    return Path(args.out)
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ began inside the run.
 """
 
 import importlib.util
+import json
 import os
 import sys
 import tempfile
@@ -63,9 +64,8 @@ def main() -> None:
         return result
 
     gpu_closed_loop.measure = spanned
-    gpu_closed_loop.main()  # writes --out; every worker has exited (and dumped) when it returns
-    out = Path(sys.argv[sys.argv.index("--out") + 1])
-    result = gpu_closed_loop.json.loads(out.read_text())
+    out = gpu_closed_loop.main()  # every worker has exited (and dumped) when it returns
+    result = json.loads(out.read_text())
     records = np.concatenate([np.load(p) for p in Path(directory).glob("*.npy")])
     for run in result["runs"]:
         measured = [run[k] for k in ("simulator_bound", "policy", "simulator_bound_after", "latency_model", "lockstep")
@@ -75,7 +75,7 @@ def main() -> None:
             r["worker_time"] = worker_time(records, r["span"], run["num_envs"])
             print(f"N={run['num_envs']} {r['episodes_per_hour']} episodes/h: " + ", ".join(
                 f"{k} {v['cpu_ms']} CPU ms/call ({v['cpu_s_per_worker']} s/worker)" for k, v in r["worker_time"].items()))
-    out.write_text(gpu_closed_loop.json.dumps(result, indent=2) + "\n")
+    out.write_text(json.dumps(result, indent=2) + "\n")
 
 
 if __name__ == "__main__":
