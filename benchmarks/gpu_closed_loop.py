@@ -5,14 +5,21 @@ no quantization unless `--preset`), the real runner (`LiberoVectorEnv` workers e
 chunks, `runner.loop.run_episodes` overlapping the policy with stepping). For each N of
 `--num-envs`, on one set of N workers:
 
-  - `simulator_bound`: the same episodes driven by a zero-cost policy (random actions drawn from each
-    episode's stream in microseconds): what the simulator alone allows on this machine; measured
+  - `simulator_bound`: the same tasks and init states driven by a zero-cost policy (small random
+    actions drawn from each episode's stream in microseconds): what the simulator alone allows on this
+    machine for those actions; measured
     first and, for N in `--bound-after`, again last (`simulator_bound_after`): the ratio divides by
     the mean of the two, so that a drift of the machine during the runs does not favour either side;
     with `--repeats R`, R - 1 further pairs of a policy run and a bound run follow (`repeats`), each
     policy run's ratio is to the mean of the bounds just before and after it (`pairs`), and
     `vs_simulator_bound` is the median of the pairs' ratios: single runs' ratios spread by 0.06 on
     one machine whose speed drifts by up to 21% within minutes;
+  - `simulator_bound_replay` (N in `--replay-bound`): after each policy run, a zero-cost policy
+    returning, episode by episode, the chunks that run's policy returned (`ReplayPolicy`): the
+    simulator alone on the very episodes the policy drove, whose steps can cost more CPU than the
+    random actions' (`benchmarks/README.md`); `same_actions` says every episode executed the same
+    actions (`actions_sha256`, over the episodes' digests); `replay_pairs` has each policy run's ratio
+    to its replay, `vs_replay_bound` their median;
   - `policy`: N x `--rounds` episodes (at least `--min-episodes`) driven by the policy, once per
     `--min-batch` value (`runner.loop.run_episodes`' `min_batch`; `policy` is the first,
     `policy_by_min_batch` has them all);
@@ -46,6 +53,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import hashlib
 import json
 import os
 import platform
@@ -154,6 +162,50 @@ class ZeroCostPolicy:
         chunks = np.stack([(torch.rand(self.predicted_chunk, 7, generator=g) - 0.5).numpy() * 0.4 for g in generators])
         chunks[:, :, 6] = -1.0
         return chunks
+
+
+class ChunkRecorder:
+    """Records, while installed on a policy, the chunks it returns for each episode (by seed)."""
+
+    def __init__(self, policy):
+        self.policy, self.chunks, self.seed_of = policy, defaultdict(list), {}
+
+    def __enter__(self):
+        real_reset, real_act = self.policy.reset, self.policy.act
+
+        def reset(seed):
+            generator = real_reset(seed)
+            self.seed_of[id(generator)] = seed
+            self.chunks[seed] = []
+            return generator
+
+        def act(observations, generators):
+            chunks = real_act(observations, generators)
+            for generator, chunk in zip(generators, chunks):
+                self.chunks[self.seed_of[id(generator)]].append(np.array(chunk, copy=True))
+            return chunks
+
+        self.policy.reset, self.policy.act = reset, act  # instance attributes over the class's methods
+        return self
+
+    def __exit__(self, *exc):
+        del self.policy.reset, self.policy.act
+
+
+class ReplayPolicy(ZeroCostPolicy):
+    """The zero-cost policy returning, episode by episode, the chunks a policy run returned
+    (`ChunkRecorder`): the simulator alone on that run's very episodes (same actions, so the same
+    contacts and physics), where the random actions of `ZeroCostPolicy` barely touch the scene."""
+
+    def __init__(self, executed_chunk: int, predicted_chunk: int, chunks_by_seed: dict[int, list[np.ndarray]]):
+        super().__init__(executed_chunk, predicted_chunk)
+        self.chunks_by_seed = chunks_by_seed
+
+    def reset(self, seed: int):
+        return iter(self.chunks_by_seed[seed])
+
+    def act(self, observations, generators) -> np.ndarray:
+        return np.stack([next(chunks) for chunks in generators])
 
 
 class LatencyModelPolicy(ZeroCostPolicy):
@@ -270,6 +322,9 @@ def measure(policy, env: LiberoVectorEnv, specs: list, max_steps: int, overlap: 
         "successes": int(sum(r["success"] for r in records)),
         "wall_s": round(wall, 2),
         "episodes_per_hour": round(3600 * len(records) / wall, 1),
+        # Over every episode's executed actions, in seed order: equal runs executed the same actions.
+        "actions_sha256": hashlib.sha256("".join(r["actions_sha256"] for r in sorted(records, key=lambda r: r["seed"]))
+                                         .encode()).hexdigest(),
         "env_steps_per_s": round(steps / wall, 1),
         "policy_call": calls.summary(),  # mean_items = mean batch of one policy call
         "collect_wait": waits.summary(),  # the main process waiting for the simulator
@@ -293,6 +348,8 @@ def main() -> Path:
                         help="N also driven by the sleeping stand-in for the policy (`latency_model`)")
     parser.add_argument("--bound-after", type=int, nargs="*", default=[],
                         help="N whose simulator bound is measured again after the policy runs")
+    parser.add_argument("--replay-bound", type=int, nargs="*", default=[],
+                        help="N whose every policy run is followed by a zero-cost run replaying its actions")
     parser.add_argument("--repeats", type=int, default=1,
                         help="policy runs per N of --bound-after, each followed by a bound run (ratio: the median)")
     parser.add_argument("--renice", type=int, default=None,
@@ -368,9 +425,22 @@ def main() -> Path:
         with LiberoVectorEnv(suite, n, camera_size=args.camera_size) as env:
             build_first_tasks(env, specs)
             run = {"num_envs": n, "worker_startup_s": round(time.perf_counter() - began, 2)}
+
+            def policy_and_replay() -> dict:
+                """A policy run with the first min_batch; for N in --replay-bound, the replay of its chunks next."""
+                if n not in args.replay_bound:
+                    return {"policy": measure(adapter, env, specs, max_steps, overlap=True, min_batch=args.min_batch[0])}
+                with ChunkRecorder(adapter) as recorder:
+                    policy = measure(adapter, env, specs, max_steps, overlap=True, min_batch=args.min_batch[0])
+                replay = ReplayPolicy(adapter.executed_chunk, adapter.predicted_chunk, recorder.chunks)
+                replayed = measure(replay, env, specs, max_steps, overlap=True)
+                replayed["same_actions"] = replayed["actions_sha256"] == policy["actions_sha256"]
+                return {"policy": policy, "simulator_bound_replay": replayed}
+
             run["simulator_bound"] = measure(zero_cost, env, specs, max_steps, overlap=True)
-            by_min_batch = {k: measure(adapter, env, specs, max_steps, overlap=True, min_batch=k) for k in args.min_batch}
-            run["policy"] = by_min_batch[args.min_batch[0]]
+            run |= policy_and_replay()
+            by_min_batch = {args.min_batch[0]: run["policy"]} | {
+                k: measure(adapter, env, specs, max_steps, overlap=True, min_batch=k) for k in args.min_batch[1:]}
             if len(by_min_batch) > 1:
                 run["policy_by_min_batch"] = {str(k): v for k, v in by_min_batch.items()}
             if n in args.latency_model:
@@ -380,9 +450,9 @@ def main() -> Path:
             if n in args.bound_after:
                 run["simulator_bound_after"] = measure(zero_cost, env, specs, max_steps, overlap=True)
                 for _ in range(args.repeats - 1):
-                    run.setdefault("repeats", []).append(
-                        {"policy": measure(adapter, env, specs, max_steps, overlap=True, min_batch=args.min_batch[0]),
-                         "simulator_bound": measure(zero_cost, env, specs, max_steps, overlap=True)})
+                    repeat = policy_and_replay()
+                    repeat["simulator_bound"] = measure(zero_cost, env, specs, max_steps, overlap=True)
+                    run.setdefault("repeats", []).append(repeat)
             if args.renice is not None:
                 for pid in env.worker_pids:
                     os.setpriority(os.PRIO_PROCESS, pid, args.renice)
@@ -399,6 +469,14 @@ def main() -> Path:
                         for i, policy in enumerate(policies)]
         run["simulator_bound_episodes_per_hour"] = round(float(np.mean(bounds)), 1)
         run["vs_simulator_bound"] = round(float(np.median([pair["ratio"] for pair in run["pairs"]])), 3)
+        if "simulator_bound_replay" in run:
+            replays = [run, *run.get("repeats", [])]
+            run["replay_pairs"] = [{"policy": r["policy"]["episodes_per_hour"],
+                                    "replay": r["simulator_bound_replay"]["episodes_per_hour"],
+                                    "same_actions": r["simulator_bound_replay"]["same_actions"],
+                                    "ratio": round(r["policy"]["episodes_per_hour"] /
+                                                   r["simulator_bound_replay"]["episodes_per_hour"], 3)} for r in replays]
+            run["vs_replay_bound"] = round(float(np.median([pair["ratio"] for pair in run["replay_pairs"]])), 3)
         for variant in [*run.get("policy_by_min_batch", {}).values(), run.get("policy_reniced"), run.get("latency_model")]:
             if variant:
                 variant["vs_simulator_bound"] = round(variant["episodes_per_hour"] / bound, 3)
@@ -413,6 +491,8 @@ def main() -> Path:
               + (f"; lockstep {run['lockstep']['episodes_per_hour']}" if "lockstep" in run else ""), flush=True)
         if len(run["pairs"]) > 1:
             print(f"  pairs (policy, bounds before and after, ratio): {run['pairs']}", flush=True)
+        if "replay_pairs" in run:
+            print(f"  replaying each policy run's actions: {run['replay_pairs']} -> {run['vs_replay_bound']}", flush=True)
         for label, variant in [*((f"min_batch {k}", v) for k, v in run.get("policy_by_min_batch", {}).items()),
                                *([("latency model", run["latency_model"])] if "latency_model" in run else []),
                                *([("workers reniced", run["policy_reniced"])] if "policy_reniced" in run else []),
@@ -425,6 +505,7 @@ def main() -> Path:
         result["best"] = {
             "num_envs": best["num_envs"], "episodes_per_hour": best["policy"]["episodes_per_hour"],
             "vs_simulator_bound": best["vs_simulator_bound"],
+            **({"vs_replay_bound": best["vs_replay_bound"]} if "vs_replay_bound" in best else {}),
             # Every episode here runs to the step limit; the grid's successful episodes end earlier.
             "grid_gpu_hours_upper_bound": round(GRID_EPISODES / best["policy"]["episodes_per_hour"], 1),
             "grid": f"{GRID_RUNS} runs, {GRID_EPISODES} episodes at {max_steps} steps each, one GPU node",
@@ -432,12 +513,13 @@ def main() -> Path:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
 
-    print(f"\n{'N':>4}{'episodes':>9}{'eps/h':>9}{'bound eps/h':>12}{'ratio':>7}{'lockstep':>10}"
+    print(f"\n{'N':>4}{'episodes':>9}{'eps/h':>9}{'bound eps/h':>12}{'ratio':>7}{'replay':>7}{'lockstep':>10}"
           f"{'batch':>7}{'call ms':>9}{'steps/s':>9}")
     for run in result["runs"]:
         policy = run["policy"]
         print(f"{run['num_envs']:>4}{policy['episodes']:>9}{policy['episodes_per_hour']:>9}"
               f"{run['simulator_bound_episodes_per_hour']:>12}{run['vs_simulator_bound']:>7}"
+              f"{run.get('vs_replay_bound', '-'):>7}"
               f"{run.get('lockstep', {}).get('episodes_per_hour', '-'):>10}{policy['policy_call']['mean_items']:>7}"
               f"{policy['policy_call']['mean_ms']:>9}{policy['env_steps_per_s']:>9}")
     print(f"best: {result['best']}")

@@ -70,7 +70,9 @@ def main() -> None:
     for run in result["runs"]:
         measured = [run[k] for k in ("simulator_bound", "policy", "simulator_bound_after", "latency_model", "lockstep")
                     if k in run]
-        measured += [r for repeat in run.get("repeats", []) for r in (repeat["policy"], repeat["simulator_bound"])]
+        measured += [run["simulator_bound_replay"]] if "simulator_bound_replay" in run else []
+        measured += [repeat[k] for repeat in run.get("repeats", []) for k in ("policy", "simulator_bound_replay", "simulator_bound")
+                     if k in repeat]
         for r in measured:
             r["worker_time"] = worker_time(records, r["span"], run["num_envs"])
             print(f"N={run['num_envs']} {r['episodes_per_hour']} episodes/h: " + ", ".join(

@@ -3,9 +3,10 @@ PYTHONPATH and WORKER_TIME_DIR set (`closed_loop.py` sets both for its workers).
 
 Wraps, on import, robosuite's render context (`render`: scene update and draw calls; `read_pixels`:
 the read that waits for the GPU; `__init__`: a GL context and its MuJoCo context, made at every hard
-reset), robosuite's `reset`, LIBERO's `set_init_state` and the worker's `SlotSimulator.start` and
+reset), robosuite's `reset` and `step` (a control step; with the MuJoCo physics steps inside it,
+`physics`), LIBERO's `set_init_state` and the worker's `SlotSimulator.start` and
 `.chunk`; each call's start (perf_counter, comparable across processes), wall and thread CPU seconds
-go to WORKER_TIME_DIR/PID.npy (rewritten every 400 calls and at exit). Measurement only: the wrapped
+go to WORKER_TIME_DIR/PID.npy (rewritten every 4,000 records and at exit). Measurement only: the wrapped
 methods run unchanged.
 """
 
@@ -17,15 +18,17 @@ import sys
 import time
 
 DIR = os.environ.get("WORKER_TIME_DIR")
-KINDS = ("render", "read_pixels", "start", "chunk", "reset", "render_context", "set_init_state")
+KINDS = ("render", "read_pixels", "start", "chunk", "reset", "render_context", "set_init_state", "step", "physics")
+STEP, PHYSICS = KINDS.index("step"), KINDS.index("physics")
 HOOKS = {  # module -> (class, method, kind)
     "robosuite.utils.binding_utils": [("MjRenderContext", "render", 0), ("MjRenderContext", "read_pixels", 1),
-                                      ("MjRenderContext", "__init__", 5)],
+                                      ("MjRenderContext", "__init__", 5), ("MjSim", "step", PHYSICS)],
     "vlaquantbench.envs.libero.worker": [("SlotSimulator", "start", 2), ("SlotSimulator", "chunk", 3)],
-    "robosuite.environments.base": [("MujocoEnv", "reset", 4)],
+    "robosuite.environments.base": [("MujocoEnv", "reset", 4), ("MujocoEnv", "step", STEP)],
     "libero.libero.envs.env_wrapper": [("ControlEnv", "set_init_state", 6)],
 }
 records: list[tuple[int, float, float, float]] = []  # kind, start, wall s, thread CPU s
+dumped = [0]  # records written so far
 
 
 def dump() -> None:
@@ -33,16 +36,38 @@ def dump() -> None:
 
     if records:
         np.save(os.path.join(DIR, f"{os.getpid()}.npy"), np.array(records, dtype=np.float64))
+        dumped[0] = len(records)
 
 
-def timed(fn, kind: int):
+physics = [0.0, 0.0]  # wall and thread-CPU seconds of every MjSim.step so far
+
+
+def summed(fn, kind: int):
+    """MuJoCo's physics steps (25 per control step) are summed, not recorded one by one: each control
+    step's record ("step") is followed by one of the physics inside it ("physics")."""
+
     def wrapper(*args, **kwargs):
         began, cpu = time.perf_counter(), time.thread_time()
         try:
             return fn(*args, **kwargs)
         finally:
+            physics[0] += time.perf_counter() - began
+            physics[1] += time.thread_time() - cpu
+
+    return wrapper
+
+
+def timed(fn, kind: int):
+    def wrapper(*args, **kwargs):
+        began, cpu = time.perf_counter(), time.thread_time()
+        physics_before = tuple(physics)
+        try:
+            return fn(*args, **kwargs)
+        finally:
             records.append((kind, began, time.perf_counter() - began, time.thread_time() - cpu))
-            if len(records) % 400 == 0:
+            if kind == STEP:
+                records.append((PHYSICS, began, physics[0] - physics_before[0], physics[1] - physics_before[1]))
+            if len(records) - dumped[0] >= 4000:
                 dump()
 
     return wrapper
@@ -67,7 +92,7 @@ class Finder(importlib.abc.MetaPathFinder):
             load(module)
             for class_name, method, kind in HOOKS[name]:
                 cls = getattr(module, class_name)
-                setattr(cls, method, timed(getattr(cls, method), kind))
+                setattr(cls, method, (summed if kind == PHYSICS else timed)(getattr(cls, method), kind))
 
         spec.loader.exec_module = exec_module
         return spec
