@@ -195,7 +195,7 @@ class ChunkRecorder:
 class ReplayPolicy(ZeroCostPolicy):
     """The zero-cost policy returning, episode by episode, the chunks a policy run returned
     (`ChunkRecorder`): the simulator alone on that run's very episodes (same actions, so the same
-    contacts and physics), where the random actions of `ZeroCostPolicy` barely touch the scene."""
+    physics), where `ZeroCostPolicy`'s small random actions make episodes of their own."""
 
     def __init__(self, executed_chunk: int, predicted_chunk: int, chunks_by_seed: dict[int, list[np.ndarray]]):
         super().__init__(executed_chunk, predicted_chunk)
