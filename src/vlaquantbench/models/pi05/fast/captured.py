@@ -40,6 +40,7 @@ use TF32 tensor cores, as lerobot's own `compile_model` path does (`set_float32_
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -60,10 +61,11 @@ SDPA_ORDER = (SDPBackend.EFFICIENT_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBac
               SDPBackend.MATH)
 
 
+@functools.cache  # every policy call asks for its batch's plan; a runner meets a few dozen batch sizes
 def graph_plan(batch: int, sizes: Sequence[int] = GRAPH_SIZES, replay_cost_rows: float = REPLAY_COST_ROWS) -> tuple[int, ...]:
     """The graph sizes, largest first, that `batch` rows run as: the cover of at least `batch` rows by
-    `sizes` (each usable repeatedly) of least cost, a graph costing its size plus `replay_cost_rows`;
-    of equal costs, the one with fewer graphs."""
+    `sizes` (a tuple, as plans are cached; each size usable repeatedly) of least cost, a graph costing
+    its size plus `replay_cost_rows`; of equal costs, the one with fewer graphs."""
     if batch < 1:
         raise ValueError(f"a batch needs at least one row, got {batch}")
     best: list[tuple[float, int, tuple[int, ...]]] = [(0.0, 0, ())]  # rows covered -> (cost, graphs, sizes)
