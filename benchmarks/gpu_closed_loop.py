@@ -202,10 +202,17 @@ class ReplayPolicy(ZeroCostPolicy):
         self.chunks_by_seed = chunks_by_seed
 
     def reset(self, seed: int):
-        return iter(self.chunks_by_seed[seed])
+        return seed, iter(self.chunks_by_seed[seed])
 
     def act(self, observations, generators) -> np.ndarray:
-        return np.stack([next(chunks) for chunks in generators])
+        chunks = []
+        for seed, recorded in generators:
+            chunk = next(recorded, None)
+            if chunk is None:
+                raise RuntimeError(f"the replay of episode seed {seed} asks for more chunks than its policy run returned "
+                                   f"({len(self.chunks_by_seed[seed])}): the simulator did not repeat the episode")
+            chunks.append(chunk)
+        return np.stack(chunks)
 
 
 class LatencyModelPolicy(ZeroCostPolicy):
@@ -493,6 +500,9 @@ def main() -> Path:
             print(f"  pairs (policy, bounds before and after, ratio): {run['pairs']}", flush=True)
         if "replay_pairs" in run:
             print(f"  replaying each policy run's actions: {run['replay_pairs']} -> {run['vs_replay_bound']}", flush=True)
+            if not all(pair["same_actions"] for pair in run["replay_pairs"]):
+                print("  WARNING: a replay executed other actions than its policy run (same_actions false): "
+                      "its ratio compares different episodes", flush=True)
         for label, variant in [*((f"min_batch {k}", v) for k, v in run.get("policy_by_min_batch", {}).items()),
                                *([("latency model", run["latency_model"])] if "latency_model" in run else []),
                                *([("workers reniced", run["policy_reniced"])] if "policy_reniced" in run else []),
