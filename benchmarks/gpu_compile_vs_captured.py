@@ -12,7 +12,8 @@ capture (a replay runs no Python).
 Decision rule (issue 14): keep whichever is simpler at equal speed. Compiled lerobot is the simpler
 (no re-implementation of `sample_actions`); it wins when, at every batch size and preset, its
 median is within 5% of the captured fork's (`compiled_over_captured` <= 1.05), its hook counts
-match eager's and its chunk is within the fast-path probe's CUDA bound (`models.adapter.PROBE_BOUNDS`).
+match eager's and its chunk is within the fast-path probe's CUDA bound (`models.adapter.CUDA_PROBE_BOUND`;
+the CPU smoke run uses it too).
 The script prints and records the verdict; the GPU measurement decides.
 
 Model: `PI05Pytorch` at full size with random weights (bf16, lerobot's layout) on CUDA; on the CPU
@@ -36,7 +37,7 @@ import torch
 from gpu_policy_inference import chunk_inputs, released_weights, requantize
 
 from vlaquantbench.models import get_model_spec
-from vlaquantbench.models.adapter import PROBE_BOUNDS
+from vlaquantbench.models.adapter import CUDA_PROBE_BOUND
 from vlaquantbench.models.pi05.fast import CapturedSampler
 from vlaquantbench.quant.fused_kernel import fuse_activation_hooks
 
@@ -98,7 +99,7 @@ def main() -> None:
     torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     inputs = {b: chunk_inputs(b, device) for b in args.batches}
     originals = released_weights(model, spec)
-    metric, bound = PROBE_BOUNDS[device.type]
+    (metric, bound), = CUDA_PROBE_BOUND.items()
     results = {"device": torch.cuda.get_device_name() if device.type == "cuda" else platform.processor() or "cpu",
                "torch": torch.__version__, "backend": args.backend, "flow_steps": args.flow_steps,
                "probe_bound": {metric: bound}, "cells": []}

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
@@ -194,7 +194,6 @@ def resolve_sampler(cfg: dict[str, Any]) -> str:
 
 
 # What a fast path's first chunk may differ from the eager policy's (`fast_path_probe`).
-# CPU: the fast path's code runs eagerly in float32 there and must equal the eager policy bit for bit.
 # CUDA: bf16 operation order, TF32 products in lerobot's float32 vision tower and fused kernels move
 # the last bits, and a 4-bit activation rounding that flips on such a difference moves a value by a
 # whole grid step, which later layers amplify. Measured for pi0.5's captured sampler at full size on
@@ -203,17 +202,52 @@ def resolve_sampler(cfg: dict[str, Any]) -> str:
 # worst of them and still catches a fast path computing with stale weights (`tests/test_pi05_probe.py`:
 # stale action-expert q/k/v copies are off by more than twice the bound). Random weights, not a
 # checkpoint: benchmarks/gpu_compile_vs_captured.py re-measures it.
-PROBE_BOUNDS = {"cpu": ("max_abs_diff", 0.0), "cuda": ("rel_l2", 0.05)}
+CUDA_PROBE_BOUND = {"rel_l2": 0.05}
+# CPU: the fast path runs the eager policy's float32 operations, but in other shapes (cameras in one
+# batch, all flow steps' conditioning in one product, heads folded). IEEE 754 fixes the rounding of
+# each operation, not the order of a sum, and BLAS kernels choose that order by shape and instruction
+# set: on an AVX-512 (FP16/BF16/VNNI) machine MKL's kernels made the captured W4A4 chunk differ by
+# rel_l2 8.8e-8 while AVX2 paths happened to agree bit for bit. So what the arithmetic guarantees is
+# agreement up to moving intermediates by a few units in the last place (ulps), and how far that moves
+# the actions depends on the cell: measured on the demo policy with every input moved by one ulp,
+# rel_l2 1.3e-7 (BASELINE), 7e-8 (W4A4 ah), 4e-3 (W4A8 e2e), 7.7e-2 (W4A4 e2e: 4-bit rounding flips,
+# amplified). The probe therefore measures that spread on the cell itself (`eager_ulp_spread`: the eager
+# policy against itself with its float inputs moved one ulp in a seeded direction, the largest of
+# `ULP_PROBES` draws) and allows `CPU_PROBE_FACTOR` times it. A fast path computing with stale weights
+# is off by far more (tests/test_pi05_probe.py); a cell that happens to agree bit for bit still
+# records `max_abs_diff: 0.0`.
+CPU_PROBE_FACTOR = 8
+ULP_PROBES = 2
 
 
-def fast_path_probe(path: str, fast: torch.Tensor, eager: torch.Tensor) -> dict:
-    """The header record of a fast path's first chunk `fast` against the eager policy's `eager`."""
-    metric, bound = PROBE_BOUNDS["cuda" if eager.is_cuda else "cpu"]
-    fast, eager = fast.double(), eager.double()
-    diffs = {"max_abs_diff": (fast - eager).abs().max().item(),
-             "rel_l2": ((fast - eager).norm() / eager.norm().clamp_min(1e-30)).item()}
-    return {"path": path, "device": eager.device.type, **diffs, "bound": {metric: bound},
-            "passed": bool(torch.isfinite(fast).all()) and diffs[metric] <= bound}
+def ulp_moved(x: torch.Tensor, directions: torch.Generator) -> torch.Tensor:
+    """`x` with every element moved one unit in the last place, up or down as `directions` draws."""
+    up = torch.randint(0, 2, x.shape, generator=directions).bool().to(x.device)
+    return torch.nextafter(x, torch.where(up, torch.inf, -torch.inf).to(x.dtype))
+
+
+def _rel_l2(a: torch.Tensor, b: torch.Tensor) -> float:
+    a, b = a.double(), b.double()
+    return ((a - b).norm() / b.norm().clamp_min(1e-30)).item()
+
+
+def fast_path_probe(path: str, fast: torch.Tensor, eager: torch.Tensor,
+                    eager_ulp_moved: Callable[[int], torch.Tensor] | None = None) -> dict:
+    """The header record of a fast path's first chunk `fast` against the eager policy's `eager`.
+    On the CPU `eager_ulp_moved(seed)` is the eager chunk with its float inputs moved one ulp
+    (`ulp_moved`), which sets the bound (see `CPU_PROBE_FACTOR`)."""
+    diffs = {"max_abs_diff": (fast.double() - eager.double()).abs().max().item(), "rel_l2": _rel_l2(fast, eager)}
+    if eager.is_cuda:
+        bound, spread = CUDA_PROBE_BOUND, {}
+        allowed = bound["rel_l2"]
+    else:
+        if eager_ulp_moved is None:
+            raise ValueError("a CPU fast-path probe needs the eager chunk with its inputs moved one ulp")
+        spread = {"eager_ulp_spread": max(_rel_l2(eager_ulp_moved(seed), eager) for seed in range(ULP_PROBES))}
+        bound = {"rel_l2": f"{CPU_PROBE_FACTOR} x eager_ulp_spread"}
+        allowed = CPU_PROBE_FACTOR * spread["eager_ulp_spread"]
+    return {"path": path, "device": eager.device.type, **diffs, **spread, "bound": bound,
+            "passed": bool(torch.isfinite(fast).all()) and diffs["rel_l2"] <= allowed}
 
 
 def episode_generator(seed: int, device: str | torch.device = "cpu") -> torch.Generator:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from vlaquantbench.models.adapter import episode_generator, fast_path_probe
+from vlaquantbench.models.adapter import episode_generator, fast_path_probe, ulp_moved
 from vlaquantbench.models.pi_family_adapter import CAMERA_KEYS, STATE_DIM, PiFamilyAdapter
 
 
@@ -63,10 +63,18 @@ class Pi05Adapter(PiFamilyAdapter):
         noise = torch.randn(shape, generator=episode_generator(0)).to(self._device)
         fast = self._sample(batch, images, image_masks, noise)
         tokens, masks = batch["observation.language.tokens"], batch["observation.language.attention_mask"]
-        eager = self.model.sample_actions(images, image_masks, tokens, masks, noise=noise.clone(),
-                                          num_steps=self.config.flow_steps)
+
+        def eager_chunk(images, noise):
+            return self.model.sample_actions(images, image_masks, tokens, masks, noise=noise.clone(),
+                                             num_steps=self.config.flow_steps)
+
+        def eager_ulp_moved(seed: int):  # the CPU bound's reference: see models.adapter.CPU_PROBE_FACTOR
+            directions = torch.Generator().manual_seed(seed)
+            return eager_chunk([ulp_moved(image, directions) for image in images], ulp_moved(noise, directions))
+
+        eager = eager_chunk(images, noise)
         self._captured.reset()
-        return fast_path_probe("captured", fast, eager)
+        return fast_path_probe("captured", fast, eager, eager_ulp_moved)
 
     def _sample(self, batch, images, image_masks, noise):
         tokens, masks = batch["observation.language.tokens"], batch["observation.language.attention_mask"]
