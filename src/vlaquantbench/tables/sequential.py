@@ -62,15 +62,15 @@ def plot_episodes_saved(table: pd.DataFrame, output: str | Path) -> Path:
     import matplotlib.pyplot as plt
 
     saved = table["episodes_available"] - table["episodes_used"]
-    labels = [f"{row.cell.split('/', 2)[-1]} vs {row.baseline.rsplit('/', 1)[-1]}" for row in table.itertuples()]
-    fig, ax = plt.subplots(figsize=(8, 0.22 * len(table) + 1.2))
+    labels = [f"{row.cell.split('/', 1)[-1]} vs {row.baseline.rsplit('/', 1)[-1]}" for row in table.itertuples()]
+    fig, ax = plt.subplots(figsize=(10, 0.22 * len(table) + 1.2))
     ax.barh(range(len(table)), saved, color=[COLOURS[d] for d in table["decision"]])
     ax.set_yticks(range(len(table)), labels, fontsize=6)
     ax.invert_yaxis()
     ax.set_xlabel("episodes saved per cell (of the recorded episodes)")
     ax.set_title(f"{100 * saved_fraction(table):.1f}% fewer episodes in total", fontsize=9)
     ax.legend(handles=[plt.Rectangle((0, 0), 1, 1, color=colour) for colour in COLOURS.values()],
-              labels=list(COLOURS), fontsize=7, loc="lower right")
+              labels=list(COLOURS), fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     fig.tight_layout()
     with atomic_write(output, "wb") as handle:
         fig.savefig(handle, format="pdf", metadata={"CreationDate": None})
