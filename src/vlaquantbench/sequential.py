@@ -43,6 +43,7 @@ from typing import Mapping
 import numpy as np
 import pandas as pd
 
+from vlaquantbench.atomic import write_text
 from vlaquantbench.errors import UserError
 from vlaquantbench.stats import task_clustered_bootstrap
 
@@ -187,8 +188,6 @@ def saved_fraction(table: pd.DataFrame) -> float:
 
 
 def write_csv(table: pd.DataFrame, path: str | Path) -> Path:
-    from vlaquantbench.atomic import write_text
-
     write_text(path, table.to_csv(index=False, float_format="%.4f"))
     return Path(path)
 
