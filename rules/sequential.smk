@@ -20,7 +20,7 @@ rule sequential_table:
     output:
         tex=SEQUENTIAL_TARGET,
         csv="tables/sequential.csv",
-        figure=report("figures/sequential_episodes.pdf", caption="../workflow/report/figure.rst", category="Figures"),
+        figure=report("figures/sequential_episodes.pdf", caption="../workflow/report/sequential.rst", category="Figures"),
     log:
         "logs/tables/sequential.log",
     params:
