@@ -13,6 +13,7 @@ include: "rules/common.smk"
 include: "rules/analysis.smk"
 include: "rules/rollout.smk"
 include: "rules/replay.smk"
+include: "rules/sequential.smk"
 
 
 onerror:

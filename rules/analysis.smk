@@ -120,5 +120,6 @@ rule paper:
         expand("tables/{table}.tex", table=["replay_composition", "replay_all_formats", "replay_bias", "proxy_audit"]),
         "tables/vla_params.tex",
         "tables/summary.csv",
+        "tables/sequential.tex",  # rules/sequential.smk: the stopping rule on tab:clustered's and tab:lattice's contrasts
         "figures/scope_recovery.pdf",
         "figures/replay_formats.pdf",

@@ -50,7 +50,7 @@ rule calibrate:
         calibration="|".join(CALIBRATIONS) or "^$",
     params:
         calibration=lambda wc: CALIBRATIONS[wc.calibration],
-        execution=lambda wc: WF.study.execution.as_kwargs(),
+        execution=lambda wc: WF.study.execution.calibration_kwargs(),
     log:
         "logs/calibrate/{calibration}.log",
     threads: 2

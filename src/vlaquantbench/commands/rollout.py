@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import vlaquantbench
@@ -82,9 +83,7 @@ def _run(args: argparse.Namespace, study: StudyConfig, cfg: dict, project: Path)
     from vlaquantbench.runner.cell import run_cell
     from vlaquantbench.runner.checkpoint import download_checkpoint
 
-    execution = study.execution.as_kwargs()
-    if args.num_envs:
-        execution["num_envs"] = args.num_envs
+    execution = replace(study.execution, num_envs=args.num_envs) if args.num_envs else study.execution
     stamp = project / "results" / "checkpoints" / checkpoint_key(cfg) / "checkpoint.json"
     if not stamp.exists():
         download_checkpoint(**{k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}, stamp=stamp)
@@ -93,6 +92,6 @@ def _run(args: argparse.Namespace, study: StudyConfig, cfg: dict, project: Path)
     if calib is not None:
         stats = project / "results" / "calibration" / f"{config_hash(calib)}.pt"
         if not stats.exists():
-            calibrate(calib, stats, stamp, **execution)
-    print(run_cell(cfg, project / CELLS_DIR / config_hash(cfg), stamp, stats, **execution))
+            calibrate(calib, stats, stamp, **execution.calibration_kwargs())
+    print(run_cell(cfg, project / CELLS_DIR / config_hash(cfg), stamp, stats, **execution.as_kwargs()))
     return 0

@@ -68,9 +68,17 @@ class ExecutionConfig:
     num_envs: int = 2  # LIBERO worker processes per rollout job
     torch_threads: int | None = 1
     progress: bool = True  # a tqdm bar per cell
+    # `interleaved`: round-robin over tasks (round k is episode k of every task), so every prefix of whole
+    # rounds is balanced over tasks, as the sequential stopping rule reads it (vlaquantbench.sequential).
+    # Records are the same either way: an episode's outcome depends on its (task, episode, seed) alone.
+    episode_order: str = "task_major"
 
     def as_kwargs(self) -> dict[str, Any]:
         return asdict(self)
+
+    def calibration_kwargs(self) -> dict[str, Any]:
+        """What a calibration job takes: it runs its fixed held-out episodes, in no cell's order."""
+        return {k: v for k, v in asdict(self).items() if k != "episode_order"}
 
 
 @dataclass(frozen=True)

@@ -82,6 +82,19 @@ def calibration_settings(settings: dict[str, Any], adapter):
                                sample_rows=sample_rows)
 
 
+EPISODE_ORDERS = ("task_major", "interleaved")
+
+
+def episode_keys(tasks: list[int], episodes_per_task: int, order: str) -> list[tuple[int, int]]:
+    """(task, episode) in the order a cell runs them: task by task, or `interleaved` round-robin over tasks
+    (round k is episode k of every task). Only the order changes: each episode keeps its identity."""
+    if order not in EPISODE_ORDERS:
+        raise UserError(f"study.execution.episode_order: {order!r} is not one of {', '.join(EPISODE_ORDERS)}")
+    if order == "interleaved":
+        return [(task, episode) for episode in range(episodes_per_task) for task in tasks]
+    return [(task, episode) for task in tasks for episode in range(episodes_per_task)]
+
+
 class CellRun:
     def __init__(
         self,
@@ -94,6 +107,7 @@ class CellRun:
         num_envs: int = ExecutionConfig.num_envs,
         torch_threads: int | None = ExecutionConfig.torch_threads,
         progress: bool = ExecutionConfig.progress,
+        episode_order: str = ExecutionConfig.episode_order,
     ):
         self.cfg = cfg
         self.out_dir = Path(out_dir)
@@ -109,9 +123,8 @@ class CellRun:
         if cfg["benchmark"] != "libero":
             raise UserError(f"cell {cfg['ref']}: the rollout runner supports benchmark 'libero', not {cfg['benchmark']!r}")
         self.suite = LiberoSuite(cfg["suite"])
-        self.specs = [
-            self.suite.episode_spec(t, e, cfg["seed"]) for t in cfg["tasks"] for e in range(cfg["episodes_per_task"])
-        ]
+        self.specs = [self.suite.episode_spec(t, e, cfg["seed"])
+                      for t, e in episode_keys(cfg["tasks"], cfg["episodes_per_task"], episode_order)]
         self.max_steps = cfg["runner"]["max_steps"] or self.suite.max_steps(cfg["model"])
         self._env: Future | None = None  # the LIBERO workers, once started
 

@@ -161,6 +161,12 @@ class TableDefinition:
         """The rows that print numbers of cells (not sections, rules or unavailable rows)."""
         return [row for row in self.rows if "label" in row and "unavailable" not in row]
 
+    def contrasts(self) -> list[tuple[str, str]]:
+        """The (cell, minus) pairs its difference columns (`delta`, `bootstrap`) print, in row order, each once."""
+        pairs = [(row[spec.cell], row[spec.minus]) for row in self.cell_rows() for spec in self.values
+                 if spec.minus and not spec.cells and row[spec.cell] and row[spec.minus]]
+        return list(dict.fromkeys(pairs))
+
     def refs(self) -> list[str]:
         """Every cell reference the table reads, sorted: the workflow's inputs for this table."""
         keys = {key for spec in self.values for key in spec.keys()}
