@@ -205,9 +205,10 @@ def resolve_sampler(cfg: dict[str, Any]) -> str:
 CUDA_PROBE_BOUND = {"rel_l2": 0.05}
 # CPU: the fast path runs the eager policy's float32 operations, but in other shapes (cameras in one
 # batch, all flow steps' conditioning in one product, heads folded). IEEE 754 fixes the rounding of
-# each operation, not the order of a sum, and BLAS kernels choose that order by shape and instruction
-# set: on an AVX-512 (FP16/BF16/VNNI) machine MKL's kernels made the captured W4A4 chunk differ by
-# rel_l2 8.8e-8 while AVX2 paths happened to agree bit for bit. So what the arithmetic guarantees is
+# each operation, not the order of a sum, and the CPU kernels choose that order by shape and instruction
+# set: on an AVX-512 FP16/AMX machine (an H200 host's Xeon) the captured W4A4 chunk differed by rel_l2
+# 8.8e-8 (9.9e-8 with MKL pinned to its AVX2 branch, MKL_CBWR=AVX2: pinning MKL alone does not make it
+# bit-equal), while this project's AVX2-path CI machines agreed bit for bit. So what the arithmetic guarantees is
 # agreement up to moving intermediates by a few units in the last place (ulps), and how far that moves
 # the actions depends on the cell: measured on the demo policy with every input moved by one ulp,
 # rel_l2 1.3e-7 (BASELINE), 7e-8 (W4A4 ah), 4e-3 (W4A8 e2e), 7.7e-2 (W4A4 e2e: 4-bit rounding flips,
