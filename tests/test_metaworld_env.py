@@ -110,7 +110,7 @@ def test_step_limit_is_metaworlds_path_length():
 
 def test_corner2_image_has_lerobots_orientation(suite):
     """The same variation seen by lerobot 0.6.1's own `MetaworldEnv` (480 px, in this process) and by a
-    worker: at lerobot's size the images and `agent_pos` are equal; at 224 px the image is lerobot's
+    worker: at lerobot's size the images, `agent_pos` and Meta-World's whole observation are equal; at 224 px the image is lerobot's
     shrunk (mean error 1.3 of 255; its mirror images' 42-56), so the flips hold at the size policies read."""
     os.environ.setdefault("MUJOCO_GL", "egl")
     from PIL import Image
@@ -122,11 +122,14 @@ def test_corner2_image_has_lerobots_orientation(suite):
     reference = MetaworldEnv(task=suite.task(task_id).name, obs_type="pixels_agent_pos")
     try:
         observation, _ = reference.reset(seed=seed)
+        # Meta-World's whole observation after the reset (the frame stack holds the reset's frame twice).
+        environment_state = reference._env._get_obs()
     finally:
         reference.close()
     with make_env("metaworld", suite, 1, camera_size=480) as env:
         [ours] = env.reset([spec])
     np.testing.assert_array_equal(ours["state"], observation["agent_pos"])
+    np.testing.assert_array_equal(ours["environment_state"], environment_state)
     np.testing.assert_array_equal(ours["image"], observation["pixels"])
     with make_env("metaworld", suite, 1, camera_size=224) as env:
         [small] = env.reset([spec])

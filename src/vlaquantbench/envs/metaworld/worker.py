@@ -6,7 +6,7 @@ applies one action, `chunk` applies a sequence here and replies once with the ob
 last one, so a camera renders only the image the reply carries.
 
 The env is built as lerobot 0.6.1's `MetaworldEnv` builds it (`lerobot/envs/metaworld.py`): Meta-World's
-MT1 class of the task with its first train task set, the `corner2` camera moved to lerobot's position,
+class of the task with MT1's task set (`SlotSimulator.load`), the `corner2` camera moved to lerobot's position,
 the object and goal placement then drawn from the seeded simulator at every reset (not frozen), the
 image flipped on both axes, `agent_pos` the first 4 entries of Meta-World's observation (hand
 position, gripper opening), success Meta-World's `info["success"]`.
@@ -15,6 +15,7 @@ position, gripper opening), success Meta-World's `info["success"]`.
 from __future__ import annotations
 
 import os
+import pickle
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 
@@ -26,8 +27,6 @@ from vlaquantbench.envs.workers import become_worker, serve
 CAMERA = "corner2"
 # lerobot moves `corner2` here (its `MetaworldEnv._ensure_env`): the view its datasets were recorded with.
 CORNER2_POSITION = (0.75, 0.075, 0.7)
-# MT1's seed for the task it sets before variations are unfrozen (lerobot's); no episode sees that task.
-MT1_SEED = 42
 STATE_DIM = 4  # lerobot's `agent_pos`: hand xyz and gripper opening
 
 
@@ -60,13 +59,22 @@ class SlotSimulator:
         if task == self._task:
             return
         self.close()
-        import metaworld
+        from metaworld import Task
+        from metaworld.env_dict import ALL_V3_ENVIRONMENTS, ML1_args_kwargs
 
-        benchmark = metaworld.MT1(task, seed=MT1_SEED)
         render = {"render_mode": "rgb_array", "camera_name": CAMERA, "width": self.camera_size,
                   "height": self.camera_size} if self.camera_size else {"render_mode": None}
-        env = benchmark.train_classes[task](**render)
-        env.set_task(benchmark.train_tasks[0])
+        env_class = ALL_V3_ENVIRONMENTS[task]
+        env = env_class(**render)
+        # The task lerobot sets (`MT1(task, seed=42).train_tasks[0]`), built here rather than by MT1: MT1
+        # builds a second env and resets it 50 times to sample goals (2-3 s a task on a loaded 2-core
+        # machine, most of an expert benchmark's time) for a placement that the first seeded reset
+        # replaces. What `set_task` keeps of MT1's task is the task's own kwargs and MT1's
+        # `partially_observable=False` (the goal in the observation); tests/test_metaworld_env.py
+        # checks the observation against lerobot's env.
+        kwargs = {k: v for k, v in ML1_args_kwargs[task]["kwargs"].items() if k != "task_id"}
+        env.set_task(Task(env_name=task, data=pickle.dumps(
+            {**kwargs, "env_cls": env_class, "rand_vec": None, "partially_observable": False})))
         env.model.cam_pos[env.model.camera(CAMERA).id] = CORNER2_POSITION
         # Draw each reset's placement from the env's seeded generator instead of the task's frozen one.
         env._freeze_rand_vec = False
