@@ -94,6 +94,12 @@ def test_unknown_benchmark_or_suite_is_refused_by_name(benchmark, suite_name, me
         make_env(benchmark, suite_name, 1, camera_size=None)
 
 
+def test_unknown_env_setting_is_refused_by_name():
+    with pytest.raises(UserError, match=r"unknown metaworld env setting\(s\) settle_steps; known: camera_size, "
+                                        r"reply_timeout_s"):
+        make_env("metaworld", "metaworld_easy", 1, settle_steps=10)
+
+
 def test_unknown_task_is_refused_by_name(suite):
     with pytest.raises(UserError, match=r"unknown task 'pick-place-v2' in Meta-World suite metaworld_mt10; "
                                         r"its tasks: reach-v3, push-v3"):

@@ -9,9 +9,10 @@ a chunk, collect, release) from the benchmark's name, importing only that benchm
 from __future__ import annotations
 
 import importlib
+import inspect
 from typing import TYPE_CHECKING, Any
 
-from vlaquantbench.errors import lookup
+from vlaquantbench.errors import UserError, lookup
 
 if TYPE_CHECKING:
     from vlaquantbench.envs.episodes import SuiteTasks
@@ -39,7 +40,13 @@ def make_suite(benchmark: str, suite: str) -> SuiteTasks:
 def make_env(benchmark: str, suite: str | SuiteTasks, num_envs: int, **settings: Any) -> WorkerVectorEnv:
     """`num_envs` worker slots of `benchmark` on `suite` (a name or a built suite). `settings` are the
     benchmark's env settings (LIBERO: camera_size, settle_steps, control_mode, mujoco; Meta-World:
-    camera_size, None to render no image); an unknown one is refused by the env's constructor."""
+    camera_size, None to render no image); UserError naming an unknown one, before any suite or worker."""
+    env_class = _benchmark_class(benchmark, 1)
+    accepted = [name for name, parameter in inspect.signature(env_class).parameters.items()
+                if parameter.kind is inspect.Parameter.KEYWORD_ONLY]
+    unknown = sorted(set(settings) - set(accepted))
+    if unknown:
+        raise UserError(f"unknown {benchmark} env setting(s) {', '.join(unknown)}; known: {', '.join(accepted)}")
     if isinstance(suite, str):
         suite = make_suite(benchmark, suite)
-    return _benchmark_class(benchmark, 1)(suite, num_envs, **settings)
+    return env_class(suite, num_envs, **settings)
