@@ -59,16 +59,17 @@ def test_experts_succeed_through_the_batched_env(suite, one_worker):
         assert rate >= 0.8, (task, [(r["episode"], r["success"], r["steps"]) for r in outcomes])
         assert all(0 < r["steps"] <= STEP_LIMIT for r in outcomes)
         assert all(r["steps"] < STEP_LIMIT for r in outcomes if r["success"])
-    # Episodes of a task start from different variations: the experts take different paths.
+    # Episodes of a task start from different variations, each recorded: the experts take different paths.
     assert len({r["actions_sha256"] for r in one_worker.values()}) == len(one_worker)
+    assert len({tuple(r["task_variation"]) for r in one_worker.values()}) == len(one_worker)
 
 
 def test_episodes_do_not_depend_on_the_batch_they_ran_in(suite, expert, one_worker):
     four_workers = run_experts(suite, expert, num_envs=4)
     assert four_workers.keys() == one_worker.keys()
     for key, record in one_worker.items():
-        assert {k: four_workers[key][k] for k in ("success", "steps", "actions_sha256", "seed", "init_state_id")} == \
-               {k: record[k] for k in ("success", "steps", "actions_sha256", "seed", "init_state_id")}, key
+        same = ("success", "steps", "actions_sha256", "seed", "init_state_id", "task_variation")
+        assert {k: four_workers[key][k] for k in same} == {k: record[k] for k in same}, key
 
 
 def test_variations_are_seeded_and_reproducible_in_any_slot(suite):
