@@ -171,7 +171,7 @@ def dry_run(tmp_path: Path, row_cell: str | None = None, copy_src: bool = False,
 
 BAD_CELLS = [
     ("libero/libero_spatail/pi05/rtn-W4A4-ah", "unknown libero suite 'libero_spatail'; known: libero_spatial"),
-    ("libero/libero_spatial/pi5/rtn-W4A4-ah", "unknown model 'pi5'; known: openvla_oft, pi0, pi05, xvla"),
+    ("libero/libero_spatial/pi5/rtn-W4A4-ah", "unknown model 'pi5'; known: metaworld_expert, openvla_oft, pi0, pi05, xvla"),
     ("libero/libero_spatial/pi05/rtn-W4A3X-ah", "unknown quantization preset 'W4A3X'"),
     ("libero/libero_spatial/pi05/quip-W4A4-ah", "unknown method 'quip'; expected one of awq, fp8, fp8_static"),
     ("libero/libero_spatial/pi05/ablate-W4A4-ah-onlyselfattn", "subset 'onlyselfattn' of pi05: unknown subset 'onlyselfattn'"),

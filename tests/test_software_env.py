@@ -33,13 +33,13 @@ from vlaquantbench.software_env import activate, environment_for
 env = environment_for("xvla")
 activate(env)  # what CellRun does first for an X-VLA cell
 from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv, simulator_versions
-from vlaquantbench.envs.libero.vector_env import _worker_environment
+from vlaquantbench.envs.workers import worker_environment
 suite = LiberoSuite("libero_spatial")
 with LiberoVectorEnv(suite, 1, camera_size=32, settle_steps=1) as venv:
     venv.reset([suite.episode_spec(0, 0, 0)])
     observations, _ = venv.step(np.zeros((1, 7)))
 worker = subprocess.run([sys.executable, "-c", "import mujoco; print(mujoco.__version__)"],
-                        env=_worker_environment(), capture_output=True, text=True, check=True).stdout.strip()
+                        env=worker_environment(), capture_output=True, text=True, check=True).stdout.strip()
 print(json.dumps({"versions": simulator_versions(), "worker_mujoco": worker, "environment": env.describe(),
                   "state": observations[0]["state"].tolist()}))
 """

@@ -36,6 +36,7 @@ MODELS = {
     "pi0": "vlaquantbench.models.pi0",
     "openvla_oft": "vlaquantbench.models.openvla_oft",
     "xvla": "vlaquantbench.models.xvla",
+    "metaworld_expert": "vlaquantbench.models.metaworld_expert",
 }
 
 

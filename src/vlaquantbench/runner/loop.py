@@ -48,6 +48,9 @@ class _Episode:
     sent: np.ndarray | None = None  # the actions of the chunk in flight
     nonfinite: bool = False  # the chunk in flight stops before a non-finite action
     latencies: list[float] = field(default_factory=list)
+    # The scene a seeded variation drew (Meta-World's object and goal placement), when the env reports
+    # one at reset; LIBERO's scene is its init state, recorded by id.
+    task_variation: list[float] | None = None
     # Digest of every executed action: reruns and batch sizes can be compared episode by episode.
     digest: Any = field(default_factory=hashlib.sha256)
 
@@ -111,6 +114,7 @@ def run_episodes(
             policy_batch_latency_mean_s=float(np.mean(episode.latencies)) if episode.latencies else float("nan"),
             nonfinite_action=episode.nonfinite and not success,
             actions_sha256=episode.digest.hexdigest(),
+            **({} if episode.task_variation is None else {"task_variation": episode.task_variation}),
         )
 
     def finish(records: list[tuple[int, dict]]) -> None:
@@ -129,6 +133,8 @@ def run_episodes(
             if episode.sent is not None:
                 episode.digest.update(episode.sent[: reply.applied].tobytes())
                 episode.sent = None
+            elif "task_variation" in reply.observation:  # a reset's reply
+                episode.task_variation = [float(x) for x in reply.observation["task_variation"]]
             if reply.success or episode.nonfinite or env.steps[reply.slot] >= max_steps:
                 finished.append((reply.slot, record(reply.slot, reply.success)))
             else:

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from vlaquantbench.envs import BENCHMARK_SUITES
+from vlaquantbench.envs.episodes import SEED_STRIDE, EpisodeSpec, SuiteTasks, episode_seed
 from vlaquantbench.envs.libero.offline import load_libero
 from vlaquantbench.errors import UserError
 
@@ -23,18 +24,8 @@ STEP_LIMITS = {
 }
 MODEL_FAMILY = {"pi05": "pi", "pi0": "pi", "openvla_oft": "openvla_oft", "xvla": "xvla"}
 
-# Per-episode seed = SEED_STRIDE * task_id + episode + run seed (the authors' records).
-SEED_STRIDE = 1009
-
-
-@dataclass(frozen=True)
-class EpisodeSpec:
-    """One episode to run in a slot of a LiberoVectorEnv."""
-
-    task_id: int
-    episode: int
-    init_state_id: int
-    seed: int
+__all__ = ["MODEL_FAMILY", "SEED_STRIDE", "STEP_LIMITS", "SUITES", "EpisodeSpec", "LiberoSuite", "LiberoTask",
+           "episode_seed"]
 
 
 @dataclass(frozen=True)
@@ -46,11 +37,7 @@ class LiberoTask:
     init_states_file: Path
 
 
-def episode_seed(task_id: int, episode: int, run_seed: int = 0) -> int:
-    return SEED_STRIDE * task_id + episode + run_seed
-
-
-class LiberoSuite:
+class LiberoSuite(SuiteTasks):
     """The tasks of one LIBERO suite, in LIBERO's default task order."""
 
     def __init__(self, name: str):
@@ -74,18 +61,6 @@ class LiberoSuite:
             for i, task in enumerate(tasks)
         )
         self._init_states: dict[int, np.ndarray] = {}
-
-    def __repr__(self) -> str:
-        return f"LiberoSuite({self.name!r})"
-
-    @property
-    def n_tasks(self) -> int:
-        return len(self.tasks)
-
-    def task(self, task_id: int) -> LiberoTask:
-        if not 0 <= task_id < self.n_tasks:
-            raise UserError(f"task_id {task_id} is out of range for {self.name} (0..{self.n_tasks - 1})")
-        return self.tasks[task_id]
 
     def init_states(self, task_id: int) -> np.ndarray:
         """The official initial states of a task: one flattened MuJoCo state per row."""
@@ -118,10 +93,3 @@ class LiberoSuite:
         """Episode i of a task starts from official init state i."""
         self.init_state(task_id, episode)
         return EpisodeSpec(task_id, episode, init_state_id=episode, seed=episode_seed(task_id, episode, run_seed))
-
-    def episodes(
-        self, episodes_per_task: int, task_ids: list[int] | None = None, run_seed: int = 0
-    ) -> list[EpisodeSpec]:
-        """All episodes of a study on this suite, task by task."""
-        ids = range(self.n_tasks) if task_ids is None else task_ids
-        return [self.episode_spec(t, e, run_seed) for t in ids for e in range(episodes_per_task)]

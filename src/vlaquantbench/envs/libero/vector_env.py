@@ -1,41 +1,23 @@
-"""N LIBERO environments stepped in parallel, one worker interpreter per slot.
+"""N LIBERO environments stepped in parallel, one worker interpreter per slot (`envs.workers`: the
+protocol every benchmark's vector env offers the closed-loop runner).
 
-Each slot runs its episodes independently: the runner resets a finished slot with the next episode
-while the others continue. An episode's observations depend only on its EpisodeSpec and its actions,
-never on the slot or the batch it ran in.
-
-Two ways to drive the slots: `reset(specs)` / `step(actions)` exchange with every slot at once and
-return when all have replied; `submit_reset(slot, spec)` / `submit_chunk(slot, actions)` send one
-slot its request and return at once, and `collect()` returns the replies that have arrived, so the
-caller can compute while the other slots still step (the closed-loop runner, `runner.loop`).
-
-Workers are fresh interpreters (`python -c ...worker.main(...)`) rather than
-multiprocessing children: a spawned child re-executes the parent's `__main__` file, and a Snakemake
-`script:` is exactly such a file. Each worker owns its own EGL context.
+A LIBERO worker seeds the simulator, loads the episode's official init state and settles with
+`settle_steps` no-op actions before its first observation; both camera views render at
+`camera_size`.
 """
 
 from __future__ import annotations
 
-import os
-import socket
-import subprocess
-import sys
-import time
-import weakref
-from collections.abc import Sequence
-from dataclasses import dataclass
-from multiprocessing.connection import Connection, wait
-from pathlib import Path
-from typing import Any
-
-import numpy as np
-
-import vlaquantbench
+from vlaquantbench.envs.episodes import EpisodeSpec
 from vlaquantbench.envs.libero.offline import config_dir
-from vlaquantbench.envs.libero.suite import EpisodeSpec, LiberoSuite
+from vlaquantbench.envs.libero.suite import LiberoSuite
 from vlaquantbench.envs.libero.versions import simulator_versions
 from vlaquantbench.envs.libero.worker import EpisodeStart
+from vlaquantbench.envs.workers import REPLY_TIMEOUT_S, SlotReply, WorkerError, WorkerVectorEnv, check_worker_settings
 from vlaquantbench.errors import UserError
+
+__all__ = ["ACTION_DIM", "CAMERA_SIZE", "CONTROL_MODES", "SETTLE_STEPS", "LiberoVectorEnv", "LiberoWorkerError",
+           "SlotReply"]
 
 ACTION_DIM = 7
 # No-op steps after loading an init state, as in lerobot's LiberoEnv and openpi's LIBERO client.
@@ -44,68 +26,21 @@ CAMERA_SIZE = 256  # the render size of lerobot's and openpi's LIBERO evaluation
 # "delta": actions are end-effector pose deltas (LIBERO's default); "absolute": absolute targets, the
 # worker switching the controller to `use_delta=False` after the settle steps, as X-VLA's client does.
 CONTROL_MODES = ("delta", "absolute")
-_SHUTDOWN_TIMEOUT_S = 10
-# A request (worker start-up, env build, reset, chunk) that gets no reply for this long is a hung worker
-# (e.g. a render context that never comes up when the GPU is out of memory), reported instead of waited
-# on forever. Generous: env builds took minutes on a 2-core machine at load 15.
-REPLY_TIMEOUT_S = 1800.0
-_WORKER_MAIN = "import sys; from vlaquantbench.envs.libero.worker import main; main(sys.argv[1:])"
 
 
-class LiberoWorkerError(RuntimeError):
-    """A worker failed or died; the message names the slot, task and episode and carries its traceback."""
+class LiberoWorkerError(WorkerError):
+    """A LIBERO worker failed or died; the message names the slot, task and episode and carries its traceback."""
 
 
-@dataclass
-class _Slot:
-    process: subprocess.Popen
-    conn: Connection
-    episode: EpisodeSpec | None = None
-    live: bool = False
-    steps: int = 0
-    request: str | None = None  # the command sent and not yet answered
-
-
-@dataclass(frozen=True)
-class SlotReply:
-    """A slot's answer to `submit_reset` (`applied` 0) or `submit_chunk`."""
-
-    slot: int
-    observation: dict
-    applied: int  # actions applied by this request; fewer than sent only on success
-    success: bool
-
-
-def _worker_environment() -> dict[str, str]:
-    """The parent's environment, with this package importable even when it is not installed."""
-    package_root = str(Path(vlaquantbench.__file__).resolve().parents[1])
-    paths = [package_root, *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
-    return {**os.environ, "PYTHONPATH": os.pathsep.join(dict.fromkeys(paths))}
-
-
-def _close_slots(slots: list[_Slot]) -> None:
-    for slot in slots:
-        try:
-            slot.conn.send(("close", None))
-        except OSError:
-            pass
-        # A worker still busy with a request sees a closed socket when it replies, and exits.
-        slot.conn.close()
-    for slot in slots:
-        try:
-            slot.process.wait(timeout=_SHUTDOWN_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            slot.process.kill()
-            slot.process.wait()
-    slots.clear()
-
-
-class LiberoVectorEnv:
-    """`reset(specs)` starts episodes in the slots given; `step(actions)` advances every live slot.
-
-    A slot is live from its reset until its episode succeeds or the runner calls `release(slot)`
-    (e.g. at the step limit). Use as a context manager, or call `close()`.
+class LiberoVectorEnv(WorkerVectorEnv):
+    """`reset(specs)` starts episodes in the slots given; `step(actions)` advances every live slot
+    (`envs.workers.WorkerVectorEnv`). Use as a context manager, or call `close()`.
     """
+
+    simulator = "LIBERO"
+    action_dim = ACTION_DIM
+    worker_main = "import sys; from vlaquantbench.envs.libero.worker import main; main(sys.argv[1:])"
+    worker_error = LiberoWorkerError
 
     def __init__(
         self,
@@ -119,16 +54,13 @@ class LiberoVectorEnv:
         allow_mujoco_mismatch: bool = False,
         reply_timeout_s: float = REPLY_TIMEOUT_S,
     ):
-        if num_envs < 1:
-            raise UserError(f"num_envs must be at least 1, got {num_envs}")
+        check_worker_settings(num_envs, reply_timeout_s)
         if camera_size < 1:
             raise UserError(f"camera_size must be a positive number of pixels, got {camera_size}")
         if settle_steps < 0:
             raise UserError(f"settle_steps must not be negative, got {settle_steps}")
         if control_mode not in CONTROL_MODES:
             raise UserError(f"control_mode must be one of {', '.join(CONTROL_MODES)}, got {control_mode!r}")
-        if not reply_timeout_s > 0:
-            raise UserError(f"reply_timeout_s must be a positive number of seconds, got {reply_timeout_s}")
         self.suite = suite if isinstance(suite, LiberoSuite) else LiberoSuite(suite)
         self.versions = simulator_versions(allow_mujoco_mismatch, pinned=mujoco)
         self.camera_size = camera_size
@@ -136,271 +68,23 @@ class LiberoVectorEnv:
         self.control_mode = control_mode
         self.reply_timeout_s = reply_timeout_s
         config_dir()  # the workers inherit LIBERO_CONFIG_PATH and MUJOCO_GL
-        self._slots: list[_Slot] = []
-        self._finalizer = weakref.finalize(self, _close_slots, self._slots)
-        try:
-            self._slots.extend(self._launch() for _ in range(num_envs))
-            self._exchange({i: ("start", None) for i in range(num_envs)})
-        except BaseException:
-            self.close()
-            raise
-
-    # -- public API -----------------------------------------------------------------------------
-
-    @property
-    def num_envs(self) -> int:
-        return len(self._slots)
-
-    @property
-    def live(self) -> list[bool]:
-        return [slot.live for slot in self._slots]
-
-    @property
-    def episodes(self) -> list[EpisodeSpec | None]:
-        """The episode each slot runs or last ran."""
-        return [slot.episode for slot in self._slots]
-
-    @property
-    def steps(self) -> list[int]:
-        """Policy steps taken in each slot's episode (settle steps not counted)."""
-        return [slot.steps for slot in self._slots]
-
-    @property
-    def worker_pids(self) -> list[int]:
-        return [slot.process.pid for slot in self._slots]
-
-    def reset(self, slots: Sequence[EpisodeSpec | None]) -> list[dict | None]:
-        """Start an episode in every slot whose entry is an EpisodeSpec; None leaves a slot as it is.
-
-        The worker seeds the simulator, loads the init state, settles with `settle_steps` no-op
-        actions and returns the observation; slots left alone get None.
-        """
-        self._check_open()
-        if len(slots) != self.num_envs:
-            raise ValueError(f"reset() takes one entry per slot ({self.num_envs}), got {len(slots)}")
-        starts = {i: self._episode_start(spec) for i, spec in enumerate(slots) if spec is not None}
-        for i, start in starts.items():
-            self._begin(i, start.spec)
-        observations = self._exchange({i: ("reset", start) for i, start in starts.items()})
-        for i in observations:
-            self._slots[i].live = True
-        return [observations.get(i) for i in range(self.num_envs)]
-
-    def preload(self, task_ids: Sequence[int | None]) -> None:
-        """Build, in every slot whose entry is a task id, that task's env now, so that the slot's next
-        reset of it skips the build (seconds of CPU); what an episode observes does not change."""
-        self._check_open()
-        if len(task_ids) != self.num_envs:
-            raise ValueError(f"preload() takes one entry per slot ({self.num_envs}), got {len(task_ids)}")
-        requests = {i: ("load", str(self.suite.task(t).bddl_file)) for i, t in enumerate(task_ids) if t is not None}
-        for i in requests:
-            self._check_idle(i)
-        self._exchange(requests)
-
-    def step(self, actions: np.ndarray) -> tuple[list[dict | None], list[bool]]:
-        """Apply `actions[i]` in every live slot i; rows of other slots are ignored.
-
-        Returns per slot the new observation (None for slots not stepped) and success (LIBERO's done
-        flag). A slot whose episode succeeds stops being live.
-        """
-        self._check_open()
-        actions = np.asarray(actions, dtype=np.float64)
-        if actions.shape != (self.num_envs, ACTION_DIM):
-            raise ValueError(f"actions must have shape ({self.num_envs}, {ACTION_DIM}), got {actions.shape}")
-        live = [i for i, slot in enumerate(self._slots) if slot.live]
-        for i in live:
-            self._check_idle(i)
-            self._check_finite(i, actions[i : i + 1])
-        results = self._exchange({i: ("step", actions[i]) for i in live})
-        observations: list[dict | None] = [None] * self.num_envs
-        successes = [False] * self.num_envs
-        for i, (observation, success) in results.items():
-            observations[i], successes[i] = observation, success
-            self._advance(i, 1, success)
-        return observations, successes
-
-    def submit_reset(self, slot: int, spec: EpisodeSpec) -> None:
-        """Start `spec` in `slot` without waiting; its observation comes back through `collect()`."""
-        self._check_open()
-        start = self._episode_start(spec)
-        self._begin(slot, spec)
-        self._send(slot, "reset", start)
-
-    def submit_chunk(self, slot: int, actions: np.ndarray) -> None:
-        """Apply `actions` (`[k, 7]`) in the live `slot`, one after another inside its worker, without
-        waiting; the worker stops early on success and replies once, through `collect()`."""
-        self._check_open()
-        actions = np.asarray(actions, dtype=np.float64)
-        if actions.ndim != 2 or actions.shape[1] != ACTION_DIM or not len(actions):
-            raise ValueError(f"a chunk must have shape (k >= 1, {ACTION_DIM}), got {actions.shape}")
-        self._check_idle(slot)
-        if not self._slots[slot].live:
-            raise ValueError(f"slot {slot} has no live episode to step")
-        self._check_finite(slot, actions)
-        self._send(slot, "chunk", actions)
-
-    @property
-    def pending(self) -> list[int]:
-        """Slots whose submitted request has not been collected yet."""
-        return [i for i, slot in enumerate(self._slots) if slot.request is not None]
-
-    def collect(self, *, every: bool = False) -> list[SlotReply]:
-        """Wait until at least one pending slot has replied (`every`: all of them) and return the
-        replies that have arrived, in slot order. A slot that succeeds stops being live."""
-        self._check_open()
-        waiting = {self._slots[i].conn: i for i in self.pending}
-        if not waiting:
-            raise RuntimeError("collect() with no submitted request pending")
-        arrived, deadline = set(), time.monotonic() + self.reply_timeout_s
-        while waiting and not (arrived and not every):
-            replied = wait(list(waiting), timeout=max(0.0, deadline - time.monotonic()))
-            if not replied:
-                self._fail_hung(sorted(waiting.values()))
-            for conn in replied:
-                arrived.add(waiting.pop(conn))
-        commands = {i: self._slots[i].request for i in arrived}
-        replies = []
-        for i, value in self._receive(sorted(arrived)).items():
-            if commands[i] == "chunk":
-                observation, applied, success = value
-                self._advance(i, applied, success)
-            else:
-                observation, applied, success = value, 0, False
-                self._slots[i].live = True
-            replies.append(SlotReply(i, observation, applied, success))
-        return replies
-
-    def release(self, slot: int) -> None:
-        """End a slot's episode without success (e.g. the step limit): it is no longer stepped."""
-        self._slots[slot].live = False
-
-    def close(self) -> None:
-        self._finalizer()
+        self._start_workers(num_envs)
 
     def __enter__(self) -> LiberoVectorEnv:
         return self
 
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
+    def _worker_args(self) -> list[str]:
+        return [str(self.camera_size), str(self.settle_steps), self.control_mode]
 
-    # -- workers --------------------------------------------------------------------------------
-
-    def _check_open(self) -> None:
-        if not self._finalizer.alive:
-            raise RuntimeError("this LiberoVectorEnv is closed")
-
-    def _check_idle(self, i: int) -> None:
-        if self._slots[i].request is not None:
-            raise RuntimeError(f"slot {i} still has a {self._slots[i].request!r} request pending; collect() it first")
-
-    def _check_finite(self, i: int, actions: np.ndarray) -> None:
-        # MuJoCo integrates NaN without complaint; the runner must have stopped such an episode.
-        if not np.isfinite(actions).all():
-            raise ValueError(f"slot {i}: refusing non-finite actions (NaN or infinity) before they reach MuJoCo")
-
-    def _begin(self, i: int, spec: EpisodeSpec) -> None:
-        self._check_idle(i)
-        if self._slots[i].process.poll() is not None:  # died earlier: give the slot a new worker
-            self._replace_worker(i)
-        self._slots[i].episode, self._slots[i].live, self._slots[i].steps = spec, False, 0
-
-    def _advance(self, i: int, applied: int, success: bool) -> None:
-        self._slots[i].steps += applied
-        self._slots[i].live = not success
-
-    def _launch(self) -> _Slot:
-        ours, theirs = socket.socketpair()
-        with theirs:
-            args = [str(theirs.fileno()), str(self.camera_size), str(self.settle_steps), self.control_mode]
-            command = [sys.executable, "-c", _WORKER_MAIN, *args]
-            process = subprocess.Popen(command, pass_fds=(theirs.fileno(),), env=_worker_environment())
-        return _Slot(process, Connection(ours.detach()))
-
-    def _replace_worker(self, i: int) -> None:
-        self._slots[i].conn.close()
-        self._slots[i] = self._launch()
-        self._exchange({i: ("start", None)})
+    def _load_payload(self, task_id: int) -> str:
+        return str(self.suite.task(task_id).bddl_file)
 
     def _episode_start(self, spec: EpisodeSpec) -> EpisodeStart:
         task = self.suite.task(spec.task_id)
         init_state = self.suite.init_state(spec.task_id, spec.init_state_id)
         return EpisodeStart(spec, str(task.bddl_file), task.instruction, init_state)
 
-    def _exchange(self, requests: dict[int, tuple[str, Any]]) -> dict[int, Any]:
-        """Send every request first so the workers run in parallel, then collect every reply.
-
-        "start" sends nothing and only collects the worker's start-up reply.
-        """
-        for i, (command, payload) in requests.items():
-            if command == "start":
-                self._slots[i].request = command
-            else:
-                self._send(i, command, payload)
-        return self._receive(list(requests))
-
-    def _send(self, i: int, command: str, payload: Any) -> None:
-        try:
-            self._slots[i].conn.send((command, payload))
-        except OSError as error:
-            self._slots[i].live = False
-            raise LiberoWorkerError(self._describe(i, command, f"could not reach the worker ({error}); "
-                                                              f"{self._exit_status(i)}")) from None
-        self._slots[i].request = command
-
-    def _receive(self, slots: Sequence[int]) -> dict[int, Any]:
-        """The replies of `slots` to their pending requests; LiberoWorkerError naming every failure."""
-        failures: dict[int, tuple[str, str]] = {}
-        results = {}
-        deadline = time.monotonic() + self.reply_timeout_s
-        hung = [i for i in slots if not self._slots[i].conn.poll(max(0.0, deadline - time.monotonic()))]
-        if hung:
-            self._fail_hung(hung)
-        for i in slots:
-            command, self._slots[i].request = self._slots[i].request, None
-            try:
-                status, value = self._slots[i].conn.recv()
-            except (EOFError, OSError):
-                failures[i] = command, f"the worker died; {self._exit_status(i)}"
-                continue
-            if status == "ok":
-                results[i] = value
-            else:
-                failures[i] = command, value
-        if failures:
-            for i in failures:
-                self._slots[i].live = False
-            raise LiberoWorkerError(
-                "\n\n".join(self._describe(i, command, detail) for i, (command, detail) in failures.items())
-            )
-        return results
-
-    def _fail_hung(self, slots: Sequence[int]) -> None:
-        """Stop the workers of `slots`, which did not answer within `reply_timeout_s`, and raise
-        LiberoWorkerError naming each; a slot's next episode gets a new worker."""
-        details = []
-        for i in slots:
-            command, self._slots[i].request = self._slots[i].request, None
-            self._slots[i].live = False
-            self._slots[i].process.kill()
-            self._slots[i].process.wait()
-            details.append(self._describe(i, command, f"no reply within {self.reply_timeout_s:g} s: the worker "
-                                                      f"hung and was stopped (pid {self._slots[i].process.pid})"))
-        raise LiberoWorkerError("\n\n".join(details))
-
-    def _exit_status(self, i: int) -> str:
-        try:
-            code = self._slots[i].process.wait(timeout=_SHUTDOWN_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            return "it is still running"
-        return f"exit code {code}"
-
-    def _describe(self, i: int, command: str, detail: str) -> str:
-        where = f"LIBERO worker of slot {i} failed to {command}"
-        spec = self._slots[i].episode
-        if command != "start" and spec is not None:
-            task = self.suite.tasks[spec.task_id]
-            where += (
-                f" {self.suite.name} task {spec.task_id} ({task.name}) episode {spec.episode}"
-                f" (init state {spec.init_state_id}, seed {spec.seed})"
-            )
-        return f"{where}:\n{detail}"
+    def _episode_label(self, spec: EpisodeSpec) -> str:
+        task = self.suite.tasks[spec.task_id]
+        return (f"{self.suite.name} task {spec.task_id} ({task.name}) episode {spec.episode}"
+                f" (init state {spec.init_state_id}, seed {spec.seed})")

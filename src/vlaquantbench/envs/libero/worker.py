@@ -10,16 +10,14 @@ only the image that observation carries (`SlotSimulator.chunk`; a start's settle
 
 from __future__ import annotations
 
-import os
-import signal
-import traceback
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 
 import numpy as np
 
+from vlaquantbench.envs.episodes import EpisodeSpec
 from vlaquantbench.envs.libero.offline import load_libero
-from vlaquantbench.envs.libero.suite import EpisodeSpec
+from vlaquantbench.envs.workers import become_worker, serve
 
 # LIBERO's no-op: arm still (zero delta pose), gripper open (-1). Used to let objects settle after an
 # init state is loaded, as lerobot's LiberoEnv (num_steps_wait=10) and openpi's LIBERO client do.
@@ -188,47 +186,19 @@ class SlotSimulator:
         self._bddl_file = None
 
 
-def serve(conn: Connection, camera_size: int, settle_steps: int, control_mode: str = "delta") -> None:
-    try:
+def serve_libero(conn: Connection, camera_size: int, settle_steps: int, control_mode: str = "delta") -> None:
+    def open_simulator():
         load_libero()
         import libero.libero.envs  # noqa: F401  (robosuite and MuJoCo load before the start-up reply)
-    except Exception:
-        conn.send(("error", traceback.format_exc()))
-        return
-    simulator = SlotSimulator(camera_size, settle_steps, control_mode)
-    handlers = {"load": simulator.load, "reset": simulator.start, "step": simulator.step, "chunk": simulator.chunk}
-    conn.send(("ok", None))
-    try:
-        while True:
-            try:
-                command, payload = conn.recv()
-            except EOFError:  # the parent is gone
-                return
-            if command == "close":
-                return
-            try:
-                reply = ("ok", handlers[command](payload))
-            except Exception:
-                reply = ("error", traceback.format_exc())
-            try:
-                conn.send(reply)
-            except OSError:  # the parent closed its end while we were working
-                return
-    finally:
-        simulator.close()
 
+        simulator = SlotSimulator(camera_size, settle_steps, control_mode)
+        handlers = {"load": simulator.load, "reset": simulator.start, "step": simulator.step, "chunk": simulator.chunk}
+        return handlers, simulator.close
 
-# Workers yield the CPU to the process that drives them: with more workers than cores, the closed-loop
-# runner's main process (which feeds the policy and collects the replies) would otherwise wait for a
-# time slice at every step of its loop while every worker is ready to run. Moderate (a third of a
-# normal process's CPU share under contention): on a machine shared with other jobs the workers
-# still get their turn.
-WORKER_NICENESS = 5
+    serve(conn, open_simulator)
 
 
 def main(argv: list[str]) -> None:
-    # Ctrl-C reaches the whole process group; the parent decides and closes its workers.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    os.nice(WORKER_NICENESS)
+    become_worker()
     fd, camera_size, settle_steps = (int(arg) for arg in argv[:3])
-    serve(Connection(fd), camera_size, settle_steps, argv[3])
+    serve_libero(Connection(fd), camera_size, settle_steps, argv[3])
