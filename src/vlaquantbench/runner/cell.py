@@ -10,7 +10,9 @@ chunk length, every selected activation hook must have fired, and the MuJoCo pin
 the simulator versions are read. Records are only written when every configured episode exists;
 until then they live in the journal, which survives any kill. `run_cell` starts the LIBERO workers,
 which build the envs of the first episodes to run, in a thread while `prepare` loads the policy:
-both take seconds of CPU, each mostly on one core.
+both take seconds of CPU, each mostly on one core. One process at a time writes a cell: `run_cell`
+(and `run`) hold the cell's writer lock (`runner.lock`), so a second writer is refused by name
+before it loads anything.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.records import write_cell
 from vlaquantbench.records.cell import JOURNAL_FILE
 from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal, recorded_keys
+from vlaquantbench.runner.lock import writing
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.quant.apply import hook_summary
 from vlaquantbench.quant.semantics import QUANT_SEMANTICS
@@ -114,6 +117,10 @@ class CellRun:
         ]
         self.max_steps = cfg["runner"]["max_steps"] or self.suite.max_steps(cfg["model"])
         self._env: Future | None = None  # the LIBERO workers, once started
+
+    def writing(self):
+        """The cell's writer lock (re-entrant within this process); CellLocked if another holds it."""
+        return writing(self.out_dir, self.journal, self.cfg["ref"])
 
     def start_env(self) -> None:
         """Start the LIBERO workers for the episodes the journal lacks, in a thread that also builds
@@ -222,7 +229,8 @@ class CellRun:
     def run(self) -> Path:
         """Run the missing episodes, check hook coverage, write the records; returns the episodes file."""
         try:
-            return self._run()
+            with self.writing():
+                return self._run()
         finally:
             self.close_env()
 
@@ -284,10 +292,11 @@ def _key(spec) -> tuple:
 
 def run_cell(cfg: dict[str, Any], out_dir: str | Path, checkpoint_stamp=None, calibration_stats=None, **options) -> Path:
     run = CellRun(cfg, out_dir, checkpoint_stamp, calibration_stats, **options)
-    run.start_env()
-    try:
-        run.prepare()
-    except BaseException:
-        run.close_env()
-        raise
-    return run.run()
+    with run.writing():
+        run.start_env()
+        try:
+            run.prepare()
+        except BaseException:
+            run.close_env()
+            raise
+        return run.run()
