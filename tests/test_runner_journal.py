@@ -1,8 +1,13 @@
 """The cell journal: durable appends, torn last lines, refused header mismatches, episodes recorded twice\n(alike: resumed once; differently: refused naming the lines)."""
 
 import json
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
+import yaml
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.runner.journal import CellJournal, recorded_episodes, recorded_keys
@@ -84,3 +89,26 @@ def test_an_episode_recorded_twice_differently_is_refused_naming_file_lines_and_
     lines = before.decode().splitlines(keepends=True)
     path.write_text("".join(lines[:2] + lines[4:]))
     assert CellJournal(path, HEADER).done_keys() == {(0, 0, 0)}
+
+
+def test_vqb_rollout_refuses_a_journal_with_conflicting_duplicates_before_anything_runs(tmp_path):
+    ref = "libero/libero_spatial/pi05/rtn-W4A4-ah"
+    config = tmp_path / "study.yaml"
+    config.write_text(yaml.safe_dump({"study": {"models": {"pi05": {"variant": "demo"}}, "tasks": [0],
+                                                "episodes_per_task": 2}}))
+    command = [sys.executable, "-m", "vlaquantbench.cli", "rollout", ref, "--config", str(config), "--results", str(tmp_path)]
+    folder = Path(json.loads(subprocess.run([*command, "--show"], capture_output=True, text=True, check=True,
+                                            timeout=300).stdout)["folder"])
+    path = folder / "journal.jsonl"
+    journal = CellJournal(path, HEADER)
+    journal.record([episode(0, 0), episode(0, 1)], fired=set())
+    journal.record([episode(0, 0, success=True)], fired=set())
+    before = path.read_bytes()
+    began = time.monotonic()
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2
+    assert result.stderr.startswith(f"vqb rollout: error: {path}: episodes recorded twice with different outcomes")
+    assert "lines 2 and 4: {'task_id': 0, 'episode': 0, 'seed': 0} (success: false vs true)" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert time.monotonic() - began < 60  # no policy loaded, no LIBERO worker started
+    assert path.read_bytes() == before and not (folder / "episodes.parquet").exists()

@@ -68,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"config_hash": config_hash(cfg), "folder": str(out), "config": cfg}, indent=2))
         return 0
     from vlaquantbench.records.cell import JOURNAL_FILE
+    from vlaquantbench.runner.journal import recorded_episodes, recorded_keys
     from vlaquantbench.runner.lock import writing
     from vlaquantbench.runner.signals import sigterm_interrupts
 
@@ -75,10 +76,9 @@ def run(args: argparse.Namespace) -> int:
         # The lock first: a second writer of this cell is refused before it downloads, calibrates or
         # loads anything.
         with sigterm_interrupts(), writing(out, out / JOURNAL_FILE, args.ref):
+            recorded_keys(out / JOURNAL_FILE)  # episodes journaled twice differently: refused now, not after a download
             return _run(args, study, cfg, project)
     except KeyboardInterrupt as stop:
-        from vlaquantbench.runner.journal import recorded_episodes
-
         signum = getattr(stop, "signum", signal.SIGINT)
         what = "interrupted" if signum == signal.SIGINT else f"terminated ({signal.Signals(signum).name})"
         total = len(cfg["tasks"]) * cfg["episodes_per_task"]
