@@ -106,7 +106,7 @@ def _refusal(path: Path, cell: str, holder: str) -> str:
     try:
         who = json.loads(holder)
         named = (f"pid {who['pid']} on host {who['host']}, started {who['started']}, writing cell {who['cell']} "
-                 f"({who['command']})")
+                 f"(command: {who['command']})")
     except (ValueError, KeyError, TypeError):  # the holder is between its lock and its write
         named = "a process that has not named itself yet"
     return (f"cell {cell}: another process writes it: {path} is locked by {named}. Two writers would run every "
