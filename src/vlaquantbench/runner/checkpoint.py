@@ -39,6 +39,8 @@ def _bound_timeouts(request) -> None:
 
 def _bounded_client():
     """huggingface_hub's own client (its request hooks and redirects), every request timed out."""
+    # Its default factory is private (huggingface_hub 1.33), but rebuilding the client by hand would
+    # copy its private request hook; the public seam, set_client_factory, replaces the factory whole.
     from huggingface_hub.utils import _http
 
     client = _http.default_client_factory()
