@@ -20,6 +20,7 @@ from __future__ import annotations
 import fnmatch
 import json
 import sys
+import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -117,6 +118,7 @@ class CellRun:
         ]
         self.max_steps = cfg["runner"]["max_steps"] or self.suite.max_steps(cfg["model"])
         self._env: Future | None = None  # the LIBERO workers, once started
+        self._closing = threading.Event()  # set by close_env: a start-up in progress ends early
 
     def writing(self):
         """The cell's writer lock (re-entrant within this process); CellLocked if another holds it."""
@@ -141,20 +143,24 @@ class CellRun:
                 control_mode=runner["control_mode"], mujoco=runner["mujoco"],
             )
             try:
-                env.preload([spec.task_id for spec in missing[:num_envs]])
+                if not closing.is_set():  # a cell stopped during its start-up skips building the envs
+                    env.preload([spec.task_id for spec in missing[:num_envs]])
             except BaseException:
                 env.close()
                 raise
             return env
 
+        closing = self._closing = threading.Event()
         pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="libero-start")
         future = pool.submit(start)
         pool.shutdown(wait=False)
         return future
 
     def close_env(self) -> None:
-        """Stop the LIBERO workers, waiting for a start-up in progress to end first."""
+        """Stop the LIBERO workers, waiting for a start-up in progress to end first (without its env
+        builds: Ctrl-C or SIGTERM during the policy's load stops the workers once they have started)."""
         if self._env is not None:
+            self._closing.set()
             future, self._env = self._env, None
             try:
                 future.result().close()
