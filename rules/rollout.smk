@@ -4,6 +4,7 @@
 # when something that changes its episodes changes. Without `records_dir` only.
 from vlaquantbench import cells as cell_configs  # noqa: E402
 from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE, JOURNAL_FILE  # noqa: E402
+from vlaquantbench.runner.lock import LOCK_FILE  # noqa: E402
 from vlaquantbench.workflow import CELLS_DIR  # noqa: E402
 
 # Built (and every cell checked against the registries and the layer-name index) at parse time.
@@ -71,11 +72,12 @@ rule rollout:
         cell="|".join(CELLS) or "^$",
     # `state`: files the job keeps across failures, declared here because no Snakemake declaration
     # survives one (a failed job's outputs are removed, logs are removed when a job starts, and
-    # update() outputs are rolled back). The journal of finished episodes lets a killed cell resume.
+    # update() outputs are rolled back). The journal of finished episodes lets a killed cell resume;
+    # the writer lock refuses a second job of the cell (another Snakemake, another SLURM job) while one runs.
     params:
         cell=lambda wc: CELLS[wc.cell],
         execution=lambda wc: WF.study.execution.as_kwargs(),
-        state=lambda wc: {"journal": f"{CELLS_DIR}/{wc.cell}/{JOURNAL_FILE}"},
+        state=lambda wc: {"journal": f"{CELLS_DIR}/{wc.cell}/{JOURNAL_FILE}", "lock": f"{CELLS_DIR}/{wc.cell}/{LOCK_FILE}"},
     log:
         "logs/rollout/{cell}.log",
     threads: 2

@@ -8,8 +8,10 @@ Results go to `<checkout>/results/` (the checkout holding this package, as Snake
 `--results DIR` names another project folder.
 
 Fetches the checkpoint and collects calibration statistics first when the cell needs them; an
-interrupted run resumes from its journal. Ctrl-C prints how many of the cell's episodes are recorded
-and exits 130; the same command resumes the cell. The config file is validated exactly as Snakemake
+interrupted run resumes from its journal. Ctrl-C (SIGINT) or SIGTERM (SLURM's time limit, `kill`)
+prints how many of the cell's episodes are recorded, stops the LIBERO workers and exits 130 or 143;
+the same command resumes the cell. One process writes a cell at a time: a second `vqb rollout`,
+Snakemake job or SLURM job of the same cell is refused, naming the first (`runner.lock`). The config file is validated exactly as Snakemake
 validates it (the same schema and validator), and the cell against the registries, before anything runs.
 """
 
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -65,17 +68,25 @@ def run(args: argparse.Namespace) -> int:
     if args.show:
         print(json.dumps({"config_hash": config_hash(cfg), "folder": str(out), "config": cfg}, indent=2))
         return 0
-    try:
-        return _run(args, study, cfg, project)
-    except KeyboardInterrupt:
-        from vlaquantbench.records.cell import JOURNAL_FILE
-        from vlaquantbench.runner.journal import recorded_episodes
+    from vlaquantbench.records.cell import JOURNAL_FILE
+    from vlaquantbench.runner.journal import recorded_episodes, recorded_keys
+    from vlaquantbench.runner.lock import writing
+    from vlaquantbench.runner.signals import sigterm_interrupts
 
+    try:
+        # The lock first: a second writer of this cell is refused before it downloads, calibrates or
+        # loads anything.
+        with sigterm_interrupts(), writing(out, out / JOURNAL_FILE, args.ref):
+            recorded_keys(out / JOURNAL_FILE)  # episodes journaled twice differently: refused now, not after a download
+            return _run(args, study, cfg, project)
+    except KeyboardInterrupt as stop:
+        signum = getattr(stop, "signum", signal.SIGINT)
+        what = "interrupted" if signum == signal.SIGINT else f"terminated ({signal.Signals(signum).name})"
         total = len(cfg["tasks"]) * cfg["episodes_per_task"]
         done = recorded_episodes(out / JOURNAL_FILE)
-        print(f"\nvqb rollout: interrupted: {args.ref} has {done} of {total} episodes recorded in {out}; "
+        print(f"\nvqb rollout: {what}: {args.ref} has {done} of {total} episodes recorded in {out}; "
               "run the same command again to resume it", file=sys.stderr)
-        return 130
+        return 128 + signum
 
 
 def _run(args: argparse.Namespace, study: StudyConfig, cfg: dict, project: Path) -> int:

@@ -10,7 +10,9 @@ chunk length, every selected activation hook must have fired, and the MuJoCo pin
 the simulator versions are read. Records are only written when every configured episode exists;
 until then they live in the journal, which survives any kill. `run_cell` starts the LIBERO workers,
 which build the envs of the first episodes to run, in a thread while `prepare` loads the policy:
-both take seconds of CPU, each mostly on one core.
+both take seconds of CPU, each mostly on one core. One process at a time writes a cell: `run_cell`
+(and `run`) hold the cell's writer lock (`runner.lock`), so a second writer is refused by name
+before it loads anything.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 import fnmatch
 import json
 import sys
+import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -33,6 +36,7 @@ from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.records import write_cell
 from vlaquantbench.records.cell import JOURNAL_FILE
 from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal, recorded_keys
+from vlaquantbench.runner.lock import writing
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.quant.apply import hook_summary
 from vlaquantbench.quant.semantics import QUANT_SEMANTICS
@@ -127,6 +131,11 @@ class CellRun:
                       for t, e in episode_keys(cfg["tasks"], cfg["episodes_per_task"], episode_order)]
         self.max_steps = cfg["runner"]["max_steps"] or self.suite.max_steps(cfg["model"])
         self._env: Future | None = None  # the LIBERO workers, once started
+        self._closing = threading.Event()  # set by close_env: a start-up in progress ends early
+
+    def writing(self):
+        """The cell's writer lock (re-entrant within this process); CellLocked if another holds it."""
+        return writing(self.out_dir, self.journal, self.cfg["ref"])
 
     def start_env(self) -> None:
         """Start the LIBERO workers for the episodes the journal lacks, in a thread that also builds
@@ -147,20 +156,24 @@ class CellRun:
                 control_mode=runner["control_mode"], mujoco=runner["mujoco"],
             )
             try:
-                env.preload([spec.task_id for spec in missing[:num_envs]])
+                if not closing.is_set():  # a cell stopped during its start-up skips building the envs
+                    env.preload([spec.task_id for spec in missing[:num_envs]])
             except BaseException:
                 env.close()
                 raise
             return env
 
+        closing = self._closing = threading.Event()
         pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="libero-start")
         future = pool.submit(start)
         pool.shutdown(wait=False)
         return future
 
     def close_env(self) -> None:
-        """Stop the LIBERO workers, waiting for a start-up in progress to end first."""
+        """Stop the LIBERO workers, waiting for a start-up in progress to end first (without its env
+        builds: Ctrl-C or SIGTERM during the policy's load stops the workers once they have started)."""
         if self._env is not None:
+            self._closing.set()
             future, self._env = self._env, None
             try:
                 future.result().close()
@@ -235,7 +248,8 @@ class CellRun:
     def run(self) -> Path:
         """Run the missing episodes, check hook coverage, write the records; returns the episodes file."""
         try:
-            return self._run()
+            with self.writing():
+                return self._run()
         finally:
             self.close_env()
 
@@ -297,10 +311,11 @@ def _key(spec) -> tuple:
 
 def run_cell(cfg: dict[str, Any], out_dir: str | Path, checkpoint_stamp=None, calibration_stats=None, **options) -> Path:
     run = CellRun(cfg, out_dir, checkpoint_stamp, calibration_stats, **options)
-    run.start_env()
-    try:
-        run.prepare()
-    except BaseException:
-        run.close_env()
-        raise
-    return run.run()
+    with run.writing():
+        run.start_env()
+        try:
+            run.prepare()
+        except BaseException:
+            run.close_env()
+            raise
+        return run.run()

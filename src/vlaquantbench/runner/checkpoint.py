@@ -6,6 +6,13 @@ repositories the checkpoint's preprocessor loads by name, fetched too so that no
 With `HF_HUB_OFFLINE=1` everything resolves from the cache, e.g. the fixture of `vqb hub-fixture`.
 The demo variant has random weights and no checkpoint to fetch; its stamp says so, so the DAG has
 the same shape for both.
+
+Every request has a timeout and a snapshot a bounded number of attempts: huggingface_hub bounds its
+file transfers by `HF_HUB_DOWNLOAD_TIMEOUT` / `HF_HUB_ETAG_TIMEOUT` (seconds, default 10) but sends
+the revision lookup and the file listing with no timeout at all, so a server that accepts the
+connection and never answers held the download until it was killed. Each snapshot is tried
+`DOWNLOAD_ATTEMPTS` times (an interrupted one resumes its partial files), then refused naming the
+repository and revision.
 """
 
 from __future__ import annotations
@@ -17,6 +24,42 @@ from typing import Any
 from vlaquantbench.atomic import write_text
 from vlaquantbench.errors import UserError
 
+DOWNLOAD_ATTEMPTS = 3
+# Between attempts: 2 s, then 4 s (tenacity's exponential wait), time for a passing hub hiccup.
+RETRY_WAIT_S = 2
+
+
+def _bound_timeouts(request) -> None:
+    """An httpx request hook: every timeout huggingface_hub left unbounded becomes HF_HUB_DOWNLOAD_TIMEOUT."""
+    from huggingface_hub import constants
+
+    timeouts = request.extensions.get("timeout", {})
+    request.extensions["timeout"] = {k: constants.HF_HUB_DOWNLOAD_TIMEOUT if v is None else v for k, v in timeouts.items()}
+
+
+def _bounded_client():
+    """huggingface_hub's own client (its request hooks and redirects), every request timed out."""
+    # Its default factory is private (huggingface_hub 1.33), but rebuilding the client by hand would
+    # copy its private request hook; the public seam, set_client_factory, replaces the factory whole.
+    from huggingface_hub.utils import _http
+
+    client = _http.default_client_factory()
+    client.event_hooks = {**client.event_hooks, "request": [*client.event_hooks["request"], _bound_timeouts]}
+    return client
+
+
+def _transient(err: BaseException) -> bool:
+    """A network failure worth another attempt: a timeout or a dropped connection, raised as such or
+    behind huggingface_hub's "cannot find it locally" (its revision lookup swallows them)."""
+    import httpx
+
+    while err is not None:
+        if isinstance(err, (httpx.TimeoutException, httpx.NetworkError, httpx.RemoteProtocolError)):
+            return True
+        err = err.__cause__
+    return False
+
+
 # What a tokenizer repository is fetched for: transformers' tokenizer files and the model config
 # AutoTokenizer reads its model type from (not the model's weights).
 TOKENIZER_PATTERNS = ["tokenizer*", "special_tokens_map.json", "added_tokens.json", "config.json"]
@@ -26,19 +69,29 @@ def _snapshot(what: str, repo_id: str, revision: str | None, allow_patterns: lis
     """`repo_id` at `revision` in the HF cache (fetched unless offline); UserError naming the revision
     and the revisions the cache holds, instead of a traceback from inside the HTTP client."""
     import httpx
-    from huggingface_hub import constants, snapshot_download
+    import tenacity
+    from huggingface_hub import constants, set_client_factory, snapshot_download
     from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError
 
     from vlaquantbench.hub.cache import repo_folder
 
+    set_client_factory(_bounded_client)  # huggingface_hub's seam for configuring its HTTP client
+    attempts = tenacity.Retrying(
+        stop=tenacity.stop_after_attempt(DOWNLOAD_ATTEMPTS), wait=tenacity.wait_exponential(multiplier=RETRY_WAIT_S),
+        retry=tenacity.retry_if_exception(_transient), reraise=True,
+    )
     try:
         # Offline, only the cache's snapshots/ and refs/ are consulted (caches written before
         # huggingface_hub kept tree listings resolve too).
-        path = snapshot_download(repo_id, revision=revision, allow_patterns=allow_patterns,
-                                 local_files_only=constants.HF_HUB_OFFLINE)
+        path = attempts(snapshot_download, repo_id, revision=revision, allow_patterns=allow_patterns,
+                        local_files_only=constants.HF_HUB_OFFLINE)
         return Path(path).absolute()
     except (LocalEntryNotFoundError, HfHubHTTPError, httpx.HTTPError, OSError) as err:
         reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        if _transient(err):
+            tries = attempts.statistics.get("attempt_number", DOWNLOAD_ATTEMPTS)
+            reason = (f"no answer within HF_HUB_DOWNLOAD_TIMEOUT={constants.HF_HUB_DOWNLOAD_TIMEOUT} s from "
+                      f"{constants.ENDPOINT} in {tries} attempts ({reason})")
         snapshots = repo_folder(constants.HF_HUB_CACHE, repo_id) / "snapshots"
         held = sorted(p.name for p in snapshots.iterdir()) if snapshots.is_dir() else []
         raise UserError(

@@ -5,6 +5,10 @@ finished episode (`kind: episode`) or the set of selected layers whose activatio
 so far (`kind: hooks`). Each append is flushed and fsync'd, so a `kill -9` loses at most the line
 being written; a torn last line is dropped when the journal is reopened. A rerun resumes with the
 episodes that are missing, and refuses to continue if its header disagrees with the journal's.
+
+An episode recorded twice (two writers of one cell before `runner.lock` existed, or a journal
+concatenated by hand) resumes when both lines agree but for their timing; lines that disagree are
+refused, naming the file, the lines and what to delete.
 """
 
 from __future__ import annotations
@@ -25,6 +29,8 @@ RESUMABLE_CHANGES = ("code_revision", "ref", "cell", "subset", "method")
 # spread under one-ulp input moves that sets the bound) may differ in the last bits on another machine,
 # so only the probe's path, device and bound rule must match (a rerun that fails its bound is refused anyway).
 PROBE_MEASUREMENTS = ("max_abs_diff", "rel_l2", "eager_ulp_spread")
+# What two runs of one episode may record differently: how long it took.
+TIMING_FIELDS = ("wall_time_s", "policy_batch_latency_mean_s")
 
 
 def _compared(header: dict[str, Any]) -> dict[str, Any]:
@@ -49,12 +55,45 @@ def header_differences(recorded: dict[str, Any], current: dict[str, Any]) -> lis
     return lines
 
 
+def _numbered(lines: list[bytes]) -> list[tuple[int, dict[str, Any]]]:
+    """(line number from 1, record) of a journal's whole, non-empty lines."""
+    return [(n, json.loads(line)) for n, line in enumerate(lines, 1) if line.strip()]
+
+
+def unique_episodes(path: Path, numbered: list[tuple[int, dict[str, Any]]]) -> list[dict[str, Any]]:
+    """The episode records of `numbered`, each episode once: a line repeating an earlier one but for
+    its TIMING_FIELDS is dropped; lines that record one episode differently are refused, naming them."""
+    first: dict[tuple, tuple[int, dict[str, Any]]] = {}
+    conflicts = []
+    for n, record in numbered:
+        if record.get("kind") != "episode":
+            continue
+        key = tuple(record[k] for k in EPISODE_KEY)
+        if key not in first:
+            first[key] = n, record
+            continue
+        m, earlier = first[key]
+        fields = sorted(k for k in set(earlier) | set(record)
+                        if k not in TIMING_FIELDS and earlier.get(k) != record.get(k))
+        if fields:
+            values = "; ".join(f"{k}: {json.dumps(earlier.get(k))} vs {json.dumps(record.get(k))}" for k in fields)
+            conflicts.append(f"lines {m} and {n}: {dict(zip(EPISODE_KEY, key))} ({values})")
+    if conflicts:
+        raise UserError(
+            f"{path}: episodes recorded twice with different outcomes (two writers of the cell at once?):\n  "
+            + "\n  ".join(conflicts)
+            + f"\nDelete both lines of each pair from {path} to run those episodes again when the cell resumes "
+            f"(or only the line you distrust), or move {Path(path).parent} away to rerun the whole cell."
+        )
+    return [{k: v for k, v in record.items() if k != "kind"} for _, record in first.values()]
+
+
 def _episode_lines(path: Path) -> list[dict[str, Any]]:
-    """The journal's episode lines, unchecked (no header comparison); a torn last line does not count."""
+    """The journal's episodes, each once, unchecked otherwise (no header comparison); a torn last line
+    does not count."""
     if not Path(path).exists():
         return []
-    complete = Path(path).read_bytes().split(b"\n")[:-1]
-    return [r for r in (json.loads(line) for line in complete if line.strip()) if r.get("kind") == "episode"]
+    return unique_episodes(path, _numbered(Path(path).read_bytes().split(b"\n")[:-1]))
 
 
 def recorded_episodes(path: Path) -> int:
@@ -64,7 +103,8 @@ def recorded_episodes(path: Path) -> int:
 
 def recorded_keys(path: Path) -> set[tuple]:
     """The EPISODE_KEYs of a journal's episodes, for planning only: the header is not checked
-    (`CellJournal` does that before anything is recorded)."""
+    (`CellJournal` does that before anything is recorded); episodes recorded twice differently are
+    refused here already, before a model loads."""
     return {tuple(r[k] for k in EPISODE_KEY) for r in _episode_lines(path)}
 
 
@@ -93,7 +133,8 @@ class CellJournal:
             with open(self.path, "r+b") as handle:
                 handle.truncate(len(raw) - len(torn))
                 os.fsync(handle.fileno())
-        records = [json.loads(line) for line in complete if line.strip()]
+        numbered = _numbered(complete)
+        records = [record for _, record in numbered]
         if not records or records[0].get("kind") != "header":
             raise UserError(f"{self.path}: journal has no header line; move it away to start the cell afresh")
         recorded = {k: v for k, v in records[0].items() if k != "kind"}
@@ -103,16 +144,10 @@ class CellJournal:
                 f"{self.path}: the cell's existing records were made with another header; refusing to mix them "
                 "(move the folder away to start afresh):\n  " + "\n  ".join(differences)
             )
-        seen = set()
         for record in records[1:]:
             if record["kind"] == "hooks":
                 self.fired.update(record["fired"])
-            elif record["kind"] == "episode":
-                key = tuple(record[k] for k in EPISODE_KEY)
-                if key in seen:
-                    raise UserError(f"{self.path}: duplicate episode {dict(zip(EPISODE_KEY, key))}")
-                seen.add(key)
-                self.episodes.append({k: v for k, v in record.items() if k != "kind"})
+        self.episodes = unique_episodes(self.path, numbered[1:])
 
     def done_keys(self) -> set[tuple]:
         return {tuple(e[k] for k in EPISODE_KEY) for e in self.episodes}
