@@ -6,14 +6,22 @@ the cell's journal beside them, which the rule declares as a log: Snakemake keep
 from pathlib import Path
 
 from vlaquantbench.runner.cell import run_cell
+from vlaquantbench.runner.signals import report_stop, sigterm_interrupts
 from vlaquantbench.rule_log import job_log
 
-with job_log(snakemake):
-    run_cell(
-        snakemake.params.cell,
-        Path(snakemake.output.header).parent,
-        snakemake.input.checkpoint,
-        snakemake.input.calibration[0] if snakemake.input.calibration else None,
-        journal=snakemake.params.state["journal"],
-        **snakemake.params.execution,
-    )
+out = Path(snakemake.output.header).parent
+journal = snakemake.params.state["journal"]
+# SLURM sends SIGTERM at a job's time limit and on preemption: the job ends as `vqb rollout` does, saying
+# how far the cell got (on the job's stderr), its workers closed and its journal whole, with status 143.
+try:
+    with sigterm_interrupts(), job_log(snakemake):
+        run_cell(
+            snakemake.params.cell,
+            out,
+            snakemake.input.checkpoint,
+            snakemake.input.calibration[0] if snakemake.input.calibration else None,
+            journal=journal,
+            **snakemake.params.execution,
+        )
+except KeyboardInterrupt as stop:
+    raise SystemExit(report_stop(stop, snakemake.params.cell, out, journal))

@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
-import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -69,9 +67,9 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"config_hash": config_hash(cfg), "folder": str(out), "config": cfg}, indent=2))
         return 0
     from vlaquantbench.records.cell import JOURNAL_FILE
-    from vlaquantbench.runner.journal import recorded_episodes, recorded_keys
+    from vlaquantbench.runner.journal import recorded_keys
     from vlaquantbench.runner.lock import writing
-    from vlaquantbench.runner.signals import sigterm_interrupts
+    from vlaquantbench.runner.signals import report_stop, sigterm_interrupts
 
     try:
         # The lock first: a second writer of this cell is refused before it downloads, calibrates or
@@ -80,13 +78,7 @@ def run(args: argparse.Namespace) -> int:
             recorded_keys(out / JOURNAL_FILE)  # episodes journaled twice differently: refused now, not after a download
             return _run(args, study, cfg, project)
     except KeyboardInterrupt as stop:
-        signum = getattr(stop, "signum", signal.SIGINT)
-        what = "interrupted" if signum == signal.SIGINT else f"terminated ({signal.Signals(signum).name})"
-        total = len(cfg["tasks"]) * cfg["episodes_per_task"]
-        done = recorded_episodes(out / JOURNAL_FILE)
-        print(f"\nvqb rollout: {what}: {args.ref} has {done} of {total} episodes recorded in {out}; "
-              "run the same command again to resume it", file=sys.stderr)
-        return 128 + signum
+        return report_stop(stop, cfg, out, out / JOURNAL_FILE)
 
 
 def _run(args: argparse.Namespace, study: StudyConfig, cfg: dict, project: Path) -> int:

@@ -7,8 +7,10 @@ cell got and how to resume it before it exits 128 + 15.
 from __future__ import annotations
 
 import signal
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 
 class Terminated(KeyboardInterrupt):
@@ -38,3 +40,16 @@ def sigterm_interrupts() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def report_stop(stop: KeyboardInterrupt, cfg: dict, out: str | Path, journal: str | Path) -> int:
+    """Say on stderr how far cell `cfg` got (its episodes recorded in `journal`) and how to resume it,
+    after Ctrl-C or SIGTERM (`stop`); the conventional exit status, 128 + the signal's number."""
+    from vlaquantbench.runner.journal import recorded_episodes
+
+    signum = getattr(stop, "signum", signal.SIGINT)
+    what = "interrupted" if signum == signal.SIGINT else f"terminated ({signal.Signals(signum).name})"
+    total = len(cfg["tasks"]) * cfg["episodes_per_task"]
+    print(f"\nvqb rollout: {what}: {cfg['ref']} has {recorded_episodes(Path(journal))} of {total} episodes "
+          f"recorded in {out}; run the same command again to resume it", file=sys.stderr, flush=True)
+    return 128 + signum
