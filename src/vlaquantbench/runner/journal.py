@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from vlaquantbench.errors import UserError
+from vlaquantbench.records.schema import EpisodeCheck, present
 
 EPISODE_KEY = ("task_id", "episode", "seed")
 # Header fields a rerun may change and still resume: the code revision (the arithmetic is versioned by
@@ -48,12 +49,21 @@ def header_differences(recorded: dict[str, Any], current: dict[str, Any]) -> lis
     return lines
 
 
+def _parsed(path: Path, number: int, line: bytes) -> dict[str, Any]:
+    try:
+        return json.loads(line)
+    except json.JSONDecodeError as err:
+        raise UserError(f"{path}:{number}: malformed journal line ({err.msg} at column {err.colno}); "
+                        "move the journal away to start the cell afresh") from None
+
+
 def _episode_lines(path: Path) -> list[dict[str, Any]]:
     """The journal's episode lines, unchecked (no header comparison); a torn last line does not count."""
     if not Path(path).exists():
         return []
     complete = Path(path).read_bytes().split(b"\n")[:-1]
-    return [r for r in (json.loads(line) for line in complete if line.strip()) if r.get("kind") == "episode"]
+    records = (_parsed(path, number, line) for number, line in enumerate(complete, start=1) if line.strip())
+    return [r for r in records if r.get("kind") == "episode"]
 
 
 def recorded_episodes(path: Path) -> int:
@@ -92,7 +102,8 @@ class CellJournal:
             with open(self.path, "r+b") as handle:
                 handle.truncate(len(raw) - len(torn))
                 os.fsync(handle.fileno())
-        records = [json.loads(line) for line in complete if line.strip()]
+        numbered = [(number, _parsed(self.path, number, line)) for number, line in enumerate(complete, start=1) if line.strip()]
+        records = [record for _, record in numbered]
         if not records or records[0].get("kind") != "header":
             raise UserError(f"{self.path}: journal has no header line; move it away to start the cell afresh")
         recorded = {k: v for k, v in records[0].items() if k != "kind"}
@@ -102,11 +113,13 @@ class CellJournal:
                 f"{self.path}: the cell's existing records were made with another header; refusing to mix them "
                 "(move the folder away to start afresh):\n  " + "\n  ".join(differences)
             )
+        check = EpisodeCheck(recorded, f"{self.path}:{numbered[0][0]}")
         seen = set()
-        for record in records[1:]:
+        for number, record in numbered[1:]:
             if record["kind"] == "hooks":
                 self.fired.update(record["fired"])
             elif record["kind"] == "episode":
+                check(present(record), f"{self.path}:{number}")
                 key = tuple(record[k] for k in EPISODE_KEY)
                 if key in seen:
                     raise UserError(f"{self.path}: duplicate episode {dict(zip(EPISODE_KEY, key))}")
