@@ -1,7 +1,9 @@
 """Records are checked against the episode schema their header bounds: a fault is refused on its own line
 (authors' .jsonl), row (a cell folder's episodes.parquet) or journal line, before any table is written."""
 
+import importlib
 import json
+import re
 import shutil
 
 import pandas as pd
@@ -14,7 +16,7 @@ from vlaquantbench.records import read_cell, write_cell
 from vlaquantbench.runner.journal import CellJournal
 from vlaquantbench.tables import load_table
 from vlaquantbench.tables.latex import read_cells
-from paths import ROOT, RECORDS
+from paths import REFERENCE, ROOT, RECORDS
 
 # tab:lattice's all-167-layer row: 141 of 200 successes (70.5); one string "false" made it 71.0.
 LATTICE_CELL = "libero/libero_spatial/pi05/rtn-W4A4-ah"
@@ -175,3 +177,30 @@ def test_the_reference_records_pass_unchanged():
     assert len(frames) == 65 and sum(map(len, frames)) == 12980
     assert all(frame["success"].dtype == bool for frame in frames)
     assert pd.concat(frames)["success"].sum() > 0
+
+
+def truncated(source, tmp_path):
+    """A copy of `source` cut in half, as a full disk or a killed copy leaves it."""
+    path = tmp_path / source.name
+    path.write_bytes(source.read_bytes()[: source.stat().st_size // 2])
+    return path
+
+
+@pytest.mark.parametrize(
+    ("read", "source"),
+    [
+        ("vlaquantbench.records.summary:read_summary", REFERENCE / "authors-summary.csv"),
+        ("vlaquantbench.diagnostics.files:Diagnostics.read", REFERENCE / "authors-files" / "diagnostics" / "v2" / "pi05-ah-W4A4.json"),
+        ("vlaquantbench.replay.run:ReplayRun.load", REFERENCE / "authors-files" / "results" / "replay" / "pi05_spatial" / "W4" / "analysis.json"),
+    ],
+)  # fmt: skip
+def test_an_unreadable_input_of_a_table_names_its_file(tmp_path, read, source):
+    module, name = read.split(":")
+    reader = importlib.import_module(module)
+    for part in name.split("."):
+        reader = getattr(reader, part)
+    path = truncated(source, tmp_path)
+    if path.suffix == ".csv":  # half a CSV still parses: binary garbage after its header line instead
+        path.write_bytes(b"benchmark,suite\n\xff\xfe\x00")
+    with pytest.raises(UserError, match=re.escape(str(path))):
+        reader(path)
