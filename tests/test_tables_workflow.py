@@ -41,11 +41,17 @@ def snakemake(workdir: Path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(command, capture_output=True, text=True, timeout=600)
 
 
-def flipped_copy(tmp_path: Path) -> Path:
+def records_copy(tmp_path: Path) -> Path:
+    """A writable copy of the reference records (they are read-only in place)."""
     copy = tmp_path / "records-copy"
     shutil.copytree(RECORDS, copy)
     for path in copy.rglob("*"):
         path.chmod(0o755 if path.is_dir() else 0o644)
+    return copy
+
+
+def flipped_copy(tmp_path: Path) -> Path:
+    copy = records_copy(tmp_path)
     record = copy / f"{FLIPPED}.jsonl"
     record.write_text(record.read_text().replace('"success": false', '"success": true', 1))
     return copy
@@ -109,10 +115,7 @@ def test_frozen_manifest_refuses_every_table(tmp_path):
 def test_a_corrupt_cell_folder_is_refused_by_name_and_its_old_table_removed(tmp_path):
     """Without a frozen manifest the table's own job reads the record: it fails naming the file, and the table
     an earlier run wrote is gone (Snakemake removes a job's old outputs when it runs the job)."""
-    records = tmp_path / "records-copy"
-    shutil.copytree(RECORDS, records)
-    for path in records.rglob("*"):
-        path.chmod(0o755 if path.is_dir() else 0o644)
+    records = records_copy(tmp_path)
     ref = "libero/libero_spatial/pi05/rtn-W4A4-ah"  # in tab:lattice, as this project's cell folder
     cell = read_cell(records / f"{ref}.jsonl")
     write_cell(records / ref, cell.header, cell.episodes)
