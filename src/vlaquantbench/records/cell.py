@@ -187,7 +187,8 @@ def read_cell(path: str | Path) -> Cell:
 
 
 def _read_parquet(path: Path):
-    """The parquet table at `path`; an unreadable file is a UserError naming it (Arrow's own message does not)."""
+    """The parquet table at `path`; an unreadable file is a UserError naming it (pandas handed Arrow a buffer,
+    so Arrow's message named `<Buffer>`, not the file)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
