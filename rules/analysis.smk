@@ -1,9 +1,13 @@
-# Records -> manifest -> summary, tables and figures (issue: regenerate the paper's tables).
-# Every job that renders records first checks them against the manifest, in the same job: with
-# `manifest` set the records must match it file by file (without one, a manifest is built from the
-# records first). A refused job fails, so Snakemake removes its old output: no stale table survives.
+# Records -> summary, tables and figures (issue: regenerate the paper's tables).
+# Every job that renders records checks them itself, in the job that writes its output: the episode
+# schema and the headers, and with `manifest` set, the frozen manifest file by file. A refused job fails,
+# and Snakemake removes the old outputs of every job it runs: no stale table survives. Without a frozen
+# manifest, `records_manifest` builds one (`paper` asks for it) but no rendering job waits for it: a record
+# refused there would stop the run before the tables' jobs start, leaving their old outputs in place.
+from vlaquantbench.workflow import BUILT_MANIFEST
+
 PAPER_TABLES = WF.table_names()
-MANIFEST = str(WF.manifest) if WF.manifest else "results/records/manifest.tsv"
+FROZEN_MANIFEST = [str(WF.manifest)] if WF.manifest else []
 
 
 def records_of(refs):
@@ -21,7 +25,7 @@ rule records_manifest:
         cells=lambda wc: records_of(WF.cell_refs()),
         headers=lambda wc: headers_of(WF.cell_refs()),
     output:
-        "results/records/manifest.tsv",
+        BUILT_MANIFEST,
     params:
         records_root=str(WF.records_root),
     log:
@@ -32,7 +36,7 @@ rule records_manifest:
 
 rule summary:
     input:
-        manifest=MANIFEST,
+        manifest=FROZEN_MANIFEST,
         cells=lambda wc: records_of(WF.cell_refs()),
         headers=lambda wc: headers_of(WF.cell_refs()),
     output:
@@ -47,13 +51,13 @@ rule summary:
 
 
 def report_params(target):
-    """What the report's caption of `target` names: its data source and the manifest its records were checked against."""
-    return {"target": target, "source": WF.data_source(), "manifest": WF.manifest_digest()}
+    """What the report's caption of `target` names: its data source and what its records were checked against."""
+    return {"target": target, "source": WF.data_source(), "checks": WF.record_checks()}
 
 
 rule paper_table:
     input:
-        manifest=MANIFEST,
+        manifest=FROZEN_MANIFEST,
         cells=lambda wc: records_of(WF.checked_refs(WF.table_record_refs(wc.table), f"tables/{wc.table}.tex")),
         headers=lambda wc: headers_of(WF.checked_refs(WF.table_record_refs(wc.table), f"tables/{wc.table}.tex")),
         summary=lambda wc: WF.table_summary(wc.table),
@@ -95,7 +99,7 @@ SCOPE_RECOVERY = "figures/scope_recovery.pdf"
 
 rule scope_recovery_figure:
     input:
-        manifest=MANIFEST,
+        manifest=FROZEN_MANIFEST,
         cells=lambda wc: records_of(WF.checked_refs(WF.record_refs(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY), SCOPE_RECOVERY)),
         headers=lambda wc: headers_of(WF.checked_refs(WF.record_refs(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY), SCOPE_RECOVERY)),
         summary=lambda wc: WF.summary_input(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY),
@@ -123,3 +127,4 @@ rule paper:
         "tables/sequential.tex",  # rules/sequential.smk: the stopping rule on tab:clustered's and tab:lattice's contrasts
         "figures/scope_recovery.pdf",
         "figures/replay_formats.pdf",
+        [] if WF.manifest else BUILT_MANIFEST,

@@ -18,6 +18,7 @@ EPISODE = {"suite": "libero_spatial", "task_id": 0, "episode": 0, "seed": 0, "in
 def header(ref, **changes):
     cfg = cell_config(ref, STUDY)
     return {"config_hash": config_hash(cfg), "ref": ref, "cell": cfg["cell"], "method": cfg["method"], "config": cfg,
+            **{k: cfg[k] for k in ("model", "benchmark", "suite", "seed", "episodes_per_task")},  # as runner.cell writes them
             "quant_semantics": QUANT_SEMANTICS, "code_revision": "1a2b3c4", **changes}  # fmt: skip
 
 

@@ -17,6 +17,7 @@ from vlaquantbench.envs.libero import (
     simulator_versions,
 )
 from vlaquantbench.envs.libero import offline
+from vlaquantbench.envs.libero_protocol import TASK_COUNTS
 from vlaquantbench.envs.libero.worker import format_observation
 from vlaquantbench.errors import UserError
 
@@ -68,7 +69,7 @@ def test_missing_asset_package_is_named(monkeypatch):
 )
 def test_suites_have_ten_tasks_fifty_init_states_and_the_authors_step_limits(name, limits):
     suite = LiberoSuite(name)
-    assert suite.n_tasks == 10
+    assert suite.n_tasks == TASK_COUNTS[name] == 10  # records are checked against TASK_COUNTS without LIBERO
     assert (suite.max_steps("pi05"), suite.max_steps("openvla_oft"), suite.max_steps("xvla")) == limits
     assert suite.max_steps("pi0") == suite.max_steps("pi") == limits[0]
     states = suite.init_states(9)

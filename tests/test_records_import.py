@@ -10,7 +10,8 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.records import EPISODE_COLUMNS, find_cells, read_cell, write_cell
 from paths import REFERENCE, RECORDS
 
-HEADER = {"kind": "header", "model": "pi05", "preset": "W4A4", "scope": "ah", "quant_report": {"ah": {"layers": 3, "params": 9}}}
+HEADER = {"kind": "header", "model": "pi05", "benchmark": "libero", "suite": "libero_spatial", "seed": 0, "episodes_per_task": 20,
+          "preset": "W4A4", "scope": "ah", "quant_report": {"ah": {"layers": 3, "params": 9}}}
 
 
 def episode(task_id, ep, success=True, **fields):

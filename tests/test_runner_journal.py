@@ -12,7 +12,8 @@ import yaml
 from vlaquantbench.errors import UserError
 from vlaquantbench.runner.journal import CellJournal, recorded_episodes, recorded_keys
 
-HEADER = {"config_hash": "0123456789ab", "preset": "W4A4", "versions": {"mujoco": "3.3.2"}}
+HEADER = {"config_hash": "0123456789ab", "model": "pi05", "benchmark": "libero", "suite": "libero_spatial", "seed": 0,
+          "episodes_per_task": 20, "preset": "W4A4", "versions": {"mujoco": "3.3.2"}}
 
 
 def episode(task_id, n, success=False):

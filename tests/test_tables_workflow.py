@@ -9,9 +9,10 @@ import pytest
 from test_tables_paper import latex_rows, paper_rows
 from test_tables_summary_driven import WORKFLOW
 
-from vlaquantbench.records import find_cells, read_cell
+from vlaquantbench.records import find_cells, read_cell, write_cell
 from vlaquantbench.tables import load_table, render_latex, summarize
 from vlaquantbench.tables.latex import read_cells
+from vlaquantbench.workflow import BUILT_MANIFEST
 from paths import ROOT, RECORDS, REFERENCE
 
 TABLES = ("lattice", "oft_protect_fc2", "clustered", "calibrated_subsets")
@@ -40,11 +41,17 @@ def snakemake(workdir: Path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(command, capture_output=True, text=True, timeout=600)
 
 
-def flipped_copy(tmp_path: Path) -> Path:
+def records_copy(tmp_path: Path) -> Path:
+    """A writable copy of the reference records (they are read-only in place)."""
     copy = tmp_path / "records-copy"
     shutil.copytree(RECORDS, copy)
     for path in copy.rglob("*"):
         path.chmod(0o755 if path.is_dir() else 0o644)
+    return copy
+
+
+def flipped_copy(tmp_path: Path) -> Path:
+    copy = records_copy(tmp_path)
     record = copy / f"{FLIPPED}.jsonl"
     record.write_text(record.read_text().replace('"success": false', '"success": true', 1))
     return copy
@@ -63,7 +70,7 @@ def test_reference_config_builds_the_paper_tables(tmp_path):
 def test_flipped_episode_changes_exactly_the_affected_numbers(tmp_path):
     records = flipped_copy(tmp_path)
     workdir = layout(tmp_path, records)
-    targets = [f"tables/{name}.tex" for name in TABLES] + ["tables/summary.csv"]
+    targets = [f"tables/{name}.tex" for name in TABLES] + ["tables/summary.csv", BUILT_MANIFEST]
     run = snakemake(workdir, *targets, "--config", f"records_dir={records}", "manifest=")
     assert run.returncode == 0, run.stderr[-3000:]
 
@@ -84,7 +91,7 @@ def test_flipped_episode_changes_exactly_the_affected_numbers(tmp_path):
     changed = [row.split(",")[3] for row, (_, old) in zip(after_summary, before_summary.iterrows())
                if row.split(",")[:12] != old.tolist()[:12]]  # fmt: skip
     assert changed == [FLIPPED.rsplit("/", 1)[1]]
-    built = (workdir / "results" / "records" / "manifest.tsv").read_text().splitlines()
+    built = (workdir / BUILT_MANIFEST).read_text().splitlines()
     frozen = (ROOT / "manifests" / "reference.tsv").read_text().splitlines()
     assert [line.split("\t")[:3] for line in built if line not in frozen] == [[f"{FLIPPED}.jsonl", "200", "188"]]
 
@@ -103,3 +110,24 @@ def test_frozen_manifest_refuses_every_table(tmp_path):
     refused = {f"tables/{name}.{ext}" for name in fed for ext in ("tex", "html")} | {"tables/summary.csv"}
     written = {p.relative_to(workdir).as_posix() for folder in ("tables", "figures") for p in (workdir / folder).glob("*")}
     assert not written & refused
+
+
+def test_a_corrupt_cell_folder_is_refused_by_name_and_its_old_table_removed(tmp_path):
+    """Without a frozen manifest the table's own job reads the record: it fails naming the file, and the table
+    an earlier run wrote is gone (Snakemake removes a job's old outputs when it runs the job)."""
+    records = records_copy(tmp_path)
+    ref = "libero/libero_spatial/pi05/rtn-W4A4-ah"  # in tab:lattice, as this project's cell folder
+    cell = read_cell(records / f"{ref}.jsonl")
+    write_cell(records / ref, cell.header, cell.episodes)
+    (records / f"{ref}.jsonl").unlink()
+    workdir = layout(tmp_path, records)
+    built = snakemake(workdir, "tables/lattice.tex", "--config", f"records_dir={records}", "manifest=")
+    assert built.returncode == 0, built.stderr[-3000:]
+    assert latex_rows((workdir / "tables" / "lattice.tex").read_text()) == paper_rows("tab:lattice")
+
+    episodes = records / ref / "episodes.parquet"
+    episodes.write_bytes(episodes.read_bytes()[:500])
+    refused = snakemake(workdir, "tables/lattice.tex", "--config", f"records_dir={records}", "manifest=")
+    assert refused.returncode != 0
+    assert f"paper_table failed: {episodes}: not a readable parquet file" in refused.stderr
+    assert not (workdir / "tables" / "lattice.tex").exists() and not (workdir / "tables" / "lattice.html").exists()

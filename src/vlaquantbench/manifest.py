@@ -167,8 +167,10 @@ def verify_manifest(
     return verified
 
 
-def verified(manifest: str | Path, records_dir: str | Path, cells: list[str]) -> list[str]:
-    """`cells` (record paths), once every one of their files matches `manifest`: what a rendering job
-    reads, checked in the same job that writes its output."""
-    verify_manifest(manifest, records_dir, cells)
+def verified(manifests: list[str], records_dir: str | Path, cells: list[str]) -> list[str]:
+    """`cells` (record paths), once every one of their files matches the frozen manifest (`manifests`: it,
+    or nothing when none is frozen): what a rendering job reads, checked in the same job that writes its
+    output. The job reads the cells through `read_checked_cell`, which checks their schema and headers."""
+    for manifest in manifests:
+        verify_manifest(manifest, records_dir, cells)
     return cells

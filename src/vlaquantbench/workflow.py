@@ -189,12 +189,15 @@ class WorkflowConfig:
         summary = f"; cells without records from the summary {self.success_summary}" if self.records_dir and self.success_summary else ""
         return records + summary
 
-    def manifest_digest(self) -> str:
-        """The manifest the records are checked against and its SHA-256 (the built one when `manifest` is empty)."""
+    def record_checks(self) -> str:
+        """What a rendering job checks its records against, in words (report captions): the frozen manifest
+        and its SHA-256, or, without one, the records' schema and headers only."""
+        if self.manifest is None:
+            return f"their headers and the episode schema (no frozen manifest; {BUILT_MANIFEST} lists them)"
         from vlaquantbench.manifest import sha256_file
 
-        path = self.manifest or Path(BUILT_MANIFEST)
-        return f"{path} (SHA-256 {sha256_file(path)})" if path.is_file() else f"{path} (built from the records)"
+        digest = f"SHA-256 {sha256_file(self.manifest)}" if self.manifest.is_file() else "missing"
+        return f"manifest {self.manifest} ({digest}), their headers and the episode schema"
 
     def cell_refs(self) -> list[str]:
         """Cells the summary lists and the manifest check covers: every recorded cell in `records_dir`

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vlaquantbench.errors import UserError
+from vlaquantbench.textfiles import read_parsed
 
 DIAGNOSTICS = ("act_kurtosis", "out_rel_err", "act_rel_err", "act_dispersion")
 HEADER_FIELDS = ("model", "suite", "scope", "preset", "provenance", "layers")
@@ -33,7 +34,7 @@ class Diagnostics:
         path = Path(path)
         if not path.exists():
             raise UserError(f"diagnostics file {path} does not exist")
-        data = json.loads(path.read_text())
+        data = read_parsed(path, json.loads, "JSON")
         missing = [k for k in HEADER_FIELDS if k not in data]
         missing += [f"provenance.{k}" for k in PROVENANCE_FIELDS if k not in data.get("provenance", {})]
         if missing:

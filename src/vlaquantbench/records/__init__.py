@@ -13,6 +13,7 @@ from vlaquantbench.records.cell import (
     episode_gaps,
     find_cells,
     read_cell,
+    read_checked_cell,
     record_files,
     write_cell,
 )
@@ -25,6 +26,7 @@ __all__ = [
     "episode_gaps",
     "find_cells",
     "read_cell",
+    "read_checked_cell",
     "record_files",
     "write_cell",
 ]

@@ -14,6 +14,8 @@ from typing import Any
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.records.cell import EPISODE_COLUMNS, EPISODE_KEY, OPTIONAL_COLUMNS, Cell, normalize_episodes
+from vlaquantbench.records.schema import EpisodeCheck
+from vlaquantbench.textfiles import read_parsed
 
 _FIELDS = EPISODE_COLUMNS + OPTIONAL_COLUMNS
 _REQUIRED = tuple(c for c in EPISODE_COLUMNS if c != "init_state_id")
@@ -42,12 +44,14 @@ def read_authors_jsonl(path: str | Path) -> Cell:
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: record file not found")
-    lines = path.read_text().splitlines()
+    lines = read_parsed(path, str.splitlines, "UTF-8 text")
     if not lines or not lines[0].strip():
         raise UserError(f"{path}:1: header line missing (file is empty)")
     header = _parse_line(path, 1, lines[0])
     if header.get("kind") != "header":
         raise UserError(f"{path}:1: header line missing (first line has kind={header.get('kind')!r})")
+    header = {key: value for key, value in header.items() if key != "kind"}
+    check = EpisodeCheck(header, f"{path}:1")
     rows: list[dict[str, Any]] = []
     seen: dict[tuple[int, int, int], int] = {}
     for number, line in enumerate(lines[1:], start=2):
@@ -57,6 +61,7 @@ def read_authors_jsonl(path: str | Path) -> Cell:
         if record.get("kind") != "episode":
             raise UserError(f"{path}:{number}: expected an episode line, got kind={record.get('kind')!r}")
         row = _episode_row(path, number, record)
+        check(row, f"{path}:{number}")
         key = tuple(int(row[field]) for field in EPISODE_KEY)
         if key in seen:
             raise UserError(
@@ -64,5 +69,4 @@ def read_authors_jsonl(path: str | Path) -> Cell:
             )
         seen[key] = number
         rows.append(row)
-    header = {key: value for key, value in header.items() if key != "kind"}
     return Cell(header=header, episodes=normalize_episodes(rows, path), path=path)

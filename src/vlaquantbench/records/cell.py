@@ -11,6 +11,7 @@ import pandas as pd
 
 from vlaquantbench.atomic import atomic_write, write_text
 from vlaquantbench.errors import UserError
+from vlaquantbench.records.schema import EpisodeCheck, declared_tasks, present
 from vlaquantbench.textfiles import read_parsed
 
 HEADER_FILE = "header.json"
@@ -90,7 +91,7 @@ def episode_gaps(cell: Cell) -> list[str]:
     cells have 19 or 20 per task under `episodes_per_task: 20`): the tables state such counts from the data.
     """
     declared = cell.header.get("episodes_per_task")
-    tasks = cell.header.get("tasks") or (cell.header.get("config") or {}).get("tasks")  # this project's cells list them
+    tasks = declared_tasks(cell.header)  # this project's cells list them
     gaps = []
     by_task = cell.episodes.groupby("task_id")["episode"].apply(lambda e: sorted(int(i) for i in e)).to_dict()
     for task in tasks or ():
@@ -114,8 +115,39 @@ def check_declared_episodes(cell: Cell) -> Cell:
     return cell
 
 
+def row_location(path: Path, number: int, row: dict[str, Any]) -> str:
+    """Where episode `row` sits in a parquet file: `<path> row N (task t, episode e, seed s)`."""
+    key = ", ".join(f"{'task' if field == 'task_id' else field} {row.get(field)}" for field in EPISODE_KEY)
+    return f"{path} row {number} ({key})"
+
+
+def check_rows(header: dict[str, Any], rows: list[dict[str, Any]], header_source: Path, path: Path) -> None:
+    """Refuse the first row of `rows` (episodes of `path`) that breaks the episode schema its header bounds."""
+    check = EpisodeCheck(header, header_source)
+    for number, row in enumerate(rows, start=1):
+        check(present(row), row_location(path, number, row))
+
+
+def read_checked_cell(ref: str, path: str | Path) -> Cell:
+    """Cell `ref` (`<benchmark>/<suite>/<model>/<cell>`) as a table or figure reads it: its episodes pass the
+    schema, match what the header declares (`episode_gaps`), and the header names the ref's benchmark, suite
+    and model. A rendering job checks its own records so that a refusal fails the job writing the output
+    (and Snakemake removes that output)."""
+    cell = check_declared_episodes(read_cell(path))
+    if ":" in ref:  # a measurement file in the records' format (`<source>:<path>`, workflow.is_source_ref) names no cell
+        return cell
+    for field, expected in zip(("benchmark", "suite", "model"), ref.split("/")[:3]):
+        if cell.header.get(field) != expected:
+            raise UserError(f"{cell.path}: its header says {field} {cell.header.get(field)!r}, but it is read as cell {ref}")
+    return cell
+
+
 def normalize_episodes(rows: pd.DataFrame | list[dict[str, Any]], source: Path) -> pd.DataFrame:
-    """Episode table with the required columns, known dtypes and unique (task_id, episode, seed)."""
+    """Episode table with the required columns, known dtypes and unique (task_id, episode, seed).
+
+    The casts are safe only on episodes the schema has passed (`check_rows`, the authors' importer):
+    pandas casts the string "false" to True.
+    """
     frame = rows if isinstance(rows, pd.DataFrame) else pd.DataFrame(rows)
     if frame.empty:
         raise UserError(f"{source}: the cell has no episodes")
@@ -149,16 +181,33 @@ def read_cell(path: str | Path) -> Cell:
         if not required.is_file():
             raise UserError(f"{path}: not a cell record: {required} is missing")
     header = read_parsed(header_path, json.loads, "JSON")
-    return Cell(header=header, episodes=normalize_episodes(pd.read_parquet(episodes_path), episodes_path), path=folder)
+    table = _read_parquet(episodes_path)
+    check_rows(header, table.to_pylist(), header_path, episodes_path)
+    return Cell(header=header, episodes=normalize_episodes(table.to_pandas(), episodes_path), path=folder)
+
+
+def _read_parquet(path: Path):
+    """The parquet table at `path`; an unreadable file is a UserError naming it (pandas handed Arrow a buffer,
+    so Arrow's message named `<Buffer>`, not the file)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        return pq.read_table(path)
+    except (pa.ArrowException, OSError) as err:
+        raise UserError(f"{path}: not a readable parquet file ({err})") from None
 
 
 def write_cell(folder: str | Path, header: dict[str, Any], episodes: pd.DataFrame | list[dict[str, Any]]) -> Cell:
     """Write a cell folder atomically: each file goes to a temporary name first, then is renamed.
+    Header and episodes are checked against the record schemas first: nothing is written if they fail.
 
     The episodes file is written last, so its presence (the file the workflow waits for) implies a
     complete header next to it.
     """
     folder = Path(folder)
+    rows = episodes.to_dict("records") if isinstance(episodes, pd.DataFrame) else episodes
+    check_rows(header, rows, folder / HEADER_FILE, folder / EPISODES_FILE)
     frame = normalize_episodes(episodes, folder / EPISODES_FILE)
     write_text(folder / HEADER_FILE, json.dumps(header, indent=2, sort_keys=True) + "\n")
     with atomic_write(folder / EPISODES_FILE, "wb") as handle:

@@ -48,7 +48,10 @@ def read_summary(path: str | Path) -> dict[str, SummaryCell]:
 def _read(path: Path) -> tuple[tuple[str, SummaryCell], ...]:
     if not path.is_file():
         raise UserError(f"summary {path} does not exist")
-    frame = pd.read_csv(path)
+    try:
+        frame = pd.read_csv(path)
+    except (ValueError, pd.errors.ParserError) as err:  # pandas' messages name no file
+        raise UserError(f"summary {path} is not a readable CSV file ({err})") from None
     missing = [column for column in REQUIRED_COLUMNS if column not in frame.columns]
     if missing:
         raise UserError(f"summary {path} lacks column(s) {', '.join(missing)}")

@@ -25,6 +25,7 @@ from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.replay.probe import PolicyProbe, torch_rng_state
 from vlaquantbench.replay.study import RecordSettings
 from vlaquantbench.runner.provenance import code_revision, versions
+from vlaquantbench.textfiles import read_parsed
 
 
 def adapter_config(settings: RecordSettings) -> AdapterConfig:
@@ -118,7 +119,7 @@ def load_records(records_json: str | Path, trajectories: list[str | Path]) -> tu
     records_json = Path(records_json)
     if not records_json.is_file():
         raise UserError(f"no recording: {records_json} is missing")
-    meta = json.loads(records_json.read_text())
+    meta = read_parsed(records_json, json.loads, "JSON")
     given = {Path(p).name: Path(p) for p in trajectories}
     named = [rec["record"] for rec in meta["records"]]
     if sorted(given) != sorted(named):

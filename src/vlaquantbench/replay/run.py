@@ -18,6 +18,7 @@ import numpy as np
 
 from vlaquantbench.atomic import atomic_write, write_text
 from vlaquantbench.errors import UserError
+from vlaquantbench.textfiles import read_parsed
 
 ARRAYS = ("chunks", "actions", "flow_states", "downproj")
 
@@ -57,7 +58,7 @@ class ReplayRun:
     @classmethod
     def load(cls, summary_path: str | Path, arrays_path: str | Path | None = None) -> "ReplayRun":
         summary_path = Path(summary_path)
-        summary = json.loads(summary_path.read_text())
+        summary = read_parsed(summary_path, json.loads, "JSON")
         npz = Path(arrays_path or arrays_file(summary_path))
         if not npz.exists():
             raise UserError(f"replay {summary_path} has no arrays file {npz}")

@@ -14,6 +14,7 @@ from vlaquantbench.config.study import RunnerConfig
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.subsets import get_subset
 from vlaquantbench.records.summary import read_summary
+from vlaquantbench.textfiles import read_parsed
 
 STUDIES = Path(__file__).with_name("studies")
 
@@ -112,7 +113,7 @@ class StudyResults:
             raise UserError(f"replay analysis files missing (replay_analysis_dir): {', '.join(absent)}")
         analyses = {}
         for fmt, path in paths.items():
-            analyses[fmt] = json.loads(path.read_text())
+            analyses[fmt] = read_parsed(path, json.loads, "JSON")
             missing = [c for c in study["configurations"] if c not in analyses[fmt]["configs"]]
             if missing:
                 raise UserError(f"{path} has no configurations {missing}")

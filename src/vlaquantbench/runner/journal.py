@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from vlaquantbench.errors import UserError
+from vlaquantbench.records.schema import EpisodeCheck, present
 
 EPISODE_KEY = ("task_id", "episode", "seed")
 # Header fields a rerun may change and still resume: the code revision (the arithmetic is versioned by
@@ -55,9 +56,17 @@ def header_differences(recorded: dict[str, Any], current: dict[str, Any]) -> lis
     return lines
 
 
-def _numbered(lines: list[bytes]) -> list[tuple[int, dict[str, Any]]]:
-    """(line number from 1, record) of a journal's whole, non-empty lines."""
-    return [(n, json.loads(line)) for n, line in enumerate(lines, 1) if line.strip()]
+def _parsed(path: Path, number: int, line: bytes) -> dict[str, Any]:
+    try:
+        return json.loads(line)
+    except json.JSONDecodeError as err:
+        raise UserError(f"{path}:{number}: malformed journal line ({err.msg} at column {err.colno}); "
+                        "move the journal away to start the cell afresh") from None
+
+
+def _numbered(path: Path, lines: list[bytes]) -> list[tuple[int, dict[str, Any]]]:
+    """(line number from 1, record) of a journal's whole, non-empty lines; a malformed one is refused by number."""
+    return [(n, _parsed(path, n, line)) for n, line in enumerate(lines, 1) if line.strip()]
 
 
 def unique_episodes(path: Path, numbered: list[tuple[int, dict[str, Any]]]) -> list[dict[str, Any]]:
@@ -93,7 +102,7 @@ def _episode_lines(path: Path) -> list[dict[str, Any]]:
     does not count."""
     if not Path(path).exists():
         return []
-    return unique_episodes(path, _numbered(Path(path).read_bytes().split(b"\n")[:-1]))
+    return unique_episodes(path, _numbered(path, Path(path).read_bytes().split(b"\n")[:-1]))
 
 
 def recorded_episodes(path: Path) -> int:
@@ -133,7 +142,7 @@ class CellJournal:
             with open(self.path, "r+b") as handle:
                 handle.truncate(len(raw) - len(torn))
                 os.fsync(handle.fileno())
-        numbered = _numbered(complete)
+        numbered = _numbered(self.path, complete)
         records = [record for _, record in numbered]
         if not records or records[0].get("kind") != "header":
             raise UserError(f"{self.path}: journal has no header line; move it away to start the cell afresh")
@@ -144,9 +153,12 @@ class CellJournal:
                 f"{self.path}: the cell's existing records were made with another header; refusing to mix them "
                 "(move the folder away to start afresh):\n  " + "\n  ".join(differences)
             )
-        for record in records[1:]:
+        check = EpisodeCheck(recorded, f"{self.path}:{numbered[0][0]}")
+        for number, record in numbered[1:]:
             if record["kind"] == "hooks":
                 self.fired.update(record["fired"])
+            elif record["kind"] == "episode":
+                check(present(record), f"{self.path}:{number}")
         self.episodes = unique_episodes(self.path, numbered[1:])
 
     def done_keys(self) -> set[tuple]:

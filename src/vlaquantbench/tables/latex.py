@@ -13,7 +13,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from vlaquantbench.errors import UserError
-from vlaquantbench.records import Cell, read_cell
+from vlaquantbench.records import Cell, read_checked_cell
 from vlaquantbench.records.summary import SummaryCell, read_summary
 from vlaquantbench.stats import task_clustered_bootstrap, wilson_interval
 from vlaquantbench.tables.booktabs import MIDRULE, Booktabs
@@ -309,7 +309,7 @@ def read_cells(
     """The cells `refs` of `owner`: records where `cell_paths` has them, else the summary's row; a cell in
     neither is an error naming it."""
     cells: dict[str, AnyCell] = {
-        ref: MeasurementFile.read(ref, path) if str(path).endswith(".json") else read_cell(path)
+        ref: MeasurementFile.read(ref, path) if str(path).endswith(".json") else read_checked_cell(ref, path)
         for ref, path in cell_paths.items()
     }
     rows = read_summary(summary) if summary else {}

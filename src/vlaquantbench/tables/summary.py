@@ -8,7 +8,7 @@ from typing import Mapping
 import pandas as pd
 
 from vlaquantbench.atomic import atomic_write
-from vlaquantbench.records import Cell, read_cell
+from vlaquantbench.records import Cell, read_checked_cell
 from vlaquantbench.stats import wilson_interval
 
 # The authors' results/summary.csv columns, in order.
@@ -50,7 +50,7 @@ def summarize(cells: Mapping[str, Cell]) -> pd.DataFrame:
 
 def write_summary(cell_paths: Mapping[str, str | Path], output: str | Path) -> Path:
     """Read every cell (reference -> record path) and write the summary CSV with CRLF line ends, as the authors do."""
-    frame = summarize({ref: read_cell(path) for ref, path in cell_paths.items()})
+    frame = summarize({ref: read_checked_cell(ref, path) for ref, path in cell_paths.items()})
     with atomic_write(output, newline="") as handle:
         frame.to_csv(handle, index=False, lineterminator="\r\n")
     return Path(output)

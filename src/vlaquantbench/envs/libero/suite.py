@@ -10,19 +10,10 @@ import numpy as np
 from vlaquantbench.envs import BENCHMARK_SUITES
 from vlaquantbench.envs.episodes import SEED_STRIDE, EpisodeSpec, SuiteTasks, episode_seed
 from vlaquantbench.envs.libero.offline import load_libero
+from vlaquantbench.envs.libero_protocol import MODEL_FAMILY, STEP_LIMITS
 from vlaquantbench.errors import UserError
 
 SUITES = BENCHMARK_SUITES["libero"]
-
-# Policy steps before an unfinished episode counts as a failure (settle steps not counted). The pi
-# models use lerobot's limits, OpenVLA-OFT and X-VLA their own clients'; all are visible in the authors' records.
-STEP_LIMITS = {
-    "pi": {"libero_spatial": 280, "libero_object": 280, "libero_goal": 300, "libero_10": 520},
-    "openvla_oft": {"libero_spatial": 220, "libero_object": 280, "libero_goal": 300, "libero_10": 520},
-    # X-VLA's client horizons (its libero_client.py; failures in the authors' records run to 800).
-    "xvla": {"libero_spatial": 800, "libero_object": 800, "libero_goal": 800, "libero_10": 900},
-}
-MODEL_FAMILY = {"pi05": "pi", "pi0": "pi", "openvla_oft": "openvla_oft", "xvla": "xvla"}
 
 __all__ = ["MODEL_FAMILY", "SEED_STRIDE", "STEP_LIMITS", "SUITES", "EpisodeSpec", "LiberoSuite", "LiberoTask",
            "episode_seed"]
