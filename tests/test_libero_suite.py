@@ -132,3 +132,13 @@ def test_observation_is_rotated_and_state_is_pos_axis_angle_gripper():
     assert obs["state"].dtype == np.float32
     np.testing.assert_array_equal(raw["robot0_eef_quat"], half_turn_about_x)  # input left untouched
     assert obs["instruction"] == "put the bowl on the plate"
+
+
+def test_the_suite_sizes_the_dag_checks_against_are_libero_s_own():
+    # envs.BENCHMARK_SUITES is read while the DAG is built, without the simulator; here against LIBERO itself.
+    from vlaquantbench.envs import BENCHMARK_SUITES
+
+    for name, size in BENCHMARK_SUITES["libero"].items():
+        suite = LiberoSuite(name)
+        assert suite.n_tasks == size.tasks
+        assert {len(suite.init_states(task)) for task in range(suite.n_tasks)} == {size.init_states}, name

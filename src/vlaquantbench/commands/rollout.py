@@ -22,8 +22,9 @@ from pathlib import Path
 
 import vlaquantbench
 from vlaquantbench.cells import calibration_config, cell_config, checkpoint_key, config_hash
-from vlaquantbench.config import load_workflow_config
+from vlaquantbench.config import field_schema, integer_option, load_workflow_config
 from vlaquantbench.config.study import StudyConfig
+from vlaquantbench.envs.memory import affordable_workers
 from vlaquantbench.errors import UserError
 from vlaquantbench.workflow import CELLS_DIR
 
@@ -40,7 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="project folder whose results/ receives the cell (default: the checkout holding this package, "
         "where `snakemake` writes; required when the package is not run from a checkout)",
     )
-    parser.add_argument("--num-envs", type=int, help="LIBERO worker processes (default: study.execution)")
+    parser.add_argument("--num-envs", type=integer_option(field_schema("config", "study", "execution", "num_envs")),
+                        help="LIBERO worker processes (default: study.execution.num_envs); at most what the "
+                             "memory available holds (README: Memory)")
     parser.add_argument("--show", action="store_true", help="print the canonical cell config and its hash, run nothing")
     parser.set_defaults(func=run)
 
@@ -83,8 +86,10 @@ def _run(args: argparse.Namespace, study: StudyConfig, cfg: dict, project: Path)
     from vlaquantbench.runner.checkpoint import download_checkpoint
 
     execution = study.execution.as_kwargs()
-    if args.num_envs:
-        execution["num_envs"] = args.num_envs
+    # The worker count against the memory available, before the checkpoint download and the policy load.
+    setting = "--num-envs" if args.num_envs is not None else "study.execution.num_envs"
+    requested = min(execution["num_envs"] if args.num_envs is None else args.num_envs, len(cfg["tasks"]) * cfg["episodes_per_task"])
+    execution["num_envs"] = affordable_workers(requested, cfg["benchmark"], cfg["suite"], setting)
     stamp = project / "results" / "checkpoints" / checkpoint_key(cfg) / "checkpoint.json"
     if not stamp.exists():
         download_checkpoint(**{k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}, stamp=stamp)

@@ -17,6 +17,7 @@ multiprocessing children: a spawned child re-executes the parent's `__main__` fi
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -35,6 +36,7 @@ from vlaquantbench.envs.libero.offline import config_dir
 from vlaquantbench.envs.libero.suite import EpisodeSpec, LiberoSuite
 from vlaquantbench.envs.libero.versions import simulator_versions
 from vlaquantbench.envs.libero.worker import EpisodeStart
+from vlaquantbench.envs.memory import available_memory, oom_kill_counts, oom_kills_since, worker_gib
 from vlaquantbench.errors import UserError
 
 ACTION_DIM = 7
@@ -136,6 +138,8 @@ class LiberoVectorEnv:
         self.control_mode = control_mode
         self.reply_timeout_s = reply_timeout_s
         config_dir()  # the workers inherit LIBERO_CONFIG_PATH and MUJOCO_GL
+        # Evidence for a worker that dies by SIGKILL: the memory before the workers, the kernel's OOM-kill counters.
+        self._memory_at_start, self._oom_kills_at_start = available_memory(), oom_kill_counts()
         self._slots: list[_Slot] = []
         self._finalizer = weakref.finalize(self, _close_slots, self._slots)
         try:
@@ -392,7 +396,16 @@ class LiberoVectorEnv:
             code = self._slots[i].process.wait(timeout=_SHUTDOWN_TIMEOUT_S)
         except subprocess.TimeoutExpired:
             return "it is still running"
-        return f"exit code {code}"
+        if code != -signal.SIGKILL:
+            return f"exit code {code}"
+        # The kernel's OOM killer sends SIGKILL; so do people and schedulers. Say "memory" only on its record.
+        kills = oom_kills_since(self._oom_kills_at_start)
+        if kills:
+            each = worker_gib("libero", self.suite.name)
+            return (f"killed by SIGKILL, likely out of memory: {self.num_envs} workers x {each} GiB vs "
+                    f"{self._memory_at_start} when they started; the kernel killed for memory since ({'; '.join(kills)})")
+        watched = ", ".join(self._oom_kills_at_start) or "no OOM-kill counter is readable here"
+        return f"killed by SIGKILL (exit code {code}); no out-of-memory kill was recorded ({watched}), so not for memory"
 
     def _describe(self, i: int, command: str, detail: str) -> str:
         where = f"LIBERO worker of slot {i} failed to {command}"
