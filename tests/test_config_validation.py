@@ -228,10 +228,12 @@ OUTSIDE_THE_SUITE = [  # (study edit, cell, the field, value and range the error
      "study.episodes_per_task: 51 episodes per task, but libero_spatial has 50 official init states per task"),
     (lambda s: None, CALIBRATED, "calibration init states (study.calibration.first_init_state 20 + 2 x calib_set 20, "
                                  "study.calibration.episodes 2): 60, 61 are outside 0..49"),
+    (lambda s: s.setdefault("calibration", {}).update(tasks=11), "libero/libero_spatial/pi05/calib_ah-W4A4-ah",
+     "study.calibration.tasks: 11 tasks, but libero_spatial has 10"),
     (lambda s: s["runner"].update(mujoco="3.4.0"), ATTENTION,
      "study.runner.mujoco: '3.4.0', but pi05 cells run on MuJoCo 3.3.2"),
 ]
-OUTSIDE_IDS = ["task_id", "task_count", "episodes", "calibration_init_states", "mujoco"]
+OUTSIDE_IDS = ["task_id", "task_count", "episodes", "calibration_init_states", "calibration_tasks", "mujoco"]
 
 
 @pytest.mark.parametrize(("edit", "cell", "message"), OUTSIDE_THE_SUITE, ids=OUTSIDE_IDS)

@@ -115,7 +115,7 @@ def test_a_worker_killed_by_sigkill_is_said_to_be_out_of_memory_only_on_the_kern
         with pytest.raises(LiberoWorkerError) as failure:
             env.preload([0])
         assert (f"slot 0 failed to load:\nthe worker died; killed by SIGKILL (exit code -9); no out-of-memory kill was "
-                f"recorded ({events}, /proc/vmstat), so not for memory") in str(failure.value)
+                f"recorded ({events}, /proc/vmstat), so not by the kernel's OOM killer") in str(failure.value)
         env.submit_reset(0, suite.episode_spec(0, 0))  # a new worker; the kernel now records an OOM kill
         events.write_text("low 0\nhigh 0\nmax 3\noom 1\noom_kill 1\n")
         os.kill(env.worker_pids[0], signal.SIGKILL)

@@ -404,8 +404,11 @@ class LiberoVectorEnv:
             each = worker_gib("libero", self.suite.name)
             return (f"killed by SIGKILL, likely out of memory: {self.num_envs} workers x {each} GiB vs "
                     f"{self._memory_at_start} when they started; the kernel killed for memory since ({'; '.join(kills)})")
-        watched = ", ".join(self._oom_kills_at_start) or "no OOM-kill counter is readable here"
-        return f"killed by SIGKILL (exit code {code}); no out-of-memory kill was recorded ({watched}), so not for memory"
+        if not self._oom_kills_at_start:
+            return f"killed by SIGKILL (exit code {code}); no OOM-kill counter is readable here to tell whether memory ran out"
+        watched = ", ".join(self._oom_kills_at_start)
+        return (f"killed by SIGKILL (exit code {code}); no out-of-memory kill was recorded ({watched}), so not by the "
+                "kernel's OOM killer")
 
     def _describe(self, i: int, command: str, detail: str) -> str:
         where = f"LIBERO worker of slot {i} failed to {command}"
