@@ -72,7 +72,7 @@ def test_a_worker_count_beyond_the_memory_is_capped_or_refused_naming_both(monke
     assert capsys.readouterr().err == (
         f"warning: study.execution.num_envs = 8: 8 LIBERO workers x {SPATIAL} GiB on libero_spatial = "
         f"{8 * SPATIAL:.1f} GiB, but {3.5 * SPATIAL:.1f} GiB available ({memory.OVERRIDE}={3.5 * SPATIAL}); running 3 "
-        "workers instead (the episodes do not depend on the number of workers)\n")
+        "workers instead (each episode keeps its seed, init state and noise stream)\n")
     with pytest.raises(UserError, match=r"^study.execution.num_envs = 8: .* set it to at most 3 or give the job more memory"):
         affordable_workers(8, "libero", "libero_spatial", "study.execution.num_envs", cap=False)  # calibration
     monkeypatch.setenv(memory.OVERRIDE, "1")

@@ -4,8 +4,9 @@ worker was killed for memory.
 A LIBERO worker is a whole interpreter with MuJoCo, robosuite and one built env; `SuiteSize.worker_gib`
 (`envs.BENCHMARK_SUITES`) holds its measured footprint. A job's worker count (`study.execution.num_envs`
 or `vqb rollout --num-envs`) is checked against `available_memory()` before any worker starts: capped to
-what fits, with a warning naming the setting and both numbers (episodes do not depend on how many workers
-run them), and refused when not one fits. `job_memory_mb` is what the rollout and calibrate rules declare
+what fits, with a warning naming the setting and both numbers (an episode's seed, init state and noise
+stream do not depend on how many workers run; on the CPU neither do its actions), and refused when not one
+fits, or, for a calibration (per-call statistics), when fewer than asked for fit. `job_memory_mb` is what the rollout and calibrate rules declare
 as `mem_mb`, so a SLURM job asks for the memory its workers need.
 """
 
@@ -132,7 +133,7 @@ def affordable_workers(requested: int, benchmark: str, suite: str, setting: str,
         remedy = "not one worker fits" if fits < 1 else f"set it to at most {fits} or give the job more memory"
         raise UserError(f"{setting} = {requested}: {need}, but {available}: {remedy}")
     print(f"warning: {setting} = {requested}: {need}, but {available}; running {fits} workers instead "
-          "(the episodes do not depend on the number of workers)", file=sys.stderr)
+          "(each episode keeps its seed, init state and noise stream)", file=sys.stderr)
     return fits
 
 
