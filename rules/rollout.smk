@@ -4,6 +4,7 @@
 # when something that changes its episodes changes. Without `records_dir` only.
 from vlaquantbench import cells as cell_configs  # noqa: E402
 from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE, JOURNAL_FILE  # noqa: E402
+from vlaquantbench.envs.memory import job_memory_mb  # noqa: E402
 from vlaquantbench.runner.lock import LOCK_FILE  # noqa: E402
 from vlaquantbench.workflow import CELLS_DIR  # noqa: E402
 
@@ -22,6 +23,12 @@ CHECKPOINTS = {
 
 def checkpoint_stamp(cfg):
     return f"results/checkpoints/{cell_configs.checkpoint_key(cfg)}/checkpoint.json"
+
+
+def memory_mb(cfg, episodes):
+    """A job's `mem_mb`: the LIBERO workers it starts (study.execution.num_envs, at most one per episode) at
+    their measured footprint, and its policy (vlaquantbench.envs.memory). A profile's set-resources overrides it."""
+    return job_memory_mb(cfg["benchmark"], cfg["suite"], min(WF.study.execution.num_envs, episodes))
 
 
 def calibration_stats(cfg):
@@ -57,6 +64,8 @@ rule calibrate:
     threads: 2
     resources:
         gpu=lambda wc: int(CALIBRATIONS[wc.calibration]["runner"]["device"].startswith("cuda")),
+        mem_mb=lambda wc: memory_mb(CALIBRATIONS[wc.calibration], len(CALIBRATIONS[wc.calibration]["calibration"]["tasks"])
+                                    * len(CALIBRATIONS[wc.calibration]["calibration"]["init_states"])),
     script:
         "../workflow/scripts/calibrate.py"
 
@@ -83,5 +92,6 @@ rule rollout:
     threads: 2
     resources:
         gpu=lambda wc: int(CELLS[wc.cell]["runner"]["device"].startswith("cuda")),
+        mem_mb=lambda wc: memory_mb(CELLS[wc.cell], len(CELLS[wc.cell]["tasks"]) * CELLS[wc.cell]["episodes_per_task"]),
     script:
         "../workflow/scripts/rollout.py"

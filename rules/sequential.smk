@@ -14,7 +14,7 @@ def sequential_refs():
 
 rule sequential_table:
     input:
-        manifest=MANIFEST,
+        manifest=FROZEN_MANIFEST,
         cells=lambda wc: records_of(sequential_refs()),
         headers=lambda wc: headers_of(sequential_refs()),
     output:

@@ -216,3 +216,61 @@ def test_replay_configurations_take_subsets_from_scopes_yaml(tmp_path):
     path.write_text(text.replace("subset: attn_adarms,", "subset: attn_adarm,"))
     with pytest.raises(UserError, match=r"configurations.union.subset: unknown subset 'attn_adarm' for model 'pi05'"):
         load_study(path)
+
+
+# --- issue 35 item 4: what needs no simulator is checked by `vqb rollout --show` and `snakemake -n` ---
+
+CALIBRATED = "libero/libero_spatial/pi05/calib_set20_ah-W4A4-ah"
+OUTSIDE_THE_SUITE = [  # (study edit, cell, the field, value and range the error must name)
+    (lambda s: s.update(tasks=[99]), ATTENTION, "study.tasks: 99 is outside 0..9 (libero_spatial has 10 tasks)"),
+    (lambda s: s.update(tasks=12), ATTENTION, "study.tasks: 12 tasks, but libero_spatial has 10 (task ids 0..9)"),
+    (lambda s: s.update(episodes_per_task=51), ATTENTION,
+     "study.episodes_per_task: 51 episodes per task, but libero_spatial has 50 official init states per task"),
+    (lambda s: None, CALIBRATED, "calibration init states (study.calibration.first_init_state 20 + 2 x calib_set 20, "
+                                 "study.calibration.episodes 2): 60, 61 are outside 0..49"),
+    (lambda s: s.setdefault("calibration", {}).update(tasks=11), "libero/libero_spatial/pi05/calib_ah-W4A4-ah",
+     "study.calibration.tasks: 11 tasks, but libero_spatial has 10"),
+    (lambda s: s["runner"].update(mujoco="3.4.0"), ATTENTION,
+     "study.runner.mujoco: '3.4.0', but pi05 cells run on MuJoCo 3.3.2"),
+]
+OUTSIDE_IDS = ["task_id", "task_count", "episodes", "calibration_init_states", "calibration_tasks", "mujoco"]
+
+
+@pytest.mark.parametrize(("edit", "cell", "message"), OUTSIDE_THE_SUITE, ids=OUTSIDE_IDS)
+def test_vqb_rollout_show_refuses_what_the_suite_does_not_have(tmp_path, edit, cell, message):
+    config = demo_config(tmp_path, lambda c: edit(c["study"]))
+    result = vqb_show(config, cell)
+    assert result.returncode == 2 and f"vqb rollout: error: cell {cell!r}: {message}" in result.stderr, result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_snakemake_dry_run_refuses_task_ids_outside_the_suite(tmp_path):
+    returncode, output = dry_run(tmp_path, study_edit=lambda c: c["study"].update(tasks=[99]))
+    table = tmp_path / "checkout/config/demo/tables/lattice.yaml"
+    assert returncode != 0 and (f"{table}: cell {ATTENTION!r}: study.tasks: 99 is outside 0..9 "
+                                "(libero_spatial has 10 tasks)") in output, output[-3000:]
+
+
+def test_replay_trajectories_outside_the_suite_are_refused_while_the_dag_is_built():
+    from vlaquantbench.replay.study import RecordSettings, load_study
+
+    with pytest.raises(UserError, match=r"^replay.init_states: 50 is outside 0..49 \(libero_spatial has 50 official init "):
+        RecordSettings.from_study(load_study(), {"init_states": [20, 50]})
+    with pytest.raises(UserError, match=r"^replay.tasks: 10, 11 are outside 0..9 \(libero_spatial has 10 tasks\)"):
+        RecordSettings.from_study(load_study(), {"tasks": [9, 10, 11]})
+
+
+CLI_NUMBERS = [  # every numeric option of `vqb`: (arguments, the option and range argparse names)
+    (["rollout", ATTENTION, "--show", "--num-envs", "0"], "vqb rollout: error: argument --num-envs: 0 is less than the minimum of 1"),
+    (["rollout", ATTENTION, "--show", "--num-envs", "-3"], "argument --num-envs: -3 is less than the minimum of 1"),
+    (["rollout", ATTENTION, "--show", "--num-envs", "2.5"], "argument --num-envs: '2.5' is not an integer"),
+    (["hub-fixture", "unused", "--seed", "-1"], "vqb hub-fixture: error: argument --seed: -1 is less than the minimum of 0"),
+]
+
+
+@pytest.mark.parametrize(("arguments", "message"), CLI_NUMBERS, ids=["num_envs_0", "num_envs_negative", "num_envs_float", "seed"])
+def test_vqb_refuses_numbers_out_of_range_naming_the_option(tmp_path, arguments, message):
+    result = subprocess.run([sys.executable, "-m", "vlaquantbench.cli", *arguments], capture_output=True, text=True,
+                            timeout=120, cwd=tmp_path)
+    assert result.returncode == 2 and message in result.stderr, result.stderr
+    assert list(tmp_path.iterdir()) == []

@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 from paths import ROOT
 
+from vlaquantbench.envs.memory import job_memory_mb
+
 SNAKEMAKE = [sys.executable, "-m", "snakemake"]
 
 
@@ -48,6 +50,11 @@ def test_slurm_profile_dry_run_puts_rollouts_on_gpus(tmp_path):
     assert len(jobs["calibrate"]) == 1 and len(jobs["download_checkpoint"]) == 1
     for resources in jobs["rollout"] + jobs["calibrate"]:
         assert "slurm_partition=gpu" in resources and "gpu=1" in resources
+    # Memory follows from the worker count (config/paper.yaml: num_envs 8; a calibration has 2 episodes), not a
+    # fixed 64 GB: each LIBERO worker's measured footprint plus the policy's.
+    for rule, workers in (("rollout", 8), ("calibrate", 2)):
+        for resources in jobs[rule]:
+            assert f"mem_mb={job_memory_mb('libero', 'libero_spatial', workers)}," in resources, (rule, resources)
     for rule in ("download_checkpoint", "paper_table", "summary", "records_manifest"):
         for resources in jobs[rule]:
             assert "slurm_partition=cpu" in resources and "gpu=" not in resources, (rule, resources)

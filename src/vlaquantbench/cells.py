@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from vlaquantbench.config.study import RunnerConfig, StudyConfig
-from vlaquantbench.envs import BENCHMARK_SUITES
+from vlaquantbench.envs import BENCHMARK_SUITES, check_ids
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import client_conventions
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
@@ -173,6 +173,9 @@ class CellConfig:
         episodes = weights.episodes_per_task or study.episodes_per_task or client.episodes_per_task
         only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
         seed = study.seed + fields["seed_offset"]
+        calibration = _calibration(ref, fields, study, seed)
+        _check_fits_suite(ref, benchmark, suite, model, study, episodes, calibration, fields)
+        _check_mujoco(ref, model, study, client, runner)
         return cls(
             ref=ref,
             cell=name,
@@ -188,7 +191,7 @@ class CellConfig:
             subset=fields["subset"],
             only=only,
             exclude=exclude,
-            calibration=_calibration(ref, fields, study, seed),
+            calibration=calibration,
             seed=seed,
             tasks=tuple(study.task_ids),
             episodes_per_task=episodes,
@@ -254,6 +257,45 @@ def _check_registries(ref: str, benchmark: str, suite: str, model: str, preset: 
         METHODS[method].check_preset(method, parse_preset(preset))
     except UserError as err:
         raise UserError(f"cell {ref!r}: {err}") from None
+
+
+def _check_fits_suite(ref: str, benchmark: str, suite: str, model: str, study: StudyConfig, episodes: int,
+                      calibration: CellCalibration | None, fields: dict[str, Any]) -> None:
+    """The study's task ids, its episodes per task (episode i starts from init state i) and the cell's
+    calibration episodes lie inside the suite (`envs.BENCHMARK_SUITES`: known without a simulator, so a
+    bad id fails while the DAG is built, not after the checkpoint download)."""
+    size = BENCHMARK_SUITES[benchmark][suite]
+    try:
+        if isinstance(study.tasks, int):
+            if study.tasks > size.tasks:
+                raise UserError(f"study.tasks: {study.tasks} tasks, but {suite} has {size.tasks} (task ids 0..{size.tasks - 1})")
+        else:
+            check_ids("study.tasks", study.tasks, size.tasks, f"{suite} has {size.tasks} tasks")
+        if episodes > size.init_states:
+            field = (f"study.models.{model}.episodes_per_task" if study.models[model].episodes_per_task
+                     else "study.episodes_per_task" if study.episodes_per_task else f"{model}'s client episodes_per_task")
+            raise UserError(f"{field}: {episodes} episodes per task, but {suite} has {size.init_states} official init "
+                            f"states per task (episode i starts from init state i)")
+        if calibration is not None:
+            protocol = study.calibration
+            if protocol.tasks > size.tasks:
+                raise UserError(f"study.calibration.tasks: {protocol.tasks} tasks, but {suite} has {size.tasks}")
+            calib_set = (fields["calibration"] or {}).get("set")
+            source = (f"study.calibration.first_init_state {protocol.first_init_state}"
+                      + (f" + 2 x calib_set {calib_set}" if calib_set else "") + f", study.calibration.episodes {protocol.episodes}")
+            check_ids(f"calibration init states ({source})", calibration.init_states, size.init_states,
+                      f"{suite} has {size.init_states} official init states per task")
+    except UserError as err:
+        raise UserError(f"cell {ref!r}: {err}") from None
+
+
+def _check_mujoco(ref: str, model: str, study: StudyConfig, client, runner: RunnerConfig) -> None:
+    """A model's cells run in its software environment, which installs its client's MuJoCo pin; any other
+    `runner.mujoco` would be refused when the simulator starts, so it is refused now."""
+    if runner.mujoco != client.mujoco:
+        field = f"study.models.{model}.runner.mujoco" if "mujoco" in study.models[model].runner else "study.runner.mujoco"
+        raise UserError(f"cell {ref!r}: {field}: {runner.mujoco!r}, but {model} cells run on MuJoCo {client.mujoco}, the "
+                        "pin of their software environment (vlaquantbench.software_env)")
 
 
 def _subset_patterns(ref: str, model: str, scope: str, subset: str | None) -> tuple[tuple[str, ...] | None, tuple[str, ...] | None]:

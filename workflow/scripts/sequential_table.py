@@ -9,11 +9,11 @@ from vlaquantbench.tables.sequential import write_sequential_table
 
 sm = snakemake
 with job_log(sm):
-    # The records, checked against the manifest in this job.
+    # The records (checked against the frozen manifest, if any, in this job; read through read_checked_cell).
     files = verified(sm.input.manifest, sm.params.records_root, sm.input.cells)
     table = write_sequential_table(sm.params.definitions, dict(zip(sm.params.refs, files)), sm.output.tex, sm.output.csv,
                                    sm.output.figure, Design(alpha=sm.params.alpha, margin_pp=sm.params.margin_pp),
                                    notes=[f"Data source: {sm.params.report['source']}.",
-                                          f"Records checked against manifest {sm.params.report['manifest']}."])
+                                          f"Records checked against {sm.params.report['checks']}."])
     print(f"{sm.output.tex}: {len(table)} contrasts, {100 * saved_fraction(table):.1f}% fewer episodes, "
           f"{int((~table['agrees']).sum())} contradicting the full-sample decision")

@@ -10,14 +10,15 @@ from __future__ import annotations
 import argparse
 import json
 
-from vlaquantbench.config import load_workflow_config
+from vlaquantbench.config import integer_option, load_workflow_config
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("hub-fixture", help="write an offline HF cache of the study's checkpoints")
     parser.add_argument("dir", help="the cache root (use it as HF_HOME)")
     parser.add_argument("--config", default="config/paper.yaml", help="config whose study.models pin the checkpoints")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random weights and statistics")
+    parser.add_argument("--seed", type=integer_option({"type": "integer", "minimum": 0}), default=0,
+                        help="seed of the random weights and statistics (>= 0)")
     parser.set_defaults(func=run)
 
 

@@ -24,8 +24,9 @@ from pathlib import Path
 
 import vlaquantbench
 from vlaquantbench.cells import calibration_config, cell_config, checkpoint_key, config_hash
-from vlaquantbench.config import load_workflow_config
-from vlaquantbench.config.study import StudyConfig
+from vlaquantbench.config import field_schema, integer_option, load_workflow_config
+from vlaquantbench.config.study import ExecutionConfig, StudyConfig
+from vlaquantbench.envs.memory import affordable_workers
 from vlaquantbench.errors import UserError
 from vlaquantbench.workflow import CELLS_DIR
 
@@ -42,7 +43,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="project folder whose results/ receives the cell (default: the checkout holding this package, "
         "where `snakemake` writes; required when the package is not run from a checkout)",
     )
-    parser.add_argument("--num-envs", type=int, help="LIBERO worker processes (default: study.execution)")
+    parser.add_argument("--num-envs", type=integer_option(field_schema("config", "study", "execution", "num_envs")),
+                        help="LIBERO worker processes (default: study.execution.num_envs); at most what the "
+                             "memory available holds (README: Memory)")
     parser.add_argument("--show", action="store_true", help="print the canonical cell config and its hash, run nothing")
     parser.set_defaults(func=run)
 
@@ -71,22 +74,26 @@ def run(args: argparse.Namespace) -> int:
     from vlaquantbench.runner.lock import writing
     from vlaquantbench.runner.signals import report_stop, sigterm_interrupts
 
+    # The worker count against the memory available, before anything is written, downloaded or loaded.
+    setting = "--num-envs" if args.num_envs is not None else "study.execution.num_envs"
+    requested = min(study.execution.num_envs if args.num_envs is None else args.num_envs,
+                    len(cfg["tasks"]) * cfg["episodes_per_task"])
+    execution = replace(study.execution, num_envs=affordable_workers(requested, cfg["benchmark"], cfg["suite"], setting))
     try:
         # The lock first: a second writer of this cell is refused before it downloads, calibrates or
         # loads anything.
         with sigterm_interrupts(), writing(out, out / JOURNAL_FILE, args.ref):
             recorded_keys(out / JOURNAL_FILE)  # episodes journaled twice differently: refused now, not after a download
-            return _run(args, study, cfg, project)
+            return _run(execution, cfg, project)
     except KeyboardInterrupt as stop:
         return report_stop(stop, cfg, out, out / JOURNAL_FILE)
 
 
-def _run(args: argparse.Namespace, study: StudyConfig, cfg: dict, project: Path) -> int:
+def _run(execution: ExecutionConfig, cfg: dict, project: Path) -> int:
     from vlaquantbench.runner.calibration import calibrate
     from vlaquantbench.runner.cell import run_cell
     from vlaquantbench.runner.checkpoint import download_checkpoint
 
-    execution = replace(study.execution, num_envs=args.num_envs) if args.num_envs else study.execution
     stamp = project / "results" / "checkpoints" / checkpoint_key(cfg) / "checkpoint.json"
     if not stamp.exists():
         download_checkpoint(**{k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}, stamp=stamp)

@@ -71,6 +71,36 @@ def validate(data: Any, schema_name: str, where: str, subschema: tuple[str, ...]
     return data
 
 
+def field_schema(schema_name: str, *path: str) -> dict[str, Any]:
+    """The rules of one field of schema `schema_name`, e.g. ("study", "execution", "num_envs")."""
+    rules = schema(schema_name)
+    for key in path:
+        rules = rules["properties"][key]
+    return rules
+
+
+def integer_option(rules: dict[str, Any]):
+    """An argparse `type` for an integer option: the text parsed and checked against the JSON-schema `rules`
+    (a config field's, from `field_schema`, when the option sets that field), so that an out-of-range value
+    is refused by argparse naming the option, e.g. `argument --num-envs: 0 is less than the minimum of 1`."""
+
+    def parse(text: str) -> int:
+        import argparse
+
+        from jsonschema import Draft202012Validator
+
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        problems = [error.message for error in Draft202012Validator(rules).iter_errors(value)]
+        if problems:
+            raise argparse.ArgumentTypeError("; ".join(problems))
+        return value
+
+    return parse
+
+
 def load_yaml(path: str | Path, schema_name: str) -> Any:
     """Parse the YAML file `path` and validate it against schema `schema_name`."""
     return validate(_parse(path), schema_name, str(path))

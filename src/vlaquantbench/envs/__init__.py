@@ -1,30 +1,71 @@
 """Simulated benchmarks, one folder each (`envs/libero/`, `envs/metaworld/`), behind one protocol.
 
-`BENCHMARK_SUITES` names every benchmark and its suites without importing a simulator, so cell
-references are checked while the workflow builds the DAG. `make_suite` and `make_env` build a
-benchmark's suite and its batched worker env (`envs.workers.WorkerVectorEnv`: reset a slot, submit
-a chunk, collect, release) from the benchmark's name, importing only that benchmark's simulator.
+`BENCHMARK_SUITES` names every benchmark, its suites and their sizes without importing a simulator, so
+cell references, task ids and episode counts are checked while the workflow builds the DAG
+(`tests/test_libero_suite.py` and `tests/test_metaworld_env.py` compare the sizes with the simulators'
+own lists). `make_suite` and `make_env` build a benchmark's suite and its batched worker env
+(`envs.workers.WorkerVectorEnv`: reset a slot, submit a chunk, collect, release) from the benchmark's
+name, importing only that benchmark's simulator.
 """
 
 from __future__ import annotations
 
 import importlib
 import inspect
+from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from vlaquantbench.envs.episodes import SEED_STRIDE
 from vlaquantbench.errors import UserError, lookup
 
 if TYPE_CHECKING:
     from vlaquantbench.envs.episodes import SuiteTasks
     from vlaquantbench.envs.workers import WorkerVectorEnv
 
+
+@dataclass(frozen=True)
+class SuiteSize:
+    tasks: int  # task ids 0..tasks-1, in the benchmark's task order
+    init_states: int  # initial states (LIBERO) or seeded task variations (Meta-World) per task, ids 0..init_states-1
+    worker_gib: float  # memory of one simulator worker process (envs.memory), measured as noted below
+
+
+# worker_gib, LIBERO: the largest proportional set size (PSS, psutil's memory_full_info; shared libraries counted
+# once across workers) of a LIBERO worker (camera 256, MuJoCo 3.3.2, MUJOCO_GL=egl) after an episode reset and a
+# 10-action chunk, measured on the 2-core x86-64 development machine (2026-12-04): fresh workers on every task
+# of the suite, and one worker that built each task in turn (rebuilding leaves up to 0.5 GiB behind: LIBERO-10
+# task 4 holds 2.35 GiB fresh, 2.86 after the other nine), rounded up to 0.1 GiB. Spatial, Object, Goal, 10: fresh
+# maxima 1.80, 1.94, 1.53, 2.35 GiB; after the cycle 1.85, 2.10, 1.68, 2.86. An idle worker interpreter holds 0.1 GiB. The
+# 64-worker H200 benchmark's host held about 1.7 GB per worker (benchmarks/results/closed_loop_gpu_64_mem.log).
+# Meta-World, the same way on MT10's first task: 0.16 GiB without a camera, 0.34 GiB rendering 224 px; 0.4 allowed.
+# Its variations are seeds below SEED_STRIDE (`envs.metaworld.suite`); task counts are lerobot's groups and
+# Meta-World's MT10 / MT50 lists.
+_METAWORLD_TASKS = {"metaworld_easy": 28, "metaworld_medium": 11, "metaworld_hard": 6, "metaworld_very_hard": 5,
+                    "metaworld_mt10": 10, "metaworld_mt50": 50}
 BENCHMARK_SUITES = {
-    "libero": ("libero_spatial", "libero_object", "libero_goal", "libero_10"),
-    "metaworld": ("metaworld_easy", "metaworld_medium", "metaworld_hard", "metaworld_very_hard",
-                  "metaworld_mt10", "metaworld_mt50"),
+    "libero": {
+        "libero_spatial": SuiteSize(tasks=10, init_states=50, worker_gib=1.9),
+        "libero_object": SuiteSize(tasks=10, init_states=50, worker_gib=2.1),
+        "libero_goal": SuiteSize(tasks=10, init_states=50, worker_gib=1.7),
+        "libero_10": SuiteSize(tasks=10, init_states=50, worker_gib=2.9),
+    },
+    "metaworld": {suite: SuiteSize(tasks=tasks, init_states=SEED_STRIDE, worker_gib=0.4)
+                  for suite, tasks in _METAWORLD_TASKS.items()},
 }
 # Each benchmark's package exports its suite and vector env classes under these names.
 _CLASSES = {"libero": ("LiberoSuite", "LiberoVectorEnv"), "metaworld": ("MetaWorldSuite", "MetaWorldVectorEnv")}
+
+
+def check_ids(field: str, ids: Iterable[int], count: int, what: str) -> None:
+    """UserError `<field>: <ids outside 0..count-1> ...` naming the field, the offending ids and the range.
+
+    `what` says what the ids index, e.g. "libero_spatial has 10 tasks"."""
+    outside = sorted({i for i in ids if not 0 <= i < count})
+    if outside:
+        shown = ", ".join(map(str, outside[:8])) + (", ..." if len(outside) > 8 else "")
+        verb = "is" if len(outside) == 1 else "are"
+        raise UserError(f"{field}: {shown} {verb} outside 0..{count - 1} ({what})")
 
 
 def _benchmark_class(benchmark: str, which: int) -> type:

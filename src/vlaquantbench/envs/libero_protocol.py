@@ -1,5 +1,5 @@
-"""LIBERO's evaluation protocol as the authors ran it: tasks per suite, step limits (episode seeds:
-`envs.episodes.episode_seed`).
+"""LIBERO's evaluation protocol as the authors ran it: step limits per model family and suite (tasks per
+suite: `envs.BENCHMARK_SUITES`; episode seeds: `envs.episodes.episode_seed`).
 
 Plain constants, importable without the simulator or the `envs.libero` package (whose import starts
 multiprocessing and LIBERO's offline setup): every table job checks its records against them
@@ -14,6 +14,4 @@ STEP_LIMITS = {
     # X-VLA's client horizons (its libero_client.py; failures in the authors' records run to 800).
     "xvla": {"libero_spatial": 800, "libero_object": 800, "libero_goal": 800, "libero_10": 900},
 }
-# Tasks per suite, as LIBERO's benchmark lists them (tests/test_libero_suite.py compares).
-TASK_COUNTS = {"libero_spatial": 10, "libero_object": 10, "libero_goal": 10, "libero_10": 10}
 MODEL_FAMILY = {"pi05": "pi", "pi0": "pi", "openvla_oft": "openvla_oft", "xvla": "xvla"}

@@ -37,6 +37,7 @@ import numpy as np
 
 import vlaquantbench
 from vlaquantbench.envs.episodes import EpisodeSpec
+from vlaquantbench.envs.memory import available_memory, oom_kill_counts, oom_kills_since, worker_gib
 from vlaquantbench.errors import UserError
 
 _SHUTDOWN_TIMEOUT_S = 10
@@ -114,12 +115,13 @@ class WorkerVectorEnv:
     A slot is live from its reset until its episode succeeds or the runner calls `release(slot)`
     (e.g. at the step limit). Use as a context manager, or call `close()`.
 
-    Subclasses set `simulator` (its name in errors), `action_dim`, `worker_main` (the `python -c`
+    Subclasses set `benchmark` (its `envs.BENCHMARK_SUITES` key), `simulator` (its name in errors), `action_dim`, `worker_main` (the `python -c`
     code that runs a worker with `sys.argv[1:]` = `[FD, *worker_args()]`), `worker_error`, and
     `suite` (with `task(task_id)`), and implement `_worker_args`, `_episode_start`, `_load_payload`
     and `_episode_label`; their `__init__` checks its own settings, then calls `_start_workers`.
     """
 
+    benchmark: str
     simulator: str
     action_dim: int
     worker_main: str
@@ -127,6 +129,8 @@ class WorkerVectorEnv:
     reply_timeout_s: float = REPLY_TIMEOUT_S
 
     def _start_workers(self, num_envs: int) -> None:
+        # Evidence for a worker that dies by SIGKILL: the memory before the workers, the kernel's OOM-kill counters.
+        self._memory_at_start, self._oom_kills_at_start = available_memory(), oom_kill_counts()
         self._slots: list[_Slot] = []
         self._finalizer = weakref.finalize(self, _close_slots, self._slots)
         try:
@@ -394,7 +398,19 @@ class WorkerVectorEnv:
             code = self._slots[i].process.wait(timeout=_SHUTDOWN_TIMEOUT_S)
         except subprocess.TimeoutExpired:
             return "it is still running"
-        return f"exit code {code}"
+        if code != -signal.SIGKILL:
+            return f"exit code {code}"
+        # The kernel's OOM killer sends SIGKILL; so do people and schedulers. Say "memory" only on its record.
+        kills = oom_kills_since(self._oom_kills_at_start)
+        if kills:
+            each = worker_gib(self.benchmark, self.suite.name)
+            return (f"killed by SIGKILL, likely out of memory: {self.num_envs} workers x {each} GiB vs "
+                    f"{self._memory_at_start} when they started; the kernel killed for memory since ({'; '.join(kills)})")
+        if not self._oom_kills_at_start:
+            return f"killed by SIGKILL (exit code {code}); no OOM-kill counter is readable here to tell whether memory ran out"
+        watched = ", ".join(self._oom_kills_at_start)
+        return (f"killed by SIGKILL (exit code {code}); no out-of-memory kill was recorded ({watched}), so not by the "
+                "kernel's OOM killer")
 
     def _describe(self, i: int, command: str, detail: str) -> str:
         where = f"{self.simulator} worker of slot {i} failed to {command}"

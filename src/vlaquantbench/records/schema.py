@@ -29,7 +29,7 @@ import yaml
 
 from vlaquantbench.envs import BENCHMARK_SUITES
 from vlaquantbench.envs.episodes import SEED_STRIDE
-from vlaquantbench.envs.libero_protocol import MODEL_FAMILY, STEP_LIMITS, TASK_COUNTS
+from vlaquantbench.envs.libero_protocol import MODEL_FAMILY, STEP_LIMITS
 from vlaquantbench.errors import UserError
 
 
@@ -113,7 +113,7 @@ class EpisodeCheck:
         if tasks:
             properties["task_id"] = {"enum": sorted(tasks), "description": "the tasks the header lists"}
         else:
-            count = TASK_COUNTS[suite]
+            count = BENCHMARK_SUITES[header["benchmark"]][suite].tasks
             properties["task_id"] |= {"maximum": count - 1, "description": f"{suite} has {count} tasks: 0..{count - 1}"}
         properties["episode"] |= {"maximum": per_task - 1, "description": f"the header declares {per_task} episodes per task"}
         limit = step_limit(header, Path(source))

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from vlaquantbench.config import load_yaml
 from vlaquantbench.config.study import RunnerConfig
+from vlaquantbench.envs import BENCHMARK_SUITES, check_ids
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.subsets import get_subset
 from vlaquantbench.records.summary import read_summary
@@ -90,7 +91,14 @@ class RecordSettings:
         base = {"variant": "full", "tasks": study["tasks"], "init_states": study["init_states"]}
         if options.get("variant", "full") == "full":  # a demo policy has random weights, no checkpoint
             base.update(checkpoint=study["checkpoint"], revision=study["revision"])
-        return cls(model=study["model"], suite=study["suite"], observe=study["observe"], **{**base, **options})
+        settings = cls(model=study["model"], suite=study["suite"], observe=study["observe"], **{**base, **options})
+        # Checked here, while the DAG is built: a recording job would fail on them only after loading the policy.
+        size = BENCHMARK_SUITES[study["benchmark"]][settings.suite]
+        for key, ids, count, what in (("tasks", settings.tasks, size.tasks, "tasks"),
+                                      ("init_states", settings.init_states, size.init_states, "official init states per task")):
+            field = f"replay.{key}" if key in options else f"the replay study's {key}"
+            check_ids(field, ids, count, f"{settings.suite} has {count} {what}")
+        return settings
 
     def trajectory_files(self) -> list[str]:
         """File names of the recorded trajectories (`t<task>_e<init state>.npz`), in recording order."""

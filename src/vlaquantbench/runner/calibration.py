@@ -11,6 +11,7 @@ from tqdm import tqdm
 
 from vlaquantbench.config.study import ExecutionConfig
 from vlaquantbench.envs.libero import EpisodeSpec, LiberoSuite, LiberoVectorEnv, episode_seed
+from vlaquantbench.envs.memory import affordable_workers
 from vlaquantbench.runner.cell import calibration_settings, load_policy
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.runner.provenance import code_revision
@@ -40,6 +41,9 @@ def calibrate(
     ]
     for spec in specs:  # out-of-range init states fail here, before the policy loads
         suite.init_state(spec.task_id, spec.init_state_id)
+    # Refused, never capped: the statistics are per policy call, so they depend on how many workers share one.
+    workers = affordable_workers(min(num_envs, len(specs)), calib["benchmark"], calib["suite"],
+                                 "study.execution.num_envs", cap=False)
     adapter = load_policy(calib, checkpoint_stamp)
     settings = calibration_settings(settings_cfg, adapter)
     layers = {}
@@ -58,7 +62,7 @@ def calibrate(
     max_steps = runner["max_steps"] or suite.max_steps(calib["model"])
     with observe(layers, quantile=settings.quantile, sample_rows=settings.sample_rows) as observer:
         with LiberoVectorEnv(
-            suite, min(num_envs, len(specs)), camera_size=runner["camera_size"], settle_steps=runner["settle_steps"],
+            suite, workers, camera_size=runner["camera_size"], settle_steps=runner["settle_steps"],
             control_mode=runner["control_mode"], mujoco=runner["mujoco"],
         ) as env:
             with tqdm(total=len(specs), desc=f"calibrate {calib['model']} {calib['suite']}", unit="ep",

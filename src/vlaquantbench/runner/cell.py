@@ -31,6 +31,7 @@ from tqdm import tqdm
 from vlaquantbench.cells import canonical, config_hash, quantizer_method
 from vlaquantbench.config.study import ExecutionConfig
 from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv, simulator_versions
+from vlaquantbench.envs.memory import affordable_workers
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.records import write_cell
@@ -148,7 +149,9 @@ class CellRun:
         if not missing:
             return None
         runner = self.cfg["runner"]
-        num_envs = max(1, min(self.num_envs, len(missing)))
+        # Before any worker starts: as many as the memory holds (a warning names both numbers).
+        num_envs = affordable_workers(max(1, min(self.num_envs, len(missing))), self.cfg["benchmark"], self.cfg["suite"],
+                                      "study.execution.num_envs")
 
         def start() -> LiberoVectorEnv:
             env = LiberoVectorEnv(

@@ -14,7 +14,7 @@ import pandas as pd
 
 from vlaquantbench.atomic import atomic_write
 from vlaquantbench.errors import UserError
-from vlaquantbench.records import read_cell
+from vlaquantbench.records import read_checked_cell
 from vlaquantbench.sequential import Design, retrospective, saved_fraction, write_csv
 from vlaquantbench.tables.booktabs import Booktabs
 from vlaquantbench.tables.definition import TableDefinition
@@ -87,7 +87,7 @@ def write_sequential_table(definitions: list[TableDefinition], cell_paths: Mappi
     missing = sorted({ref for pair in contrasts for ref in pair} - set(cell_paths))
     if missing:
         raise UserError(f"tab:sequential needs the episode records of {', '.join(missing)}; only their summary is available")
-    episodes = {ref: read_cell(cell_paths[ref]).episodes for ref in dict.fromkeys(r for pair in contrasts for r in pair)}
+    episodes = {ref: read_checked_cell(ref, cell_paths[ref]).episodes for ref in dict.fromkeys(r for pair in contrasts for r in pair)}
     table = retrospective(contrasts, episodes, design)
     write_csv(table, csv)
     plot_episodes_saved(table, figure)

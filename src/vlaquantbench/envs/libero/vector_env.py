@@ -37,6 +37,7 @@ class LiberoVectorEnv(WorkerVectorEnv):
     (`envs.workers.WorkerVectorEnv`). Use as a context manager, or call `close()`.
     """
 
+    benchmark = "libero"
     simulator = "LIBERO"
     action_dim = ACTION_DIM
     worker_main = "import sys; from vlaquantbench.envs.libero.worker import main; main(sys.argv[1:])"

@@ -39,6 +39,7 @@ class MetaWorldVectorEnv(WorkerVectorEnv):
     None, and at reset `task_variation` (the episode's object and goal placement).
     """
 
+    benchmark = "metaworld"
     simulator = "Meta-World"
     action_dim = ACTION_DIM
     worker_main = "import sys; from vlaquantbench.envs.metaworld.worker import main; main(sys.argv[1:])"
