@@ -20,7 +20,6 @@ byte-level tokenizer and LIBERO-like ranges as statistics. Random: the full-size
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -67,7 +66,7 @@ class OpenVLAOFTAdapter(AdapterBase):
 
 
     def load(self) -> None:
-        from vlaquantbench.models.pi_family_adapter import offline_byte_tokenizer
+        from vlaquantbench.models.pi_family_adapter import DEMO_PROVENANCE, offline_byte_tokenizer
 
         torch.manual_seed(MODEL_SEED)  # the client's `set_seed_everywhere(7)`; the head samples nothing
         if self.config.variant == "full":
@@ -78,6 +77,7 @@ class OpenVLAOFTAdapter(AdapterBase):
             self.model.to(getattr(torch, self.config.dtype))
             self.tokenizer = offline_byte_tokenizer()
             self.statistics = demo_statistics()
+            self.checkpoint_provenance = {**DEMO_PROVENANCE, "widths": "reduced (demo)" if build == "demo" else "released"}
         else:
             raise UserError(f"openvla_oft has no variant {self.config.variant!r}; choose full, demo or random")
         self.model.eval()
@@ -85,33 +85,31 @@ class OpenVLAOFTAdapter(AdapterBase):
         self._check_chunk()
 
     def _load_checkpoint(self) -> None:
-        import safetensors.torch
-        from transformers import AutoTokenizer
+        """The release's snapshot (`release`), checked before any rollout (revision, config.json, the
+        suite's statistics, the tokenizer, every weights file against the architecture's keys and
+        shapes), then loaded strictly into the architecture built at config.json's widths."""
+        from vlaquantbench.hub import checks
+        from vlaquantbench.models.openvla_oft import release
+        from vlaquantbench.models.openvla_oft.architecture import OpenVLAOFT
 
-        folder = Path(self.config.checkpoint_dir or "")
-        if not self.config.checkpoint_dir or not folder.is_dir():
+        folder = self.config.checkpoint_dir
+        if not folder or not Path(folder).is_dir():
             raise UserError(f"openvla_oft: checkpoint {self.config.checkpoint} has no local snapshot; run its download rule")
-        model = get_model_spec(self.name).build(variant="full", device="meta")
-        state = {}
-        for shard in sorted(folder.glob("*.safetensors")):
-            state.update(safetensors.torch.load_file(shard))
-        for part in ("proprio_projector", "action_head"):
-            files = sorted(folder.glob(f"{part}--*_checkpoint.pt"))
-            if not files:
-                raise UserError(f"openvla_oft: {folder} has no {part}--*_checkpoint.pt")
-            weights = torch.load(files[-1], map_location="cpu", weights_only=True)
-            state.update({f"{part}.{k.removeprefix('module.')}": v for k, v in weights.items()})
-        missing, unexpected = model.load_state_dict(state, strict=False, assign=True)
-        if missing or unexpected:
-            raise UserError(f"openvla_oft: {folder} does not match the architecture: missing {missing[:5]}, "
-                            f"unexpected {unexpected[:5]}")
+        checks.check_snapshot_revision(folder, self.config.checkpoint, self.config.revision)
+        sizes, reduced = release.read_sizes(folder)
+        self.statistics, statistics_record = release.read_statistics(folder, self.config.suite)
+        self.tokenizer, tokenizer_record = release.load_tokenizer(folder, self.config.checkpoint)
+        with torch.device("meta"):
+            model = OpenVLAOFT(sizes)
+        expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+        model.load_state_dict(release.load_state(folder, expected, self.config.checkpoint), strict=True, assign=True)
+        model.restore_rotary_embedding()  # a buffer no state dict holds, still on the meta device
         self.model = model.to(self._device, getattr(torch, self.config.dtype))
-        self.tokenizer = AutoTokenizer.from_pretrained(folder, local_files_only=True)
-        statistics = json.loads((folder / "dataset_statistics.json").read_text())
-        key = f"{self.config.suite}_no_noops"
-        if key not in statistics:
-            raise UserError(f"openvla_oft: {folder}/dataset_statistics.json has no {key!r} (has {', '.join(statistics)})")
-        self.statistics = statistics[key]
+        self.checkpoint_provenance = {
+            "tokenizer": tokenizer_record,
+            "normalization": {"statistics": statistics_record},
+            "widths": "reduced (offline hub fixture)" if reduced else "released",
+        }
 
     def prepare_inference(self, report) -> dict:
         return {"sampler": "eager", "deterministic_head": True, "model_seed": MODEL_SEED}
