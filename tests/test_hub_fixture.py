@@ -368,6 +368,9 @@ def oft_fault(folder: Path, fault: str) -> None:
         state["module.fc1.weight"] = state["module.fc1.weight"][:, :7].contiguous()  # a 7-D state instead of 8
         path.unlink()
         torch.save(state, path)
+    elif fault == "config_of_another_backbone":
+        path = folder / "config.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()), "timm_model_ids": ["vit_so400m_patch14_siglip_224"]}))
     elif fault == "native_key_names":  # timm's own names instead of the release's
         index = folder / "model.safetensors.index.json"
         content = json.loads(index.read_text())
@@ -387,6 +390,8 @@ def oft_fault(folder: Path, fault: str) -> None:
                     r"language_model.model.layers.0.mlp.down_proj.weight \(64, 16\) vs \(64, 128\)"),
     ("head_shape", r"state dict .*proprio_projector--150000_checkpoint.pt does not fit the architecture: wrong shapes: "
                    r"fc1.weight \(64, 7\) vs \(64, 8\)"),
+    ("config_of_another_backbone", r"OpenVLA-OFT config .*config.json does not describe the OFT architecture: "
+                                   r"timm_model_ids \['vit_so400m_patch14_siglip_224'\]"),
     ("native_key_names", r"model.safetensors.index.json does not fit the architecture: 48 missing keys: "
                          r"vision_backbone.featurizer.blocks.0.ls1.scale_factor"),
 ])

@@ -11,11 +11,13 @@ and `invert_gripper_action`). The L1 head is deterministic: nothing is sampled, 
 is fixed at the client's 7. Prompts differ in length, so each observation runs as its own pass, as
 in the client (one query per step): an episode's actions never depend on its batch.
 
-Full variant: the local snapshot of `moojink/openvla-7b-oft-finetuned-libero-<suite>`: its
-safetensors shards (vision backbone, projector, LLaMA-2), the `proprio_projector--*_checkpoint.pt`
-and `action_head--*_checkpoint.pt` files, `dataset_statistics.json` (key `<suite>_no_noops`) and its
-LLaMA tokenizer. Demo variant: the reduced-width random-weight build of the model spec, the offline
-byte-level tokenizer and LIBERO-like ranges as statistics. Random: the full-size build, seeded.
+Full variant: the local snapshot of `moojink/openvla-7b-oft-finetuned-libero-<suite>` as the release ships
+it (`release`): its safetensors shards (vision backbone, projector, LLaMA-2), the
+`proprio_projector--*_checkpoint.pt` and `action_head--*_checkpoint.pt` files, `dataset_statistics.json`
+(key `<suite>_no_noops`) and its LLaMA tokenizer, each checked before any rollout, the weights loaded
+strictly at the widths its config.json gives. Demo variant: the reduced-width random-weight build of
+the model spec, the offline byte-level tokenizer and LIBERO-like ranges as statistics. Random: the
+full-size build, seeded.
 """
 
 from __future__ import annotations
@@ -66,7 +68,7 @@ class OpenVLAOFTAdapter(AdapterBase):
 
 
     def load(self) -> None:
-        from vlaquantbench.models.pi_family_adapter import DEMO_PROVENANCE, offline_byte_tokenizer
+        from vlaquantbench.models.pi_family_adapter import offline_byte_tokenizer
 
         torch.manual_seed(MODEL_SEED)  # the client's `set_seed_everywhere(7)`; the head samples nothing
         if self.config.variant == "full":
@@ -77,7 +79,6 @@ class OpenVLAOFTAdapter(AdapterBase):
             self.model.to(getattr(torch, self.config.dtype))
             self.tokenizer = offline_byte_tokenizer()
             self.statistics = demo_statistics()
-            self.checkpoint_provenance = {**DEMO_PROVENANCE, "widths": "reduced (demo)" if build == "demo" else "released"}
         else:
             raise UserError(f"openvla_oft has no variant {self.config.variant!r}; choose full, demo or random")
         self.model.eval()

@@ -31,7 +31,6 @@ the suite's statistics, the tokenizer) before the weights load strictly. Nothing
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,6 +38,7 @@ from typing import Any
 import torch
 
 from vlaquantbench.errors import UserError
+from vlaquantbench.hub.checks import load_json, sha256
 from vlaquantbench.models.openvla_oft.architecture import ACTION_DIM, DINOV2, PROPRIO_DIM, SIGLIP, OFTSizes
 
 
@@ -90,21 +90,12 @@ def native_name(key: str) -> str:
     return key
 
 
-def _load_json(path: Path, what: str) -> Any:
-    if not path.is_file():
-        raise UserError(f"OpenVLA-OFT {what} {path.name} is missing from {path.parent}")
-    try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise UserError(f"OpenVLA-OFT {what} {path} is corrupt (not JSON: {err})") from None
-
-
 def read_sizes(folder: str | Path) -> tuple[OFTSizes, bool]:
     """The widths config.json gives (LLaMA-2's from `text_config`; the vision backbones' from their timm
     ids, or from `REDUCED_WIDTHS_FILE` where the snapshot holds one), and whether they are reduced;
     refused unless config.json describes the architecture `OpenVLAOFT` builds."""
     path = Path(folder) / CONFIG_FILE
-    config = _load_json(path, "config")
+    config = load_json(path, "OpenVLA-OFT config")
     if config.get("model_type") != "openvla":
         raise UserError(f"OpenVLA-OFT config {path} has model_type {config.get('model_type')!r}, not 'openvla'")
     expected = {"timm_model_ids": [DINOV2, SIGLIP], "use_fused_vision_backbone": True,
@@ -121,7 +112,7 @@ def read_sizes(folder: str | Path) -> tuple[OFTSizes, bool]:
     vision = {"dino": OFTSizes.dino, "siglip": OFTSizes.siglip}
     reduced_path = Path(folder) / REDUCED_WIDTHS_FILE
     if reduced_path.exists():
-        vision = {name: tuple(value) for name, value in _load_json(reduced_path, "widths file").items()}
+        vision = {name: tuple(value) for name, value in load_json(reduced_path, "OpenVLA-OFT widths file").items()}
     sizes = OFTSizes(llm_dim=text["hidden_size"], llm_mlp=text["intermediate_size"], llm_heads=text["num_attention_heads"],
                      vocab=text["vocab_size"], **vision)
     return sizes, reduced_path.exists() or sizes != OFTSizes()
@@ -130,10 +121,8 @@ def read_sizes(folder: str | Path) -> tuple[OFTSizes, bool]:
 def read_statistics(folder: str | Path, suite: str) -> tuple[dict, dict]:
     """The suite's entry of dataset_statistics.json (action and proprio q01/q99, the action mask) and
     the header's record of the file; refused naming the file and the keys it has."""
-    from vlaquantbench.hub.checks import sha256
-
     path = Path(folder) / STATISTICS_FILE
-    statistics = _load_json(path, "statistics file")
+    statistics = load_json(path, "OpenVLA-OFT statistics file")
     key = statistics_key(suite)
     if not isinstance(statistics, dict) or key not in statistics:
         has = ", ".join(statistics) if isinstance(statistics, dict) else type(statistics).__name__
@@ -152,24 +141,17 @@ def read_statistics(folder: str | Path, suite: str) -> tuple[dict, dict]:
 
 def load_tokenizer(folder: str | Path, checkpoint: str) -> tuple[Any, dict]:
     """LLaMA-2's tokenizer from the release's own files (transformers' `LlamaTokenizer`; `AutoTokenizer`
-    would read config.json's remote-code `auto_map`), and its provenance: class, repository, the
-    snapshot's revision and each file's sha256."""
+    would read config.json's remote-code `auto_map`), and its provenance (`checks.load_snapshot_tokenizer`);
+    refused unless it has LLaMA-2's special-token ids, which the adapter's prompt frame uses."""
     from transformers import LlamaTokenizer
 
-    from vlaquantbench.hub.checks import sha256
+    from vlaquantbench.hub.checks import load_snapshot_tokenizer
 
-    folder = Path(folder)
-    try:
-        tokenizer = LlamaTokenizer.from_pretrained(folder, local_files_only=True)
-    except Exception as err:  # transformers raises OSError, ValueError, KeyError, JSON errors ...
-        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise UserError(f"tokenizer of {checkpoint} ({', '.join(TOKENIZER_FILES[:3])} in {folder}) does not load: "
-                        f"{reason}") from None
+    tokenizer, record = load_snapshot_tokenizer(LlamaTokenizer, folder, checkpoint, TOKENIZER_FILES)
     if len(tokenizer) <= 2 or tokenizer.bos_token_id != 1 or tokenizer.eos_token_id != 2:
         raise UserError(f"tokenizer of {checkpoint} in {folder} is not LLaMA-2's layout (<s> 1, </s> 2): it has "
                         f"{len(tokenizer)} tokens, bos {tokenizer.bos_token_id}, eos {tokenizer.eos_token_id}")
-    files = {name: sha256(folder / name) for name in TOKENIZER_FILES if (folder / name).is_file()}
-    return tokenizer, {"class": type(tokenizer).__name__, "repo": checkpoint, "revision": folder.name, "files": files}
+    return tokenizer, record
 
 
 def _head_path(folder: Path, part: str, checkpoint: str | None) -> Path:
@@ -204,7 +186,7 @@ def load_state(folder: str | Path, expected: dict[str, tuple[int, ...]], checkpo
     heads = {part: _head_path(folder, part, checkpoint) for part in HEADS}
     body = {released_name(k): shape for k, shape in expected.items() if not k.startswith(HEADS)}
     index_path = folder / INDEX_FILE
-    weight_map = (_load_json(index_path, "weights index") or {}).get("weight_map")
+    weight_map = (load_json(index_path, "OpenVLA-OFT weights index") or {}).get("weight_map")
     if not isinstance(weight_map, dict):
         raise UserError(f"OpenVLA-OFT weights index {index_path} has no weight_map")
     check_state_dict_fits({k: body.get(k, ()) for k in weight_map}, body, index_path)
