@@ -124,10 +124,15 @@ def write_weights(folder: Path, model: OpenVLAOFT, step: int) -> None:
     (folder / release.INDEX_FILE).write_text(json.dumps(index, indent=2, sort_keys=True) + "\n")
 
 
+@functools.cache
+def demo_model(seed: int) -> OpenVLAOFT:
+    """The weights all four releases share (built once: random weights say nothing per suite either way)."""
+    return demo_build(lambda: OpenVLAOFT(DEMO), torch.device("cpu"), seed)
+
+
 def write_release(suite: str, folder: Path, seed: int) -> None:
     folder.mkdir(parents=True, exist_ok=True)
-    model = demo_build(lambda: OpenVLAOFT(DEMO), torch.device("cpu"), seed + list(release.RELEASES).index(suite))
-    write_weights(folder, model, release.RELEASES[suite].step)
+    write_weights(folder, demo_model(seed), release.RELEASES[suite].step)
     pad_token_id = write_tokenizer(folder)
     (folder / release.CONFIG_FILE).write_text(json.dumps(release_config(pad_token_id), indent=2) + "\n")
     (folder / release.STATISTICS_FILE).write_text(json.dumps(dataset_statistics(suite, seed), indent=2) + "\n")
