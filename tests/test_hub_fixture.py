@@ -284,3 +284,157 @@ def test_xvla_prompts_use_the_releases_tokenizer_and_images_its_processor(hub_fi
     np.testing.assert_allclose(view, by_hand.transpose(2, 0, 1), rtol=0, atol=1e-5)
     text = "pick up the black bowl between the plate and the ramekin and place it on the plate"
     assert adapter.tokenizer(text).input_ids == AutoTokenizer.from_pretrained(folder).encode(text)
+
+
+# OpenVLA-OFT: the four `moojink/openvla-7b-oft-finetuned-libero-<suite>` releases as they ship (transformers
+# remote-code repositories), loaded into the architecture built here, with no remote code run.
+OFT_SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10")
+
+
+def oft_release(suite):
+    from vlaquantbench.models.openvla_oft.release import RELEASES
+
+    return RELEASES[suite]
+
+
+def load_oft(hub_fixture, folder, suite="libero_spatial", revision=None):
+    release = oft_release(suite)
+    adapter = make_adapter(AdapterConfig(model="openvla_oft", variant="full", checkpoint=release.repo, suite=suite,
+                                         revision=revision or release.revision, checkpoint_dir=str(folder)))
+    adapter.load()
+    return adapter
+
+
+@pytest.mark.parametrize("suite", OFT_SUITES)
+def test_each_oft_release_resolves_offline_in_its_released_layout_and_loads_strictly(hub_fixture, suite):
+    from huggingface_hub import snapshot_download
+    from safetensors import safe_open
+
+    release = oft_release(suite)
+    with offline_cache(hub_fixture["home"]):
+        folder = Path(snapshot_download(release.repo, revision=release.revision, local_files_only=True))
+    assert folder.name == release.revision == hub_fixture["repos"][release.repo]["revision"]
+    shards = {f"model-0000{i}-of-00004.safetensors" for i in range(1, 5)}
+    heads = {f"action_head--{release.step}_checkpoint.pt", f"proprio_projector--{release.step}_checkpoint.pt"}
+    assert {p.name for p in folder.iterdir()} == shards | heads | {
+        "model.safetensors.index.json", "config.json", "dataset_statistics.json", "preprocessor_config.json",
+        "tokenizer.model", "tokenizer.json", "tokenizer_config.json", "vlaquantbench_reduced_widths.json"}
+    config = json.loads((folder / "config.json").read_text())
+    assert config["model_type"] == "openvla" and config["architectures"] == ["OpenVLAForActionPrediction"]
+    assert config["auto_map"] == {"AutoConfig": "configuration_prismatic.OpenVLAConfig",
+                                  "AutoModelForVision2Seq": "modeling_prismatic.OpenVLAForActionPrediction"}
+    weight_map = json.loads((folder / "model.safetensors.index.json").read_text())["weight_map"]
+    assert set(weight_map.values()) == shards and len(weight_map) == 982  # the release's 981 VLA keys + lm_head
+    for shard in shards:
+        with safe_open(folder / shard, "pt") as f:
+            assert set(f.keys()) == {k for k, s in weight_map.items() if s == shard}
+    assert "vision_backbone.featurizer.blocks.0.ls1.scale_factor" in weight_map  # timm's gamma, as the remote code names it
+    assert "language_model.lm_head.weight" in weight_map and "vision_backbone.fused_featurizer.attn_pool.latent" in weight_map
+    assert not [k for k in weight_map if "gamma" in k or k.startswith(("action_head", "proprio_projector"))]
+    head = torch.load(folder / f"action_head--{release.step}_checkpoint.pt", weights_only=True)
+    assert "module.model.fc2.weight" in head and all(k.startswith("module.") for k in head)
+    assert list(json.loads((folder / "dataset_statistics.json").read_text())) == [f"{suite}_no_noops"]
+
+    adapter = load_oft(hub_fixture, folder, suite)  # strict: every key of the files and of the model matched
+    assert adapter.checkpoint_provenance["widths"] == "reduced (offline hub fixture)"
+    fc2 = adapter.model.action_head.model.fc2.weight
+    torch.testing.assert_close(fc2, head["module.model.fc2.weight"], rtol=0, atol=0)
+    scale = adapter.model.vision_backbone.featurizer.blocks[0].ls1.gamma
+    with safe_open(folder / weight_map["vision_backbone.featurizer.blocks.0.ls1.scale_factor"], "pt") as f:
+        torch.testing.assert_close(scale, f.get_tensor("vision_backbone.featurizer.blocks.0.ls1.scale_factor"), rtol=0, atol=0)
+
+
+def oft_fault(folder: Path, fault: str) -> None:
+    """Break one file of a writable OFT snapshot copy (LIBERO-Spatial's)."""
+    if fault == "missing_action_head":
+        (folder / "action_head--150000_checkpoint.pt").unlink()
+    elif fault == "statistics_of_another_suite":
+        path = folder / "dataset_statistics.json"
+        path.write_text(json.dumps({"libero_goal_no_noops": json.loads(path.read_text())["libero_spatial_no_noops"]}))
+    elif fault in ("shard_key_missing", "shard_shape"):
+        weight_map = json.loads((folder / "model.safetensors.index.json").read_text())["weight_map"]
+        key = "projector.fc3.bias" if fault == "shard_key_missing" else "language_model.model.layers.0.mlp.down_proj.weight"
+        shard = folder / weight_map[key]
+        state = load_file(shard)
+        if fault == "shard_key_missing":
+            del state[key]
+        else:
+            state[key] = state[key][:, :16].contiguous()
+        shard.unlink()
+        save_file(state, shard)
+    elif fault == "head_shape":
+        path = folder / "proprio_projector--150000_checkpoint.pt"
+        state = torch.load(path, weights_only=True)
+        state["module.fc1.weight"] = state["module.fc1.weight"][:, :7].contiguous()  # a 7-D state instead of 8
+        path.unlink()
+        torch.save(state, path)
+    elif fault == "config_of_another_backbone":
+        path = folder / "config.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()), "timm_model_ids": ["vit_so400m_patch14_siglip_224"]}))
+    elif fault == "native_key_names":  # timm's own names instead of the release's
+        index = folder / "model.safetensors.index.json"
+        content = json.loads(index.read_text())
+        content["weight_map"] = {k.replace(".scale_factor", ".gamma"): v for k, v in content["weight_map"].items()}
+        index.unlink()
+        index.write_text(json.dumps(content))
+
+
+@pytest.mark.parametrize("fault, message", [
+    ("missing_action_head", r"action_head file action_head--\*_checkpoint.pt: .* holds none; the release ships "
+                            r"action_head--150000_checkpoint.pt"),
+    ("statistics_of_another_suite", r"statistics file .*dataset_statistics.json has no 'libero_spatial_no_noops' "
+                                    r"\(has libero_goal_no_noops\)"),
+    ("shard_key_missing", r"state dict .*model-0000\d-of-00004.safetensors does not fit the architecture: 1 missing keys: "
+                          r"projector.fc3.bias"),
+    ("shard_shape", r"state dict .*model-0000\d-of-00004.safetensors does not fit the architecture: wrong shapes: "
+                    r"language_model.model.layers.0.mlp.down_proj.weight \(64, 16\) vs \(64, 128\)"),
+    ("head_shape", r"state dict .*proprio_projector--150000_checkpoint.pt does not fit the architecture: wrong shapes: "
+                   r"fc1.weight \(64, 7\) vs \(64, 8\)"),
+    ("config_of_another_backbone", r"OpenVLA-OFT config .*config.json does not describe the OFT architecture: "
+                                   r"timm_model_ids \['vit_so400m_patch14_siglip_224'\]"),
+    ("native_key_names", r"model.safetensors.index.json does not fit the architecture: 48 missing keys: "
+                         r"vision_backbone.featurizer.blocks.0.ls1.scale_factor"),
+])
+def test_a_faulty_oft_release_is_refused_before_any_rollout_naming_the_file(hub_fixture, tmp_path, fault, message):
+    folder = snapshot_copy(hub_fixture, tmp_path, oft_release("libero_spatial").repo)
+    oft_fault(folder, fault)
+    with pytest.raises(UserError, match=message):
+        load_oft(hub_fixture, folder)
+
+
+def test_an_oft_snapshot_of_another_revision_is_refused(hub_fixture, tmp_path):
+    release = oft_release("libero_object")
+    other = "3" * 40
+    with offline_cache(hub_fixture["home"]), pytest.raises(UserError, match=rf"{release.repo}@{other}.*holds revisions {release.revision}"):
+        download_checkpoint("openvla_oft", "full", release.repo, other, tmp_path / "checkpoint.json")
+    folder = hub_fixture["repos"][release.repo]["path"]
+    with pytest.raises(UserError, match=rf"snapshot {folder} is revision {release.revision}, but the config pins revision {other}"):
+        load_oft(hub_fixture, folder, "libero_object", revision=other)
+
+
+def test_oft_prompts_use_the_releases_sentencepiece_tokenizer_and_actions_its_statistics(hub_fixture):
+    import sentencepiece
+
+    from vlaquantbench.hub.checks import sha256
+    from vlaquantbench.models.openvla_oft.adapter import prompt
+
+    folder = Path(hub_fixture["repos"][oft_release("libero_goal").repo]["path"])
+    adapter = load_oft(hub_fixture, folder, "libero_goal")
+    header = adapter.checkpoint_provenance
+    names = ("tokenizer.model", "tokenizer.json", "tokenizer_config.json")
+    assert header["tokenizer"] == {"class": "LlamaTokenizer", "repo": oft_release("libero_goal").repo,
+                                   "revision": folder.name, "files": {n: sha256(folder / n) for n in names}}
+    assert header["normalization"]["statistics"]["sha256"] == sha256(folder / "dataset_statistics.json")
+    assert header["normalization"]["statistics"]["key"] == "libero_goal_no_noops"
+    # The prompt's ids are SentencePiece's own encoding of the release's tokenizer.model (LLaMA-2: <s> 1, byte fallback).
+    text = prompt("Put the wine bottle on top of the cabinet")
+    pieces = sentencepiece.SentencePieceProcessor(model_file=str(folder / "tokenizer.model"))
+    assert adapter.tokenizer(text, add_special_tokens=False).input_ids == pieces.encode(text)
+    assert (pieces.id_to_piece(1), pieces.id_to_piece(2), pieces.id_to_piece(3)) == ("<s>", "</s>", "<0x00>")
+    # Actions: [-1, 1] -> the statistics' q01/q99 on the masked dimensions; the gripper binarized and inverted.
+    stats = json.loads((folder / "dataset_statistics.json").read_text())["libero_goal_no_noops"]["action"]
+    normalized = np.linspace(-1, 1, 8 * 7).reshape(8, 7)
+    low, high = np.array(stats["q01"]), np.array(stats["q99"])
+    actions = adapter._environment_actions(normalized.copy())
+    np.testing.assert_allclose(actions[:, :6], ((normalized + 1) / 2 * (high - low) + low)[:, :6], rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(actions[:, 6], -np.sign(2 * normalized[:, 6] - 1))

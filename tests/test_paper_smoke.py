@@ -1,7 +1,8 @@
 """`HF_HOME=<hub fixture> HF_HUB_OFFLINE=1 snakemake --cores 2 tables/lattice.tex --configfile
 config/paper_smoke.yaml`, for real, in a copy of the workflow: the paper's checkpoints at their
 pinned revisions resolve from the cache, load through lerobot (pi: `from_pretrained` and the checkpoint's
-processors; X-VLA: lerobot's model and remap of the release's weights), drive real LIBERO episodes, and
+processors; X-VLA: lerobot's model and remap of the release's weights; OpenVLA-OFT: the architecture built
+here, its shards and `.pt` heads loaded strictly), drive real LIBERO episodes, and
 every cell header records the tokenizer and normalization it used, with their hashes."""
 
 import json
@@ -51,6 +52,13 @@ def test_the_paper_smoke_config_runs_end_to_end_on_the_hub_fixture(hub_fixture, 
             assert header["widths"] == "reduced (config.json)"
             assert header["chunk"] == {"predicted": 30, "executed": 10}
             assert header["environment"]["mujoco"] == "3.1.6"
+        elif header["model"] == "openvla_oft":  # LLaMA-2's SentencePiece tokenizer and the suite's statistics, in its snapshot
+            tokenizer_repo, tokenizer_files = {"path": snapshot, "revision": model["revision"]}, ("tokenizer.model", "tokenizer.json", "tokenizer_config.json")
+            assert (header["tokenizer"]["class"], header["tokenizer"]["repo"]) == ("LlamaTokenizer", model["checkpoint"])
+            record = header["normalization"]["statistics"]
+            assert record["sha256"] == sha256(snapshot / "dataset_statistics.json") and record["key"] == "libero_spatial_no_noops"
+            assert header["widths"] == "reduced (offline hub fixture)"
+            assert header["chunk"] == {"predicted": 8, "executed": 8}
         else:
             tokenizer_repo, tokenizer_files = paligemma, ("config.json", "tokenizer.json", "tokenizer_config.json")
             assert (header["tokenizer"]["class"], header["tokenizer"]["repo"]) == ("GemmaTokenizer", "google/paligemma-3b-pt-224")
@@ -65,6 +73,8 @@ def test_the_paper_smoke_config_runs_end_to_end_on_the_hub_fixture(hub_fixture, 
         assert header["hooks"]["fired"] == header["hooks"]["selected"]
         assert header["episodes_per_task"] == 1 and header["max_steps"] == 30
     assert set(headers) == {"libero/libero_spatial/pi05/rtn-BASELINE-e2e", "libero/libero_spatial/pi05/rtn-W4A4-ah",
-                            "libero/libero_spatial/pi0/rtn-BASELINE-e2e", "libero/libero_spatial/xvla/rtn-BASELINE-e2e"}
+                            "libero/libero_spatial/pi0/rtn-BASELINE-e2e", "libero/libero_spatial/xvla/rtn-BASELINE-e2e",
+                            "libero/libero_spatial/openvla_oft/rtn-BASELINE-e2e"}
+    assert "OpenVLA-OFT unquantized &" in table
     stamp = json.loads(next((checkout / "results" / "checkpoints").glob("pi05*/checkpoint.json")).read_text())
     assert Path(stamp["path"]) == Path(hub_fixture["repos"]["lerobot/pi05_libero_finetuned_v044"]["path"])

@@ -44,7 +44,8 @@ def check_snapshot_revision(folder: str | Path, checkpoint: str, revision: str) 
         )
 
 
-def _load_json(path: Path, what: str) -> dict:
+def load_json(path: Path, what: str) -> Any:
+    """The JSON file `path`; UserError naming it (as `what`) when it is missing or not JSON."""
     if not path.is_file():
         raise UserError(f"{what} {path.name} is missing from {path.parent}")
     try:
@@ -85,7 +86,7 @@ def check_processors(folder: str | Path) -> dict:
     record: dict[str, Any] = {}
     for name in PROCESSOR_FILES:
         path = folder / name
-        pipeline = _load_json(path, "processor file")
+        pipeline = load_json(path, "processor file")
         entry: dict[str, Any] = {"file": name, "sha256": sha256(path), "state_files": {}}
         for step in pipeline.get("steps", []):
             if step.get("registry_name") not in NORMALIZER_STEPS:
@@ -102,7 +103,7 @@ def check_processors(folder: str | Path) -> dict:
 
 def tokenizer_names(folder: str | Path) -> list[str]:
     """The tokenizer repositories the checkpoint's preprocessor loads by name."""
-    steps = _load_json(Path(folder) / PROCESSOR_FILES[0], "processor file").get("steps", [])
+    steps = load_json(Path(folder) / PROCESSOR_FILES[0], "processor file").get("steps", [])
     return [s["config"]["tokenizer_name"] for s in steps if s.get("config", {}).get("tokenizer_name")]
 
 
@@ -126,6 +127,20 @@ def load_tokenizer(repo_id: str) -> tuple[Any, dict]:
         "revision": revisions.pop() if len(revisions) == 1 else sorted(revisions),
         "files": {name: sha256(path) for name, path in sorted(files.items())},
     }
+
+
+def load_snapshot_tokenizer(tokenizer_class: type, folder: str | Path, checkpoint: str, files: tuple[str, ...]) -> tuple[Any, dict]:
+    """A tokenizer a release carries in its own snapshot, read with `tokenizer_class` from `folder`
+    (named `files`, the first three in messages), and its provenance: class, repository, the
+    snapshot's revision and the sha256 of each of `files` present."""
+    folder = Path(folder)
+    try:
+        tokenizer = tokenizer_class.from_pretrained(folder, local_files_only=True)
+    except Exception as err:  # transformers raises OSError, ValueError, KeyError, JSON errors ...
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise UserError(f"tokenizer of {checkpoint} ({', '.join(files[:3])} in {folder}) does not load: {reason}") from None
+    hashes = {name: sha256(folder / name) for name in files if (folder / name).is_file()}
+    return tokenizer, {"class": type(tokenizer).__name__, "repo": checkpoint, "revision": folder.name, "files": hashes}
 
 
 def weight_shapes(path: str | Path) -> dict[str, tuple[int, ...]]:

@@ -5,7 +5,9 @@ Each model that has one registers its fixture in its own folder
 (`vlaquantbench.models.<model>.hub_fixture.FIXTURE`, a `HubFixture`): the repositories of the
 tokenizers its processors load (written first, at a revision derived from their files, with
 `refs/main` pointing there, since lerobot loads them by name) and a writer of the checkpoint's
-files. The checkpoint goes into the cache at the revision the config pins.
+files, or, for a model released as one repository per suite (OpenVLA-OFT), a writer per released
+repository with its pinned revision. The config's checkpoint goes into the cache at the revision the
+config pins; a model's other released repositories at their own.
 """
 
 from __future__ import annotations
@@ -21,10 +23,26 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.hub.cache import offline_cache, tree_revision, write_snapshot
 
 
+CheckpointWriter = Callable[[Path, int], None]  # (folder, seed) -> the checkpoint's files in folder
+
+
 @dataclass(frozen=True)
 class HubFixture:
-    write_checkpoint: Callable[[Path, int], None]  # (folder, seed) -> the checkpoint's files in folder
+    write_checkpoint: CheckpointWriter | None = None  # whichever repository the config names
     tokenizers: dict[str, Callable[[Path], Path]] = field(default_factory=dict)  # repo id -> writer
+    releases: dict[str, tuple[str, CheckpointWriter]] = field(default_factory=dict)  # repo id -> (revision, writer)
+
+    def repositories(self, model: str, checkpoint: str, revision: str) -> dict[str, tuple[str, CheckpointWriter]]:
+        """{repo id: (revision, writer)} to write for a config that pins `checkpoint` at `revision`."""
+        repos = dict(self.releases)
+        if checkpoint in repos:
+            repos[checkpoint] = (revision, repos[checkpoint][1])
+        elif self.write_checkpoint is not None:
+            repos[checkpoint] = (revision, self.write_checkpoint)
+        else:
+            raise UserError(f"study.models.{model}: checkpoint {checkpoint!r} is none of the released repositories "
+                            f"the hub fixture writes ({', '.join(repos)})")
+        return repos
 
 
 def fixture_module(model: str) -> str:
@@ -56,6 +74,8 @@ def build_hub_fixture(hf_home: str | Path, models: dict[str, dict], seed: int = 
     if not models:
         raise UserError("no full-variant model to build a hub fixture for")
     fixtures = {model: get_fixture(model) for model in models}  # refuse unknown models first
+    checkpoints = {repo_id: entry for model, fixture in fixtures.items()
+                   for repo_id, entry in fixture.repositories(model, **models[model]).items()}
     hub = Path(hf_home) / "hub"
     written: dict[str, dict] = {}
     with offline_cache(hf_home), tempfile.TemporaryDirectory() as scratch:
@@ -63,9 +83,8 @@ def build_hub_fixture(hf_home: str | Path, models: dict[str, dict], seed: int = 
             folder = write(Path(scratch) / repo_id)
             revision = tree_revision(folder)
             written[repo_id] = {"revision": revision, "path": str(write_snapshot(hub, repo_id, revision, folder))}
-        for model, fixture in fixtures.items():
-            repo_id, revision = models[model]["checkpoint"], models[model]["revision"]
+        for repo_id, (revision, write) in checkpoints.items():
             folder = Path(scratch) / repo_id
-            fixture.write_checkpoint(folder, seed)
+            write(folder, seed)
             written[repo_id] = {"revision": revision, "path": str(write_snapshot(hub, repo_id, revision, folder))}
     return written

@@ -21,10 +21,15 @@ VOCAB_SIZE = 1024
 from vlaquantbench.envs.libero.suite import SUITES as LIBERO_SUITES  # noqa: E402
 
 
-def training_corpus() -> list[str]:
+def libero_instructions() -> list[str]:
+    """Every LIBERO suite's task instructions, sorted."""
     from vlaquantbench.envs.libero import LiberoSuite
 
-    instructions = sorted({t.instruction for s in LIBERO_SUITES for t in LiberoSuite(s).tasks})
+    return sorted({t.instruction for s in LIBERO_SUITES for t in LiberoSuite(s).tasks})
+
+
+def training_corpus() -> list[str]:
+    instructions = libero_instructions()
     bins = " ".join(str(b) for b in range(256))
     return [*instructions, *(f"Task: {text}, State: {bins};\nAction: " for text in instructions)]
 

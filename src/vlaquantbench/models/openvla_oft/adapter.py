@@ -11,16 +11,17 @@ and `invert_gripper_action`). The L1 head is deterministic: nothing is sampled, 
 is fixed at the client's 7. Prompts differ in length, so each observation runs as its own pass, as
 in the client (one query per step): an episode's actions never depend on its batch.
 
-Full variant: the local snapshot of `moojink/openvla-7b-oft-finetuned-libero-<suite>`: its
-safetensors shards (vision backbone, projector, LLaMA-2), the `proprio_projector--*_checkpoint.pt`
-and `action_head--*_checkpoint.pt` files, `dataset_statistics.json` (key `<suite>_no_noops`) and its
-LLaMA tokenizer. Demo variant: the reduced-width random-weight build of the model spec, the offline
-byte-level tokenizer and LIBERO-like ranges as statistics. Random: the full-size build, seeded.
+Full variant: the local snapshot of `moojink/openvla-7b-oft-finetuned-libero-<suite>` as the release ships
+it (`release`): its safetensors shards (vision backbone, projector, LLaMA-2), the
+`proprio_projector--*_checkpoint.pt` and `action_head--*_checkpoint.pt` files, `dataset_statistics.json`
+(key `<suite>_no_noops`) and its LLaMA tokenizer, each checked before any rollout, the weights loaded
+strictly at the widths its config.json gives. Demo variant: the reduced-width random-weight build of
+the model spec, the offline byte-level tokenizer and LIBERO-like ranges as statistics. Random: the
+full-size build, seeded.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -85,33 +86,31 @@ class OpenVLAOFTAdapter(AdapterBase):
         self._check_chunk()
 
     def _load_checkpoint(self) -> None:
-        import safetensors.torch
-        from transformers import AutoTokenizer
+        """The release's snapshot (`release`), checked before any rollout (revision, config.json, the
+        suite's statistics, the tokenizer, every weights file against the architecture's keys and
+        shapes), then loaded strictly into the architecture built at config.json's widths."""
+        from vlaquantbench.hub import checks
+        from vlaquantbench.models.openvla_oft import release
+        from vlaquantbench.models.openvla_oft.architecture import OpenVLAOFT
 
-        folder = Path(self.config.checkpoint_dir or "")
-        if not self.config.checkpoint_dir or not folder.is_dir():
+        folder = self.config.checkpoint_dir
+        if not folder or not Path(folder).is_dir():
             raise UserError(f"openvla_oft: checkpoint {self.config.checkpoint} has no local snapshot; run its download rule")
-        model = get_model_spec(self.name).build(variant="full", device="meta")
-        state = {}
-        for shard in sorted(folder.glob("*.safetensors")):
-            state.update(safetensors.torch.load_file(shard))
-        for part in ("proprio_projector", "action_head"):
-            files = sorted(folder.glob(f"{part}--*_checkpoint.pt"))
-            if not files:
-                raise UserError(f"openvla_oft: {folder} has no {part}--*_checkpoint.pt")
-            weights = torch.load(files[-1], map_location="cpu", weights_only=True)
-            state.update({f"{part}.{k.removeprefix('module.')}": v for k, v in weights.items()})
-        missing, unexpected = model.load_state_dict(state, strict=False, assign=True)
-        if missing or unexpected:
-            raise UserError(f"openvla_oft: {folder} does not match the architecture: missing {missing[:5]}, "
-                            f"unexpected {unexpected[:5]}")
+        checks.check_snapshot_revision(folder, self.config.checkpoint, self.config.revision)
+        sizes, reduced = release.read_sizes(folder)
+        self.statistics, statistics_record = release.read_statistics(folder, self.config.suite)
+        self.tokenizer, tokenizer_record = release.load_tokenizer(folder, self.config.checkpoint)
+        with torch.device("meta"):
+            model = OpenVLAOFT(sizes)
+        expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+        model.load_state_dict(release.load_state(folder, expected, self.config.checkpoint), strict=True, assign=True)
+        model.restore_rotary_embedding()  # a buffer no state dict holds, still on the meta device
         self.model = model.to(self._device, getattr(torch, self.config.dtype))
-        self.tokenizer = AutoTokenizer.from_pretrained(folder, local_files_only=True)
-        statistics = json.loads((folder / "dataset_statistics.json").read_text())
-        key = f"{self.config.suite}_no_noops"
-        if key not in statistics:
-            raise UserError(f"openvla_oft: {folder}/dataset_statistics.json has no {key!r} (has {', '.join(statistics)})")
-        self.statistics = statistics[key]
+        self.checkpoint_provenance = {
+            "tokenizer": tokenizer_record,
+            "normalization": {"statistics": statistics_record},
+            "widths": "reduced (offline hub fixture)" if reduced else "released",
+        }
 
     def prepare_inference(self, report) -> dict:
         return {"sampler": "eager", "deterministic_head": True, "model_seed": MODEL_SEED}

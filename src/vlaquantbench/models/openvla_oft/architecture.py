@@ -150,6 +150,13 @@ class OpenVLAOFT(nn.Module):
         self.proprio_projector = ProprioProjector(PROPRIO_DIM, sizes.llm_dim)
         self.action_head = L1RegressionActionHead(sizes.llm_dim, ACTION_DIM)
 
+    def restore_rotary_embedding(self) -> None:
+        """Recompute LLaMA's rotary frequencies on the CPU: a non-persistent buffer, which a model built
+        on the meta device and loaded with `assign=True` would otherwise keep on the meta device."""
+        llama = self.language_model.model
+        with torch.device("cpu"):
+            llama.rotary_emb = type(llama.rotary_emb)(config=llama.config)
+
     def forward(self, dino_pixels: torch.Tensor, siglip_pixels: torch.Tensor, proprio: torch.Tensor,
                 prompt_embeds: torch.Tensor) -> torch.Tensor:
         """Parallel decoding: one LLM pass over [BOS, image patches, proprio token, prompt, CHUNK x 7

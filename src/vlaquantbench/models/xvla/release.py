@@ -141,17 +141,9 @@ def read_image_processor(folder: str | Path) -> tuple[dict, dict]:
 
 def load_tokenizer(folder: str | Path, checkpoint: str) -> tuple[Any, dict]:
     """BART's tokenizer from the release's own files (transformers' `BartTokenizer`, tokenizers-backed),
-    and its provenance: class, repository, the snapshot's revision and each file's sha256."""
+    and its provenance (`checks.load_snapshot_tokenizer`)."""
     from transformers import BartTokenizer
 
-    from vlaquantbench.hub.checks import sha256
+    from vlaquantbench.hub.checks import load_snapshot_tokenizer
 
-    folder = Path(folder)
-    try:
-        tokenizer = BartTokenizer.from_pretrained(folder, local_files_only=True)
-    except Exception as err:  # transformers raises OSError, ValueError, KeyError, JSON errors ...
-        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise UserError(f"tokenizer of {checkpoint} ({', '.join(TOKENIZER_FILES[:3])} in {folder}) does not load: "
-                        f"{reason}") from None
-    files = {name: sha256(folder / name) for name in TOKENIZER_FILES if (folder / name).is_file()}
-    return tokenizer, {"class": type(tokenizer).__name__, "repo": checkpoint, "revision": folder.name, "files": files}
+    return load_snapshot_tokenizer(BartTokenizer, folder, checkpoint, TOKENIZER_FILES)
