@@ -64,6 +64,8 @@ def test_fp8_weights_are_stored_in_one_byte_on_the_fake_quantized_grid():
     # per output channel, the same values as the FP8E4M3 preset's fake-quantized weights
     dequantized = layer.weight_fp8.float() * layer.weight_scale.t()
     assert torch.equal(dequantized, fake_quant_fp8(linear.weight.float(), E4M3, per_row=True))
+    # lerobot's eager Gemma stack reads q_proj.weight.dtype: shape and dtype, with no data behind them
+    assert layer.weight.device.type == "meta" and layer.weight.dtype == torch.bfloat16 and layer.weight.shape == (40, 96)
     assert layer.input_cast == PerTokenCast(FP8)
     assert Fp8DynamicLinear(linear, tensorwise=True).input_cast is None  # computes its own scale
 

@@ -94,6 +94,13 @@ class _PackedLinear(nn.Module):
         self.bias = linear.bias
         self.out_dtype = linear.weight.dtype
 
+    @property
+    def weight(self) -> torch.Tensor:
+        """The replaced layer's weight as shape and dtype alone (a meta tensor: no data, and any
+        arithmetic with it fails), for code that only reads them: lerobot's pi0.5 Gemma stack casts
+        its hidden states to `q_proj.weight.dtype`, so its eager forward needs it."""
+        return torch.empty(self.out_features, self.in_features, dtype=self.out_dtype, device="meta")
+
     def _matmul(self, x2d: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
