@@ -17,7 +17,7 @@ chunks, `runner.loop.run_episodes` overlapping the policy with stepping). For ea
   - `simulator_bound_replay` (N in `--replay-bound`): after each policy run, a zero-cost policy
     returning, episode by episode, the chunks that run's policy returned (`ReplayPolicy`): the
     simulator alone on the very episodes the policy drove, whose steps can cost more CPU than the
-    random actions' (`benchmarks/README.md`); `same_actions` says every episode executed the same
+    random actions' (`benchmarks/HISTORY.md`); `same_actions` says every episode executed the same
     actions (`actions_sha256`, over the episodes' digests); `replay_pairs` has each policy run's ratio
     to its replay, `vs_replay_bound` their median;
   - `policy`: N x `--rounds` episodes (at least `--min-episodes`) driven by the policy, once per
