@@ -70,6 +70,21 @@ def test_fp8_weights_are_stored_in_one_byte_on_the_fake_quantized_grid():
     assert Fp8DynamicLinear(linear, tensorwise=True).input_cast is None  # computes its own scale
 
 
+def test_the_header_records_the_packed_weight_memory():
+    """int8 W8A8 (SmoothQuant's layers without smoothing) runs on the CPU; the record is the same code for fp8."""
+    from vlaquantbench.quant import kernels
+    from vlaquantbench.quant.scope import Selection
+
+    torch.manual_seed(0)
+    model = nn.Sequential(nn.Linear(64, 32).to(torch.bfloat16), nn.Linear(32, 16, bias=False).to(torch.bfloat16))
+    selection = Selection({"llm": {"0": model[0], "1": model[1]}})
+    result = kernels._replace_all(model, selection, lambda n, m: kernels.Int8DynamicLinear(m), "int8 W8A8")
+    released = 2 * (64 * 32 + 32 + 32 * 16)
+    packed = (64 * 32 + 32 * 16) + 4 * (32 + 16) + 2 * 32  # int8 weights, float32 scales, the bf16 bias
+    assert result.details["weight_memory"] == {"layers": 2, "released_bytes": released, "packed_bytes": packed,
+                                               "ratio": packed / released}
+
+
 def _fp8_layers(sizes, hooks=True):
     torch.manual_seed(0)
     layers = [Fp8DynamicLinear(nn.Linear(64, n).to(torch.bfloat16)) for n in sizes]

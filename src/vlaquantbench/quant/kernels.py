@@ -19,8 +19,17 @@ Registered by name in `quant.methods` (imported when a cell first uses one):
 
 Each selected `nn.Linear` is replaced in its parent by a module holding the packed weight (the
 bf16 weight is freed), and gets a counting pre-hook that changes nothing, so `unfired()` proves
-that the kernel ran. bitsandbytes is an optional extra (`pip install vlaquantbench[kernels]`);
-int4wo, smoothquant and fp8 need only PyTorch (int4wo and fp8 need a CUDA GPU).
+that the kernel ran; the header's `quant_report.weight_memory` records the replaced layers' bytes as
+released and as packed. bitsandbytes is an optional extra (`pip install vlaquantbench[kernels]`);
+int4wo, smoothquant and fp8 need only PyTorch (int4wo and fp8 need a CUDA GPU; `fp8` refuses any
+other device by name before it changes a weight, since row-wise `torch._scaled_mm` runs on CUDA
+GPUs of compute capability 8.9+ only).
+
+In pi0.5's captured sampler, `fp8` layers that read one input run as one product on a merged FP8
+weight (`Fp8DynamicLinear.merged`), their input cast to e4m3 rows by the op that produces it
+(`input_cast`, `quant.grid.PerTokenCast`; `models.pi05.fast.linear_groups`). Numerics: FP32
+accumulation (fast accumulation on Hopper), output in the layer's dtype (bf16, or float32 for the
+SigLIP tower and projector); scales FP32; everything between the products as in a BF16 cell.
 """
 
 from __future__ import annotations
@@ -284,12 +293,24 @@ def _swap(model: nn.Module, name: str, linear: nn.Linear, new: nn.Module) -> Non
     linear.weight = nn.Parameter(torch.empty_like(linear.weight, device="meta"), requires_grad=False)
 
 
+def _tensor_bytes(tensors) -> int:
+    """Bytes of the storages behind `tensors`, each storage once."""
+    return sum({t.untyped_storage().data_ptr(): t.untyped_storage().nbytes() for t in tensors if t is not None}.values())
+
+
 def _replace_all(model: nn.Module, selection: Selection, make, fmt: str) -> MethodResult:
+    """Every selected linear replaced by `make(name, linear)`; the header's `weight_memory` records the
+    replaced layers' bytes as released and as packed (weights, scales, biases)."""
     result = MethodResult(format=fmt)
+    released = packed = 0
     for name, linear in selection.flat().items():
+        released += _tensor_bytes([linear.weight, linear.bias])
         new = make(name, linear)
+        packed += _tensor_bytes([*new.parameters(), *new.buffers()])
         _swap(model, name, linear, new)
         result.hooks[name] = CountingHook(new, InputTransform())  # counts calls, changes nothing
+    result.details["weight_memory"] = {"layers": len(result.hooks), "released_bytes": released, "packed_bytes": packed,
+                                       "ratio": packed / released if released else None}
     return result
 
 

@@ -16,7 +16,7 @@ of its input (`input_cast`, e.g. `quant.kernels.Fp8DynamicLinear`) and can merge
 values and per-token scales, `CastRows`, in the op's own kernel -- and the merged layer's product
 (`forward_cast`, e.g. `torch._scaled_mm`) reads them, so no separate quantization kernel runs.
 
-A group fuses only what it can prove equivalent: members that are plain `nn.Linear` layers with
+Otherwise a group fuses only what it can prove equivalent: members that are plain `nn.Linear` layers with
 floating weights (not packed real-kernel modules), no forward hooks, and either no pre-hooks or
 exactly one `CountingHook` each whose transform only quantizes (no smoothing or clipping vectors,
 which are per layer), all alike: per-token integer with one bit width, or one float format. Anything else -- a calibrated

@@ -26,7 +26,10 @@ Mirrors lerobot 0.6.1 `PI05Pytorch.sample_actions` (prefix pass that fills the K
   GELUs carry a hand-written kernel for it, `gelu_quant`; the vision tower's LayerNorms are followed
   by `quant.fused_kernel`'s; inductor compiles the rest).
 
-Layers a group cannot fuse (calibrated or wrapped transforms, packed real-kernel layers) and the
+Packed per-token FP8 layers (`quant.kernels.Fp8DynamicLinear`) group too: their producer casts the
+input to e4m3 rows and scales (`CastRows`, whose `shape` is all the code here reads of a group's
+input) and the group multiplies once with `torch._scaled_mm`. Layers a group cannot fuse (calibrated
+or wrapped transforms, other packed real-kernel layers) and the
 layers outside the groups (projector, action and time projections, AdaRMS modulations) are called
 as modules, so their hooks run as installed (and a captured graph records what they launch).
 Either way each layer's own quantizer runs and counts itself; this module counts nothing. `tests/test_pi05_fast.py` checks the result against
