@@ -113,9 +113,9 @@ class _PackedLinear(nn.Module):
     def _matmul(self, x2d: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
-    def _output(self, y2d: torch.Tensor, leading: torch.Size) -> torch.Tensor:
+    def _output(self, y2d: torch.Tensor, leading: torch.Size, with_bias: bool = True) -> torch.Tensor:
         y = y2d.to(self.out_dtype)
-        if self.bias is not None:
+        if with_bias and self.bias is not None:
             y = y + self.bias
         return y.reshape(*leading, -1)
 
@@ -196,10 +196,11 @@ class Fp8DynamicLinear(_PackedLinear):
             start += layer.out_features
         return merged
 
-    def forward_cast(self, rows: CastRows) -> torch.Tensor:
-        """`forward` of an input already quantized by `input_cast` (e.g. inside its producer)."""
+    def forward_cast(self, rows: CastRows, with_bias: bool = True) -> torch.Tensor:
+        """`forward` of an input already quantized by `input_cast` (e.g. inside its producer);
+        `with_bias=False` leaves the bias for the caller to add inside the op that reads the output."""
         values = rows.values.reshape(-1, self.in_features)
-        return self._output(self._product(values, rows.scales.reshape(-1, 1)), rows.values.shape[:-1])
+        return self._output(self._product(values, rows.scales.reshape(-1, 1)), rows.values.shape[:-1], with_bias)
 
     def _quantize_input(self, x2d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if not self.tensorwise:

@@ -88,6 +88,7 @@ class LinearGroup:
     def __init__(self, layers: Sequence[nn.Module]):
         self.layers = list(layers)
         self._input: torch.Tensor | CastRows | None = None
+        self.deferred_bias: torch.Tensor | None = None
         self.sizes = [layer.out_features for layer in self.layers]
         self.cast, self.quantizers = _castable(self.layers)
         if self.cast is not None:
@@ -124,10 +125,21 @@ class LinearGroup:
         self._input = out[-1] if isinstance(out, tuple) and not isinstance(out, CastRows) else out
         return out
 
-    def __call__(self, x: torch.Tensor | CastRows) -> list[torch.Tensor]:
+    def __call__(self, x: torch.Tensor | CastRows, defer_bias: bool = False) -> list[torch.Tensor]:
+        """The members' outputs. `defer_bias`: a one-member cast group whose float32 output
+        `torch._scaled_mm` cannot add a bias to leaves it out, for the op that reads the output to
+        add (the same float32 addition, without a pass of its own over the output); `deferred_bias`
+        is then that bias, else None."""
         if x is not self._input:
             raise ValueError("a linear group's input must come from its input_from(), which quantizes it")
+        self.deferred_bias = None
         if not self.fused:
             return [layer(x) for layer in self.layers]
-        y = self.merged.forward_cast(x) if self.cast is not None else F.linear(x, self.weight, self.bias)
+        if self.cast is not None:
+            if (defer_bias and len(self.layers) == 1 and self.merged.bias is not None
+                    and self.merged.out_dtype == torch.float32):
+                self.deferred_bias = self.merged.bias
+            y = self.merged.forward_cast(x, with_bias=self.deferred_bias is None)
+        else:
+            y = F.linear(x, self.weight, self.bias)
         return [y] if len(self.layers) == 1 else list(y.split(self.sizes, dim=-1))
