@@ -17,7 +17,7 @@ chunks, `runner.loop.run_episodes` overlapping the policy with stepping). For ea
   - `simulator_bound_replay` (N in `--replay-bound`): after each policy run, a zero-cost policy
     returning, episode by episode, the chunks that run's policy returned (`ReplayPolicy`): the
     simulator alone on the very episodes the policy drove, whose steps can cost more CPU than the
-    random actions' (`benchmarks/README.md`); `same_actions` says every episode executed the same
+    random actions' (`benchmarks/HISTORY.md`); `same_actions` says every episode executed the same
     actions (`actions_sha256`, over the episodes' digests); `replay_pairs` has each policy run's ratio
     to its replay, `vs_replay_bound` their median;
   - `policy`: N x `--rounds` episodes (at least `--min-episodes`) driven by the policy, once per
@@ -347,6 +347,7 @@ def main() -> Path:
     parser.add_argument("--dtype", default="bfloat16")
     parser.add_argument("--sampler", default="captured", choices=["captured", "eager"])
     parser.add_argument("--preset", default=None, help="e.g. W4A4: end-to-end fake quantization via quantize_")
+    parser.add_argument("--method", default="rtn", help="quantization method of --preset, e.g. fp8 (W8A8): real FP8 kernels")
     parser.add_argument("--num-envs", type=int, nargs="+", default=[1, 16, 32, 64])
     parser.add_argument("--lockstep", type=int, nargs="*", default=[], help="N also measured without overlap")
     parser.add_argument("--min-batch", type=int, nargs="+", default=[1],
@@ -386,10 +387,14 @@ def main() -> Path:
     if args.preset:
         from vlaquantbench.quant import QuantConfig, quantize_
 
-        config = QuantConfig.from_preset(args.preset, scope="e2e")
+        config = QuantConfig.from_preset(args.preset, scope="e2e", method=args.method)
         report = quantize_(adapter.model, config, config.select(adapter.model, adapter.components))
         quant_header = report.to_header()["quant_report"]
     inference = adapter.prepare_inference(report)
+    probe = adapter.fast_path_probe()  # the fast path against the eager policy, as a cell checks it before any episode
+    if probe is not None:
+        inference = {**inference, "fast_path_probe": probe}
+        print("fast path probe:", probe, flush=True)
     sizes = sorted(GRAPH_SIZES if args.captures is None else args.captures)
     warmups = {b: warm_up(adapter, suite, args.camera_size, b) for b in sizes}
     # Once every size is captured, the whole `act` per size on the idle machine: the latency model's call times.
@@ -411,7 +416,7 @@ def main() -> Path:
     gpu = torch.cuda.get_device_name() if torch.device(args.device).type == "cuda" else None
     result = {
         "suite": args.suite, "model": "pi05", "variant": args.variant, "dtype": args.dtype,
-        "preset": args.preset or "BASELINE", "quant_report": quant_header, "inference": inference,
+        "preset": args.preset or "BASELINE", "method": args.method if args.preset else None, "quant_report": quant_header, "inference": inference,
         "max_steps": max_steps, "executed_chunk": adapter.executed_chunk, "camera_size": args.camera_size,
         "torch_threads": args.torch_threads,
         "policy_load_s": round(load_s, 2), "first_chunk_s_by_batch": warmups, "gpu_memory_after_warmup": memory,

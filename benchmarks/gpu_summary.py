@@ -2,7 +2,7 @@
 
 Reads (each written on the GPU machine by its script) `gpu_preset_ab_cameras{2,3}.json` and
 `gpu_policy_inference_cameras2.json` (`gpu_policy_inference.py`), `gpu_real_kernels.json` and
-`closed_loop_gpu*.json`, and copies out the keys issues 6 and 15 ask for, each with the machine it
+`closed_loop_gpu*.json` and `gpu_fp8_real*.json`, and copies out the keys issues 6, 15 and 33 ask for, each with the machine it
 was measured on. The policy's headline numbers are at LIBERO's two cameras, the input of every
 closed-loop run; the three-camera input of pi0.5's base configuration stands beside them.
 
@@ -12,6 +12,7 @@ closed-loop run; the three-camera input of pi0.5's base configuration stands bes
 from __future__ import annotations
 
 import json
+import statistics
 from collections import defaultdict
 from pathlib import Path
 
@@ -87,6 +88,44 @@ def _closed_loop_machine(machine: dict) -> str:
             f"MuJoCo {machine['versions']['mujoco']}, {machine['date_utc']}")
 
 
+def _fp8_real() -> dict:
+    """Issue 33's keys from `gpu_fp8_real*.json` (`gpu_fp8_real.py`, one file per device call): real
+    FP8 kernels against the BF16 captured baseline and FP8 fake quantization, the three cells taking
+    turns in one process. Each value is the median over the runs (the typical run), every run beside it."""
+    runs = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("gpu_fp8_real*.json"))]
+    if not runs:
+        return {}
+    where = "; ".join(_machine(run) for run in runs)
+    form = (f"captured, {runs[0]['cameras']} cameras, bf16 / fp8-W8A8-e2e / rtn-FP8E4M3-e2e taking turns "
+            f"({runs[0]['rounds']} rounds x {runs[0]['repeats_per_round']} chunks each, median), {len(runs)} runs")
+
+    def typical(values: list[float]) -> dict:
+        return {"value": statistics.median(values), "by_run": values}
+
+    goals = {1: "<= 1.0", 8: "<= 0.85", 32: "<= 0.75"}
+    ms = [run["chunk_ms"] for run in runs]
+    memory = runs[-1]["weight_memory"]
+    rel_l2 = runs[-1]["actions_rel_l2"]
+    return {
+        **{f"fp8real_vs_bf16_b{b}": {**typical([m["fp8real"][str(b)] / m["bf16"][str(b)] for m in ms]),
+                                     "fp8real_ms": [m["fp8real"][str(b)] for m in ms], "bf16_ms": [m["bf16"][str(b)] for m in ms],
+                                     "fakequant_ms": [m["fakequant"][str(b)] for m in ms],
+                                     "form": form, "goal": goals[b], "machine": where} for b in (1, 8, 32)},
+        "fp8real_chunk_ms_b1": {**typical([m["fp8real"]["1"] for m in ms]), "cameras": runs[0]["cameras"], "goal": "<= 16",
+                                "machine": where},
+        "fp8real_weight_memory_ratio": {
+            "value": memory["fp8real_vs_bf16_released"], "vs_all_bf16": memory["fp8real_vs_all_bf16"],
+            "note": f"the {memory['layers']} quantized linears' storages (FP8 weights, float32 scales, biases as "
+                    "released) over the same layers as released (bf16; SigLIP tower and projector float32); "
+                    "vs_all_bf16: over their bf16 size", "goal": "<= 0.55", "machine": where},
+        "fp8real_vs_fakequant_rel_l2": {
+            "value": max(rel_l2["fp8real_vs_fakequant"].values()), "by_batch": rel_l2["fp8real_vs_fakequant"],
+            "fp8real_vs_bf16": rel_l2["fp8real_vs_bf16"], "fakequant_vs_bf16": rel_l2["fakequant_vs_bf16"],
+            "note": "actions of one chunk on the same random inputs and weights (largest over batches 1, 8, 32)",
+            "goal": "<= 2e-2", "machine": where},
+    }
+
+
 def _machine(result: dict) -> str:
     return f"{result['machine']['gpu']}, torch {result['machine']['torch']}, {result['machine']['date_utc']}"
 
@@ -136,6 +175,7 @@ def main() -> None:
         "best_real_kernel_speedup_vs_bf16": {"value": best[2]["speedup_vs_bf16"], "goal": ">= 1.3",
                                              "machine": kernel_machine},
         **_closed_loop(),
+        **_fp8_real(),
     }
     (RESULTS / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     print(json.dumps(summary, indent=1))

@@ -15,6 +15,8 @@ A "group" is a run of consecutive values along the last dimension that shares on
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 
@@ -76,3 +78,42 @@ def fake_quant_activation(x: torch.Tensor, bits: int,
     """Dynamic symmetric per-token quantization: one absmax scale per vector along the last
     dimension, all leading dimensions treated as tokens (`quotient` as in `fake_quant_sym`)."""
     return fake_quant_sym(x, bits, quotient)
+
+
+@dataclass(frozen=True)
+class PerTokenCast:
+    """Real (not fake) dynamic symmetric per-token quantization, the input side of a W8A8 kernel:
+    each row along the last dimension cast to `dtype` (int8 rounded to nearest, ties to even; a
+    float8 format by its own cast, which rounds to nearest even and saturates here by the clamp),
+    with one float32 scale per row, s = max(max|x|, 1e-8) / q_max. Returns `CastRows`. The same
+    scale as `fake_quant_sym` (q_max 127) and as the fp8 formats' per-token scale (q_max 448), so
+    s * values is what fake quantization computes. `quotient` as in `fake_quant_sym`."""
+
+    dtype: torch.dtype
+
+    @property
+    def q_max(self) -> float:
+        return 127.0 if self.dtype == torch.int8 else float(torch.finfo(self.dtype).max)
+
+    @property
+    def name(self) -> str:
+        return str(self.dtype).removeprefix("torch.")
+
+    def __call__(self, x: torch.Tensor,
+                 quotient: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = torch.div) -> CastRows:
+        xf = x.float()
+        scales = xf.abs().amax(dim=-1, keepdim=True).clamp_min(SCALE_FLOOR) / self.q_max
+        y = torch.clamp(quotient(xf, scales), -self.q_max, self.q_max)
+        return CastRows((torch.round(y) if self.dtype == torch.int8 else y).to(self.dtype), scales)
+
+
+class CastRows(NamedTuple):
+    """A tensor quantized by `PerTokenCast`: x ≈ values * scales (scales of shape [..., 1])."""
+
+    values: torch.Tensor
+    scales: torch.Tensor
+
+    @property
+    def shape(self) -> torch.Size:
+        """The quantized tensor's shape (code that only reads a layer input's shape reads it here)."""
+        return self.values.shape

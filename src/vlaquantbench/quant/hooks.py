@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from vlaquantbench.quant.grid import fake_quant_activation
+from vlaquantbench.quant.grid import CastRows, PerTokenCast, fake_quant_activation
 from vlaquantbench.quant.presets import FloatFormat
 
 
@@ -82,14 +82,23 @@ class ActivationQuantizer:
             return False
         return True
 
-    def fused(self, op: Callable, *args, compiler: Callable | None = None):
+    def fused(self, op: Callable, *args, compiler: Callable | None = None, cast: PerTokenCast | None = None):
         """`op(*args)` with its output (the last one, if it returns several) quantized as this
         quantizer quantizes its layer's input -- in the same compiled function when `compiler`
         (e.g. `torch.compile` with options) is given, so the compiler fuses the quantization into
         the producing op. Counts one run. Quantizers of layers that read the same input (q/k/v)
         each call this with the same `op` and arguments; the second and later calls return the
-        first one's result instead of computing it again (`_LastFused`)."""
+        first one's result instead of computing it again (`_LastFused`).
+
+        `cast`: the layer is a real low-bit kernel whose own input quantization is `cast` (its
+        quantizer only counts, changing nothing); the output comes back as that kernel's input,
+        `CastRows` of low-bit values and per-token scales, computed inside the producing op."""
         quantization = self.plain_quantization
+        if cast is not None:
+            if quantization is not None:
+                raise ValueError(f"a layer whose kernel casts its input to {cast.name} cannot also fake-quantize it "
+                                 f"({quantization})")
+            quantization = cast
         self.calls += 1
         return _LAST_FUSED.lookup_or_run(quantizing_op(op, quantization, compiler), args)
 
@@ -121,9 +130,11 @@ _LAST_FUSED = _LastFused()
 
 
 @functools.cache
-def quantizing_op(op: Callable, quantization: int | FloatFormat | None, compiler: Callable | None = None) -> Callable:
+def quantizing_op(op: Callable, quantization: int | FloatFormat | PerTokenCast | None,
+                  compiler: Callable | None = None) -> Callable:
     """`op` followed by the quantization of its (last) output -- per-token with `quantization` bits,
-    or in a float format -- as one function (None: `op` alone), compiled once by `compiler` when given.
+    in a float format, or cast to a real kernel's low-bit input (`PerTokenCast`: that output comes
+    back as `CastRows`) -- as one function (None: `op` alone), compiled once by `compiler` when given.
 
     An op may name a hand-written kernel for itself followed by per-token quantization,
     `op.per_token_kernel(*args, bits=)`, bit-identical to the composition, or one for the
@@ -143,12 +154,14 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | None, compiler
         return _quantized(out, quantization, quotient)
 
     if compiler is None:
-        return fn
+        return _as_cast_rows(fn) if isinstance(quantization, PerTokenCast) else fn
     # A code object of its own per op and bit width: dynamo keeps its compilations (and their
     # recompile limit) per code object, and every `fn` closure would otherwise share one.
-    name = f"{op.__name__}_then_" + (quantization.name if isinstance(quantization, FloatFormat) else f"int{quantization}")
+    name = f"{op.__name__}_then_" + (f"int{quantization}" if isinstance(quantization, int) else quantization.name)
     compiled = compiler(types.FunctionType(fn.__code__.replace(co_name=name, co_qualname=name), fn.__globals__, name,
                                            None, fn.__closure__))
+    if isinstance(quantization, PerTokenCast):
+        return _as_cast_rows(compiled)
     supports = getattr(op, "per_token_kernel_supports", None)
     if supports is None or isinstance(quantization, FloatFormat):
         return compiled
@@ -166,9 +179,25 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | None, compiler
     return kernel_or_compiled
 
 
-def _quantized(x: torch.Tensor, quantization: int | FloatFormat, quotient: Callable = torch.div) -> torch.Tensor:
-    """What the hook's `InputTransform` does to `x`, written so that a compiler fusing it into the op
-    that made `x` still quantizes the rounded `x` a hook would see."""
+def _as_cast_rows(fn: Callable) -> Callable:
+    """`fn`, whose (last) output is a `PerTokenCast`'s (values, scales), returning it as `CastRows`.
+    The tuple is wrapped outside `fn`: what a compiled function returns stays plain tensors."""
+
+    def with_cast_rows(*args):
+        out = fn(*args)
+        if isinstance(out[-1], tuple):  # the op returned several outputs, the last one cast
+            return (*out[:-1], CastRows(*out[-1]))
+        return CastRows(*out)
+
+    return with_cast_rows
+
+
+def _quantized(x: torch.Tensor, quantization: int | FloatFormat | PerTokenCast, quotient: Callable = torch.div):
+    """What the hook's `InputTransform` does to `x` (or, for a `PerTokenCast`, what a real kernel
+    does to its input: (values, scales)), written so that a compiler fusing it into the op that
+    made `x` still quantizes the rounded `x` a hook would see."""
+    if isinstance(quantization, PerTokenCast):
+        return tuple(quantization(_as_float32(x), quotient))
     if isinstance(quantization, FloatFormat):
         return quantization.quantize_activation(_as_float32(x)).to(x.dtype)
     return fake_quant_activation(_as_float32(x), quantization, quotient).to(x.dtype)

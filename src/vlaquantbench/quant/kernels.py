@@ -19,8 +19,17 @@ Registered by name in `quant.methods` (imported when a cell first uses one):
 
 Each selected `nn.Linear` is replaced in its parent by a module holding the packed weight (the
 bf16 weight is freed), and gets a counting pre-hook that changes nothing, so `unfired()` proves
-that the kernel ran. bitsandbytes is an optional extra (`pip install vlaquantbench[kernels]`);
-int4wo, smoothquant and fp8 need only PyTorch (int4wo and fp8 need a CUDA GPU).
+that the kernel ran; the header's `quant_report.weight_memory` records the replaced layers' bytes as
+released and as packed. bitsandbytes is an optional extra (`pip install vlaquantbench[kernels]`);
+int4wo, smoothquant and fp8 need only PyTorch (int4wo and fp8 need a CUDA GPU; `fp8` refuses any
+other device by name before it changes a weight, since row-wise `torch._scaled_mm` runs on CUDA
+GPUs of compute capability 8.9+ only).
+
+In pi0.5's captured sampler, `fp8` layers that read one input run as one product on a merged FP8
+weight (`Fp8DynamicLinear.merged`), their input cast to e4m3 rows by the op that produces it
+(`input_cast`, `quant.grid.PerTokenCast`; `models.pi05.fast.linear_groups`). Numerics: FP32
+accumulation (fast accumulation on Hopper), output in the layer's dtype (bf16, or float32 for the
+SigLIP tower and projector); scales FP32; everything between the products as in a BF16 cell.
 """
 
 from __future__ import annotations
@@ -34,7 +43,7 @@ from vlaquantbench.quant.apply import MethodResult, QuantConfig
 from vlaquantbench.quant.methods import get_method
 from vlaquantbench.quant.awq import search_scales
 from vlaquantbench.quant.calibration import ChannelStats, smoothing_factors
-from vlaquantbench.quant.grid import fake_quant_weight
+from vlaquantbench.quant.grid import SCALE_FLOOR, CastRows, PerTokenCast, fake_quant_weight
 from vlaquantbench.quant.hooks import CountingHook, InputTransform
 from vlaquantbench.quant.scope import Selection
 
@@ -47,7 +56,8 @@ except ImportError:  # pragma: no cover
 
 FP8 = torch.float8_e4m3fn
 FP8_MAX = torch.finfo(FP8).max
-SCALE_FLOOR = 1e-8
+# Made once: dynamo, tracing `quantize_per_token` inside a compiled model, cannot construct them.
+_CASTS = {torch.int8: PerTokenCast(torch.int8), FP8: PerTokenCast(FP8)}
 
 if triton is not None:
 
@@ -80,9 +90,7 @@ def quantize_per_token(x2d: torch.Tensor, dtype: torch.dtype) -> tuple[torch.Ten
         _quantize_rows[(rows,)](x2d, values, scales, cols, q_max, SCALE_FLOOR, TO_INT=dtype == torch.int8,
                                 BLOCK=block, num_warps=min(16, max(1, block // 512)))
         return values, scales
-    scales = x2d.abs().amax(dim=-1, keepdim=True).float().clamp_min(SCALE_FLOOR) / q_max
-    y = (x2d.float() / scales).clamp(-q_max, q_max)
-    return (torch.round(y) if dtype == torch.int8 else y).to(dtype), scales
+    return tuple(_CASTS[dtype](x2d))
 
 
 class _PackedLinear(nn.Module):
@@ -95,14 +103,24 @@ class _PackedLinear(nn.Module):
         self.bias = linear.bias
         self.out_dtype = linear.weight.dtype
 
+    @property
+    def weight(self) -> torch.Tensor:
+        """The replaced layer's weight as shape and dtype alone (a meta tensor: no data, and any
+        arithmetic with it fails), for code that only reads them: lerobot's pi0.5 Gemma stack casts
+        its hidden states to `q_proj.weight.dtype`, so its eager forward needs it."""
+        return torch.empty(self.out_features, self.in_features, dtype=self.out_dtype, device="meta")
+
     def _matmul(self, x2d: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = self._matmul(x.reshape(-1, x.shape[-1])).to(self.out_dtype)
-        if self.bias is not None:
+    def _output(self, y2d: torch.Tensor, leading: torch.Size, with_bias: bool = True) -> torch.Tensor:
+        y = y2d.to(self.out_dtype)
+        if with_bias and self.bias is not None:
             y = y + self.bias
-        return y.reshape(*x.shape[:-1], -1)
+        return y.reshape(*leading, -1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self._output(self._matmul(x.reshape(-1, x.shape[-1])), x.shape[:-1])
 
 
 class Int8DynamicLinear(_PackedLinear):
@@ -135,7 +153,11 @@ class Int8DynamicLinear(_PackedLinear):
 
 class Fp8DynamicLinear(_PackedLinear):
     """W8A8 FP8 e4m3 with per-output-channel weight scales and per-token activation scales, or with
-    one scale per tensor for each (`tensorwise`)."""
+    one scale per tensor for each (`tensorwise`).
+
+    Per token, the input's quantization is `input_cast`, which a fast path may compute inside the
+    op that produces the input (`forward_cast` then takes the cast rows), and layers that read one
+    input may run as one product (`merged`)."""
 
     def __init__(self, linear: nn.Linear, tensorwise: bool = False):
         super().__init__(linear)
@@ -146,6 +168,40 @@ class Fp8DynamicLinear(_PackedLinear):
         self.register_buffer("weight_fp8", (weight / scale).clamp(-FP8_MAX, FP8_MAX).to(FP8))
         self.register_buffer("weight_scale", scale.reshape(1, -1).contiguous())  # 1 x out (or 1 x 1), float32
 
+    @property
+    def input_cast(self) -> PerTokenCast | None:
+        """The per-token quantization of this layer's input, for a producer to compute (None:
+        tensor-wise or static scales, which this layer computes itself)."""
+        return None if self.tensorwise else _CASTS[FP8]
+
+    @classmethod
+    def merged(cls, layers: list[Fp8DynamicLinear]) -> Fp8DynamicLinear:
+        """One per-token layer computing `layers` (which read one input) as one product, their
+        outputs concatenated in order: per output channel the same weights and scales. The
+        members' FP8 weights become views of the merged weight, so the merge keeps no second copy."""
+        first = layers[0]
+        if len(layers) == 1:
+            return first
+        merged = cls.__new__(cls)
+        nn.Module.__init__(merged)
+        merged.in_features, merged.out_features = first.in_features, sum(layer.out_features for layer in layers)
+        merged.out_dtype, merged.tensorwise = first.out_dtype, False
+        merged.bias = None if first.bias is None else torch.cat([layer.bias for layer in layers])
+        with torch.no_grad():
+            merged.register_buffer("weight_fp8", torch.cat([layer.weight_fp8 for layer in layers]))
+            merged.register_buffer("weight_scale", torch.cat([layer.weight_scale for layer in layers], dim=1))
+        start = 0
+        for layer in layers:
+            layer.weight_fp8 = merged.weight_fp8[start : start + layer.out_features]
+            start += layer.out_features
+        return merged
+
+    def forward_cast(self, rows: CastRows, with_bias: bool = True) -> torch.Tensor:
+        """`forward` of an input already quantized by `input_cast` (e.g. inside its producer);
+        `with_bias=False` leaves the bias for the caller to add inside the op that reads the output."""
+        values = rows.values.reshape(-1, self.in_features)
+        return self._output(self._product(values, rows.scales.reshape(-1, 1)), rows.values.shape[:-1], with_bias)
+
     def _quantize_input(self, x2d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if not self.tensorwise:
             return quantize_per_token(x2d, FP8)
@@ -155,11 +211,13 @@ class Fp8DynamicLinear(_PackedLinear):
         return torch.div(x2d, scale).clamp_(-FP8_MAX, FP8_MAX).to(FP8), scale
 
     def _matmul(self, x2d: torch.Tensor) -> torch.Tensor:
-        x_fp8, scale = self._quantize_input(x2d)
+        return self._product(*self._quantize_input(x2d))
+
+    def _product(self, x_fp8: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
         # Fast accumulation (Hopper's FP8 tensor-core accumulator without periodic FP32 promotion),
         # as FP8 inference stacks use it: 8.0 instead of 9.9 ms of GEMMs on the LLaMA benchmark.
         return torch._scaled_mm(x_fp8, self.weight_fp8.t(), scale_a=scale, scale_b=self.weight_scale,
-                                out_dtype=self.out_dtype, use_fast_accum=x2d.is_cuda)
+                                out_dtype=self.out_dtype, use_fast_accum=x_fp8.is_cuda)
 
 
 class Fp8StaticLinear(Fp8DynamicLinear):
@@ -236,12 +294,24 @@ def _swap(model: nn.Module, name: str, linear: nn.Linear, new: nn.Module) -> Non
     linear.weight = nn.Parameter(torch.empty_like(linear.weight, device="meta"), requires_grad=False)
 
 
+def _tensor_bytes(tensors) -> int:
+    """Bytes of the storages behind `tensors`, each storage once."""
+    return sum({t.untyped_storage().data_ptr(): t.untyped_storage().nbytes() for t in tensors if t is not None}.values())
+
+
 def _replace_all(model: nn.Module, selection: Selection, make, fmt: str) -> MethodResult:
+    """Every selected linear replaced by `make(name, linear)`; the header's `weight_memory` records the
+    replaced layers' bytes as released and as packed (weights, scales, biases)."""
     result = MethodResult(format=fmt)
+    released = packed = 0
     for name, linear in selection.flat().items():
+        released += _tensor_bytes([linear.weight, linear.bias])
         new = make(name, linear)
+        packed += _tensor_bytes([*new.parameters(), *new.buffers()])
         _swap(model, name, linear, new)
         result.hooks[name] = CountingHook(new, InputTransform())  # counts calls, changes nothing
+    result.details["weight_memory"] = {"layers": len(result.hooks), "released_bytes": released, "packed_bytes": packed,
+                                       "ratio": packed / released if released else None}
     return result
 
 
@@ -353,8 +423,23 @@ def smoothquant(model, selection, config):
     return result
 
 
+def _require_rowwise_fp8(selection: Selection, method: str) -> None:
+    """UserError, before any weight changes, unless every selected layer is on a CUDA GPU with FP8
+    tensor cores: `torch._scaled_mm` with row-wise scales runs nowhere else (on the CPU, PyTorch
+    2.11 scales only per tensor)."""
+    for name, linear in selection.flat().items():
+        device = linear.weight.device
+        if device.type != "cuda" or torch.cuda.get_device_capability(device) < (8, 9):
+            where = device.type if device.type != "cuda" else f"{device} ({torch.cuda.get_device_name(device)})"
+            raise UserError(f"method {method!r} runs real FP8 kernels (torch._scaled_mm, row-wise scales), which need "
+                            f"a CUDA GPU of compute capability 8.9 or newer (Ada, Hopper); layer {name!r} is on {where}. "
+                            "Run the cell on such a GPU, or fake-quantize the same format with preset FP8E4M3 "
+                            "(method rtn)")
+
+
 def fp8(model, selection, config):
     _require(config, "fp8")
+    _require_rowwise_fp8(selection, "fp8")
     return _replace_all(model, selection, lambda n, m: Fp8DynamicLinear(m),
                         "W8A8 FP8 e4m3 (per-channel weights, dynamic per-token activations, torch._scaled_mm row-wise, fast accumulation)")
 

@@ -16,7 +16,7 @@ batches themselves reproducible (rollout calibration records per-call statistics
 `min_batch` (with `overlap`) holds the ready slots until at least that many are ready, or until no
 slot is still stepping: fewer, larger policy calls, each ready slot waiting a little longer. On a GPU
 whose chunk costs nearly as much at batch 8 as the rows it computes, fewer calls mean less GPU time
-per chunk (benchmarks/README.md, closed loop on an H200).
+per chunk (benchmarks/HISTORY.md, closed loop on an H200).
 
 Non-finite actions (a collapsed quantized policy outputs NaN) never reach MuJoCo: the episode ends
 as a failure after the finite actions before the first non-finite one (an action the episode would

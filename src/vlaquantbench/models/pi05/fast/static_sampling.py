@@ -26,7 +26,10 @@ Mirrors lerobot 0.6.1 `PI05Pytorch.sample_actions` (prefix pass that fills the K
   GELUs carry a hand-written kernel for it, `gelu_quant`; the vision tower's LayerNorms are followed
   by `quant.fused_kernel`'s; inductor compiles the rest).
 
-Layers a group cannot fuse (calibrated or wrapped transforms, packed real-kernel layers) and the
+Packed per-token FP8 layers (`quant.kernels.Fp8DynamicLinear`) group too: their producer casts the
+input to e4m3 rows and scales (`CastRows`, whose `shape` is all the code here reads of a group's
+input) and the group multiplies once with `torch._scaled_mm`. Layers a group cannot fuse (calibrated
+or wrapped transforms, other packed real-kernel layers) and the
 layers outside the groups (projector, action and time projections, AdaRMS modulations) are called
 as modules, so their hooks run as installed (and a captured graph records what they launch).
 Either way each layer's own quantizer runs and counts itself; this module counts nothing. `tests/test_pi05_fast.py` checks the result against
@@ -145,6 +148,30 @@ layer_norm.per_token_kernel_supports = add_layer_norm.per_token_kernel_supports 
 def gelu_tanh(x: torch.Tensor) -> torch.Tensor:
     """SigLIP's MLP activation (`gelu_pytorch_tanh`)."""
     return F.gelu(x, approximate="tanh")
+
+
+# The vision tower's FP8 products leave their float32 bias out (`LinearGroup(defer_bias=True)`):
+# the op that reads the output adds it, instead of a pass of its own over the output.
+def add_bias_layer_norm(hidden, update, update_bias, weight, bias, eps: float):
+    """`add_layer_norm` of `update + update_bias`."""
+    return add_layer_norm(hidden, update + update_bias, weight, bias, eps)
+
+
+def bias_gelu_tanh(x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """`gelu_tanh(x + bias)`."""
+    return gelu_tanh(x + bias)
+
+
+def _residual_layer_norm(hidden, update, update_bias, norm: nn.Module) -> tuple:
+    """(op, *args): the residual add of `update` (plus the bias its linear deferred, if any), then `norm`."""
+    if update_bias is None:
+        return add_layer_norm, hidden, update, norm.weight, norm.bias, norm.eps
+    return add_bias_layer_norm, hidden, update, update_bias, norm.weight, norm.bias, norm.eps
+
+
+def _activation(x, bias) -> tuple:
+    """(op, *args): SigLIP's activation of `x` (plus the bias its linear deferred, if any)."""
+    return (gelu_tanh, x) if bias is None else (bias_gelu_tanh, x, bias)
 
 
 # With fc2's per-token input quantization: one hand-written kernel (see `gelu_quant`).
@@ -391,16 +418,17 @@ def embed_images(model: nn.Module, images, ops: Ops = EAGER_OPS,
         query, key, value = (y.view(rows, length, -1, attn.head_dim).transpose(1, 2)
                              for y in group.qkv(normed))
         out = F.scaled_dot_product_attention(query, key, value, scale=attn.scale)
-        attn_out = group.out(ops.feed(group.out, merge_heads, out))[0]
-        norm2 = layer.layer_norm2
-        hidden, normed = ops.feed(group.mlp_in, add_layer_norm, hidden, attn_out, norm2.weight, norm2.bias, norm2.eps)
-        activated = ops.feed(group.mlp_out, gelu_tanh, group.mlp_in(normed)[0])
-        mlp_out = group.mlp_out(activated)[0]
+        attn_out = group.out(ops.feed(group.out, merge_heads, out), defer_bias=True)[0]
+        hidden, normed = ops.feed(group.mlp_in, *_residual_layer_norm(hidden, attn_out, group.out.deferred_bias,
+                                                                      layer.layer_norm2))
+        fc1 = group.mlp_in(normed, defer_bias=True)[0]
+        activated = ops.feed(group.mlp_out, *_activation(fc1, group.mlp_in.deferred_bias))
+        mlp_out = group.mlp_out(activated, defer_bias=True)[0]
         if index + 1 < len(layers):  # the residual, then the next layer's first LayerNorm
             nxt, reader = layers[index + 1].layer_norm1, groups[index + 1].qkv
         else:  # the tower's final LayerNorm feeds the projector, a module call with its own hook
             nxt, reader = vision.post_layernorm, None
-        hidden, normed = ops.feed(reader, add_layer_norm, hidden, mlp_out, nxt.weight, nxt.bias, nxt.eps)
+        hidden, normed = ops.feed(reader, *_residual_layer_norm(hidden, mlp_out, group.mlp_out.deferred_bias, nxt))
     return list(paligemma.multi_modal_projector(normed).split(batch))
 
 
