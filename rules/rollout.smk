@@ -2,9 +2,12 @@
 # The table definitions decide which cells are needed (WF.cell_refs); each cell's canonical config
 # (vlaquantbench.cells) names its folder results/cells/<config-hash>/, so a cell reruns exactly
 # when something that changes its episodes changes. Without `records_dir` only.
+import os  # noqa: E402
+
 from vlaquantbench import cells as cell_configs  # noqa: E402
 from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE, JOURNAL_FILE  # noqa: E402
 from vlaquantbench.envs.memory import job_memory_mb  # noqa: E402
+from vlaquantbench.runner.gpus import SLOTS_DIR, LocalGpuPlan, NoGpu  # noqa: E402
 from vlaquantbench.runner.lock import LOCK_FILE  # noqa: E402
 from vlaquantbench.workflow import CELLS_DIR  # noqa: E402
 
@@ -19,6 +22,45 @@ CHECKPOINTS = {
     cell_configs.checkpoint_key(cfg): {k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}
     for cfg in CELLS.values()
 }
+
+
+def on_gpu(cfg):
+    return cfg["runner"]["device"].startswith("cuda")
+
+
+# Local GPU jobs (no SLURM, whose --gpus=1 isolates each job): Snakemake counts the `gpu` resource but
+# gives no job a device, so each takes a slot of its own (vlaquantbench.runner.gpus); `--resources gpu`
+# is set to the device count, refused above it, and the node's cores are split between the GPU jobs.
+GPU_PLAN = None
+NO_GPU = None  # the refusal of a study on cuda on a node without GPUs, which dry runs only state
+if workflow.local_exec and "SLURM_JOB_ID" not in os.environ and any(map(on_gpu, [*CELLS.values(), *CALIBRATIONS.values()])):
+    requested = workflow.global_resources.get("gpu")
+    try:
+        GPU_PLAN = LocalGpuPlan.for_node(WF.study.execution.gpus, None if requested is None else requested.value,
+                                         workflow.cores)
+    except NoGpu as err:
+        NO_GPU = err
+        print(f"{err}: a real run stops here (a dry run plans the jobs all the same)", file=sys.stderr)
+    if GPU_PLAN is not None and workflow.is_main_process:
+        workflow.register_resource("gpu", GPU_PLAN.jobs)
+        print(GPU_PLAN.describe(WF.study.execution.num_envs), file=sys.stderr)
+
+
+onstart:  # a real run, not a dry run
+    if NO_GPU is not None:
+        raise NO_GPU
+
+def gpu_job(cfg):
+    """A GPU job's `threads`, its LIBERO workers and its slot, where the workflow assigns its device."""
+    if GPU_PLAN is None or not on_gpu(cfg):
+        return {"threads": 2, "slots": None}
+    return {"threads": GPU_PLAN.threads, "workers": GPU_PLAN.workers(WF.study.execution.num_envs),
+            "slots": {"dir": SLOTS_DIR, "gpus": WF.study.execution.gpus}}
+
+
+def execution(cfg, kwargs):
+    job = gpu_job(cfg)
+    return {**kwargs, "num_envs": job["workers"]} if "workers" in job else kwargs
 
 
 def checkpoint_stamp(cfg):
@@ -58,10 +100,11 @@ rule calibrate:
         calibration="|".join(CALIBRATIONS) or "^$",
     params:
         calibration=lambda wc: CALIBRATIONS[wc.calibration],
-        execution=lambda wc: WF.study.execution.calibration_kwargs(),
+        execution=lambda wc: execution(CALIBRATIONS[wc.calibration], WF.study.execution.calibration_kwargs()),
+        gpu_slots=lambda wc: gpu_job(CALIBRATIONS[wc.calibration])["slots"],
     log:
         "logs/calibrate/{calibration}.log",
-    threads: 2
+    threads: lambda wc: gpu_job(CALIBRATIONS[wc.calibration])["threads"]
     resources:
         gpu=lambda wc: int(CALIBRATIONS[wc.calibration]["runner"]["device"].startswith("cuda")),
         mem_mb=lambda wc: memory_mb(CALIBRATIONS[wc.calibration], len(CALIBRATIONS[wc.calibration]["calibration"]["tasks"])
@@ -85,11 +128,12 @@ rule rollout:
     # the writer lock refuses a second job of the cell (another Snakemake, another SLURM job) while one runs.
     params:
         cell=lambda wc: CELLS[wc.cell],
-        execution=lambda wc: WF.study.execution.as_kwargs(),
+        execution=lambda wc: execution(CELLS[wc.cell], WF.study.execution.as_kwargs()),
+        gpu_slots=lambda wc: gpu_job(CELLS[wc.cell])["slots"],
         state=lambda wc: {"journal": f"{CELLS_DIR}/{wc.cell}/{JOURNAL_FILE}", "lock": f"{CELLS_DIR}/{wc.cell}/{LOCK_FILE}"},
     log:
         "logs/rollout/{cell}.log",
-    threads: 2
+    threads: lambda wc: gpu_job(CELLS[wc.cell])["threads"]
     resources:
         gpu=lambda wc: int(CELLS[wc.cell]["runner"]["device"].startswith("cuda")),
         mem_mb=lambda wc: memory_mb(CELLS[wc.cell], len(CELLS[wc.cell]["tasks"]) * CELLS[wc.cell]["episodes_per_task"]),

@@ -3,7 +3,8 @@
 # ruff: noqa: F821
 
 from vlaquantbench.runner.calibration import calibrate
+from vlaquantbench.runner.gpus import job_gpu
 from vlaquantbench.rule_log import job_log
 
-with job_log(snakemake):
+with job_log(snakemake), job_gpu(snakemake.params.gpu_slots, f"calibrate {snakemake.wildcards.calibration}"):
     calibrate(snakemake.params.calibration, snakemake.output[0], snakemake.input.checkpoint, **snakemake.params.execution)

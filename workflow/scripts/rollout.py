@@ -6,6 +6,7 @@ the cell's journal beside them, which the rule declares as a log: Snakemake keep
 from pathlib import Path
 
 from vlaquantbench.runner.cell import run_cell
+from vlaquantbench.runner.gpus import job_gpu
 from vlaquantbench.runner.signals import report_stop, sigterm_interrupts
 from vlaquantbench.rule_log import job_log
 
@@ -14,7 +15,7 @@ journal = snakemake.params.state["journal"]
 # SLURM sends SIGTERM at a job's time limit and on preemption: the job ends as `vqb rollout` does, saying
 # how far the cell got (on the job's stderr), its workers closed and its journal whole, with status 143.
 try:
-    with sigterm_interrupts(), job_log(snakemake):
+    with sigterm_interrupts(), job_log(snakemake), job_gpu(snakemake.params.gpu_slots, f"rollout {snakemake.params.cell['ref']}"):
         run_cell(
             snakemake.params.cell,
             out,

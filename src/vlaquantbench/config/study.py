@@ -72,13 +72,17 @@ class ExecutionConfig:
     # rounds is balanced over tasks, as the sequential stopping rule reads it (vlaquantbench.sequential).
     # Records are the same either way: an episode's outcome depends on its (task, episode, seed) alone.
     episode_order: str = "task_major"
+    # GPUs of a local node that rollout and calibrate jobs take one each (vlaquantbench.runner.gpus): None,
+    # every device `nvidia-smi -L` lists; N, the first N (or devices 0..N-1 where nvidia-smi is missing).
+    gpus: int | None = None
 
     def as_kwargs(self) -> dict[str, Any]:
-        return asdict(self)
+        """What a rollout job takes (the node's GPUs are the workflow's business, not the cell's)."""
+        return {k: v for k, v in asdict(self).items() if k != "gpus"}
 
     def calibration_kwargs(self) -> dict[str, Any]:
         """What a calibration job takes: it runs its fixed held-out episodes, in no cell's order."""
-        return {k: v for k, v in asdict(self).items() if k != "episode_order"}
+        return {k: v for k, v in self.as_kwargs().items() if k != "episode_order"}
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,7 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.records import write_cell
 from vlaquantbench.records.cell import JOURNAL_FILE
+from vlaquantbench.runner.gpus import device_record
 from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal, recorded_keys
 from vlaquantbench.runner.lock import writing
 from vlaquantbench.runner.loop import run_episodes
@@ -208,6 +209,8 @@ class CellRun:
             if not probe["passed"]:
                 raise CellFailed(f"cell {cfg['ref']}: the fast path's first chunk differs from the eager policy's "
                                  f"beyond its bound (fast_path_probe: {probe}); run it with study.runner.sampler: eager")
+        # The CUDA device the cell runs on (index, name, UUID); none on the CPU, whose headers stay as they were.
+        device = device_record(cfg["runner"]["device"])
         # JSON round trip: the header compares equal to the journal's copy of it on a rerun.
         self.header = canonical({
             "config_hash": config_hash(cfg),
@@ -232,6 +235,7 @@ class CellRun:
             "environment": self.environment.describe(),
             "quant_semantics": QUANT_SEMANTICS,
             "code_revision": code_revision(),
+            **({} if device is None else {"device": device}),
         })
 
     def _calibration(self):

@@ -30,6 +30,9 @@ RESUMABLE_CHANGES = ("code_revision", "ref", "cell", "subset", "method")
 # spread under one-ulp input moves that sets the bound) may differ in the last bits on another machine,
 # so only the probe's path, device and bound rule must match (a rerun that fails its bound is refused anyway).
 PROBE_MEASUREMENTS = ("max_abs_diff", "rel_l2", "eager_ulp_spread")
+# Which GPU of a model ran the cell (runner.gpus gives each job any free one): a rerun resumes on another
+# device of the same name, whose arithmetic is the same; a device of another name is refused (README "GPUs").
+DEVICE_SLOT = ("index", "uuid")
 # What two runs of one episode may record differently: how long it took.
 TIMING_FIELDS = ("wall_time_s", "policy_batch_latency_mean_s")
 
@@ -42,6 +45,8 @@ def _compared(header: dict[str, Any]) -> dict[str, Any]:
     if isinstance(probe, dict):
         probe = {k: v for k, v in probe.items() if k not in PROBE_MEASUREMENTS}
         kept["inference"] = {**kept["inference"], "fast_path_probe": probe}
+    if isinstance(kept.get("device"), dict):
+        kept["device"] = {k: v for k, v in kept["device"].items() if k not in DEVICE_SLOT}
     return kept
 
 
@@ -51,6 +56,8 @@ def header_differences(recorded: dict[str, Any], current: dict[str, Any]) -> lis
     recorded, current = _compared(recorded), _compared(current)
     lines = []
     for key in sorted(set(recorded) | set(current)):
+        if key == "device" and "device" not in recorded:  # a journal begun before headers named the device
+            continue
         if recorded.get(key) != current.get(key):
             lines.append(f"{key}: recorded={json.dumps(recorded.get(key))} current={json.dumps(current.get(key))}")
     return lines

@@ -68,37 +68,50 @@ def _exclusive(path: Path, cell: str) -> Iterator[None]:
     if path in _held:
         _held[path][1] += 1
     else:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)  # not O_TRUNC: a refused writer reads the holder
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 4096, 0).decode(errors="replace")
-            os.close(fd)
-            raise CellLocked(_refusal(path, cell, holder)) from None
-        except BaseException:
-            os.close(fd)
-            raise
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, (json.dumps(_holder(cell), sort_keys=True) + "\n").encode(), 0)
+        fd = try_flock(path, holder(cell=cell))
+        if isinstance(fd, str):
+            raise CellLocked(_refusal(path, cell, fd))
         _held[path] = [fd, 1]
     try:
         yield
     finally:
         _held[path][1] -= 1
         if not _held[path][1]:
-            fd = _held.pop(path)[0]
-            os.ftruncate(fd, 0)  # the next reader of an unheld lock file finds no stale holder
-            os.close(fd)  # releases the lock
+            release_flock(_held.pop(path)[0])
 
 
-def _holder(cell: str) -> dict:
+def try_flock(path: Path, holder: dict) -> int | str:
+    """An exclusive flock on `path`, which then names `holder`: its descriptor, or, when another process
+    holds the lock, the text that process wrote into the file (empty while it has not written yet)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)  # not O_TRUNC: a refused process reads the holder
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        text = os.pread(fd, 4096, 0).decode(errors="replace")
+        os.close(fd)
+        return text
+    except BaseException:
+        os.close(fd)
+        raise
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, (json.dumps(holder, sort_keys=True) + "\n").encode(), 0)
+    return fd
+
+
+def release_flock(fd: int) -> None:
+    os.ftruncate(fd, 0)  # the next reader of an unheld lock file finds no stale holder
+    os.close(fd)  # releases the lock
+
+
+def holder(**what) -> dict:
+    """What a lock file says of its holder: this process, and `what` it holds the lock for."""
     return {
         "pid": os.getpid(),
         "host": socket.gethostname(),
         "started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "cell": cell,
         "command": " ".join(sys.argv),
+        **what,
     }
 
 

@@ -1,0 +1,128 @@
+"""One GPU per job on a local node (issue 36): real processes taking real flock'd slot files, and the
+`profiles/local-gpus` dry run of a cuda study on this machine, which has no GPU (nvidia-smi missing, so the
+device count comes from study.execution.gpus)."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from test_dag_slurm import SNAKEMAKE, jobs_by_rule, workflow_copy
+
+from vlaquantbench.errors import UserError
+from vlaquantbench.runner.gpus import Gpu, LocalGpuPlan, NoFreeGpu, device_record, gpu_slot, node_gpus
+from vlaquantbench.runner.journal import header_differences
+
+# A job: take a slot of `gpus` devices, print which (and the CUDA_VISIBLE_DEVICES it set), hold it until killed.
+HOLDER = """
+import os, sys, time
+from vlaquantbench.runner.gpus import gpu_slot, node_gpus
+with gpu_slot(sys.argv[1], node_gpus(int(sys.argv[2]))[0], f"job {os.getpid()}") as gpu:
+    print(gpu.index, os.environ["CUDA_VISIBLE_DEVICES"], flush=True)
+    time.sleep(600)
+"""
+
+
+def start_holders(slots: Path, gpus: int, count: int) -> list[subprocess.Popen]:
+    env = {**os.environ, "PATH": "/usr/bin:/bin"}  # no nvidia-smi: the count is taken from `gpus`
+    env.pop("CUDA_VISIBLE_DEVICES", None)
+    return [subprocess.Popen([sys.executable, "-c", HOLDER, str(slots), str(gpus)], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True, env=env) for _ in range(count)]
+
+
+def stop(procs):
+    for proc in procs:
+        proc.kill()
+        proc.wait()
+
+
+def test_concurrent_jobs_take_distinct_devices_and_a_job_beyond_them_is_refused(tmp_path):
+    holders = start_holders(tmp_path / "slots", 3, 3)  # three jobs start at once, racing for the slots
+    try:
+        taken = [proc.stdout.readline().split() for proc in holders]
+        assert sorted(int(index) for index, _ in taken) == [0, 1, 2], taken
+        assert all(index == visible for index, visible in taken)  # each job sees its own device alone
+        for index, _ in taken:  # each lock file names its live holder
+            holder = json.loads((tmp_path / "slots" / f"{os.uname().nodename}-gpu{index}.lock").read_text())
+            assert holder["pid"] in {p.pid for p in holders} and holder["gpu"]["index"] == int(index)
+        fourth = start_holders(tmp_path / "slots", 3, 1)[0]
+        _, err = fourth.communicate(timeout=60)
+        assert fourth.returncode == 1 and "every GPU slot" in err and "--resources gpu" in err, err
+        assert all(f"pid {p.pid}" in err for p in holders), err  # the refusal names the holders
+    finally:
+        stop(holders)
+
+
+def test_a_slot_is_free_again_after_its_holder_is_killed_with_sigkill(tmp_path):
+    first = start_holders(tmp_path / "slots", 1, 1)[0]
+    try:
+        assert first.stdout.readline().split()[0] == "0"
+        with pytest.raises(NoFreeGpu, match=f"pid {first.pid}"):  # held while its holder lives
+            with gpu_slot(tmp_path / "slots", [Gpu(0)], "test"):
+                pass
+        os.kill(first.pid, signal.SIGKILL)
+        first.wait()
+        with gpu_slot(tmp_path / "slots", [Gpu(0)], "test") as gpu:  # no clean-up ran: the kernel freed it
+            assert gpu.index == 0 and os.environ["CUDA_VISIBLE_DEVICES"] == "0"
+    finally:
+        stop([first])
+
+
+def test_more_gpu_jobs_than_devices_are_refused_naming_the_setting(monkeypatch):
+    monkeypatch.setenv("PATH", "/usr/bin:/bin")
+    with pytest.raises(UserError, match=r"--resources gpu=4 asks for 4 GPU jobs at once but this node has 2 GPU"):
+        LocalGpuPlan.for_node(2, 4, cores=16)
+    with pytest.raises(UserError, match=r"study\.execution\.gpus where nvidia-smi is missing"):
+        LocalGpuPlan.for_node(None, None, cores=16)
+    plan = LocalGpuPlan.for_node(4, None, cores=64)  # --resources gpu unset: one job per device
+    assert (plan.jobs, plan.threads, plan.workers(8), plan.workers(64)) == (4, 16, 8, 15)
+    assert node_gpus(2)[0] == [Gpu(0), Gpu(1)]
+
+
+def dry_run(checkout: Path, *args: str, gpus: int | None) -> subprocess.CompletedProcess:
+    (checkout / "gpus.yaml").write_text(yaml.safe_dump({"study": {"execution": {"gpus": gpus}}}))
+    return subprocess.run(
+        [*SNAKEMAKE, "--profile", "profiles/local-gpus", "--configfile", "config/paper.yaml", "gpus.yaml", "-n", *args],
+        cwd=checkout, capture_output=True, text=True, timeout=600,
+        env={**os.environ, "PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin"},  # no nvidia-smi on the PATH
+    )
+
+
+def test_local_gpus_profile_dry_run_states_the_plan_on_a_machine_without_gpus(tmp_path):
+    checkout = workflow_copy(tmp_path)
+    result = dry_run(checkout, "--cores", "4", gpus=2)
+    output = result.stdout + result.stderr
+    assert result.returncode == 0, output[-3000:]
+    assert "Using profile profiles/local-gpus" in output
+    assert ("local GPUs (study.execution.gpus: 2 (nvidia-smi not found: taken on trust)): 0, 1; at most 2 "
+            "rollout/calibrate jobs at once (--resources gpu=2), each on a device of its own") in output
+    assert "each with 2 of 4 cores and 1 LIBERO worker(s) (study.execution.num_envs: 8)" in output
+    jobs = jobs_by_rule(output)
+    assert len(jobs["rollout"]) == 22 and len(jobs["calibrate"]) == 1
+    for resources in jobs["rollout"] + jobs["calibrate"]:
+        assert "gpu=1" in resources, resources
+    assert not (checkout / "results" / "cells").exists()
+
+    refused = dry_run(checkout, "--cores", "4", "--resources", "gpu=3", gpus=2)
+    assert refused.returncode != 0
+    assert "--resources gpu=3 asks for 3 GPU jobs at once but this node has 2 GPU(s)" in refused.stdout, refused.stdout[-3000:]
+    # Neither nvidia-smi nor study.execution.gpus: the dry run plans the jobs and says that a real run stops.
+    no_gpu = dry_run(checkout, "--cores", "4", gpus=None)
+    assert no_gpu.returncode == 0 and "set study.execution.gpus where nvidia-smi is missing" in no_gpu.stderr
+    assert "a real run stops here" in no_gpu.stderr and len(jobs_by_rule(no_gpu.stdout + no_gpu.stderr)["rollout"]) == 22
+
+
+def test_the_header_names_no_device_on_the_cpu_and_a_cell_resumes_on_another_gpu_of_its_model():
+    assert device_record("cpu") is None  # CPU headers are as they were: their journals resume
+    base = {"model": "pi05", "config": {}}
+    h200 = {"index": 0, "name": "NVIDIA H200", "uuid": "GPU-aaaa"}
+    other_h200 = {"index": 3, "name": "NVIDIA H200", "uuid": "GPU-bbbb"}
+    assert header_differences({**base, "device": h200}, {**base, "device": other_h200}) == []
+    assert header_differences(base, {**base, "device": other_h200}) == []  # a journal from before headers named it
+    h100 = {"index": 0, "name": "NVIDIA H100 80GB HBM3", "uuid": "GPU-cccc"}
+    assert header_differences({**base, "device": h200}, {**base, "device": h100}) == [
+        'device: recorded={"name": "NVIDIA H200"} current={"name": "NVIDIA H100 80GB HBM3"}']
