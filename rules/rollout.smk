@@ -70,7 +70,8 @@ def checkpoint_stamp(cfg):
 def memory_mb(cfg, episodes):
     """A job's `mem_mb`: the LIBERO workers it starts (study.execution.num_envs, at most one per episode) at
     their measured footprint, and its policy (vlaquantbench.envs.memory). A profile's set-resources overrides it."""
-    return job_memory_mb(cfg["benchmark"], cfg["suite"], min(WF.study.execution.num_envs, episodes))
+    workers = gpu_job(cfg).get("workers", WF.study.execution.num_envs)  # fewer on a node's split cores
+    return job_memory_mb(cfg["benchmark"], cfg["suite"], min(workers, episodes))
 
 
 def calibration_stats(cfg):

@@ -13,6 +13,7 @@ import pytest
 import yaml
 from test_dag_slurm import SNAKEMAKE, jobs_by_rule, workflow_copy
 
+from vlaquantbench.envs.memory import job_memory_mb
 from vlaquantbench.errors import UserError
 from vlaquantbench.runner.gpus import Gpu, LocalGpuPlan, NoFreeGpu, device_record, gpu_slot, node_gpus
 from vlaquantbench.runner.journal import header_differences
@@ -94,17 +95,19 @@ def dry_run(checkout: Path, *args: str, gpus: int | None) -> subprocess.Complete
 
 def test_local_gpus_profile_dry_run_states_the_plan_on_a_machine_without_gpus(tmp_path):
     checkout = workflow_copy(tmp_path)
-    result = dry_run(checkout, "--cores", "4", gpus=2)
+    result = dry_run(checkout, "--cores", "8", gpus=2)
     output = result.stdout + result.stderr
     assert result.returncode == 0, output[-3000:]
     assert "Using profile profiles/local-gpus" in output
     assert ("local GPUs (study.execution.gpus: 2 (nvidia-smi not found: taken on trust)): 0, 1; at most 2 "
             "rollout/calibrate jobs at once (--resources gpu=2), each on a device of its own") in output
-    assert "each with 2 of 4 cores and 1 LIBERO worker(s) (study.execution.num_envs: 8)" in output
+    assert "each with 4 of 8 cores and 3 LIBERO worker(s) (study.execution.num_envs: 8)" in output
     jobs = jobs_by_rule(output)
     assert len(jobs["rollout"]) == 22 and len(jobs["calibrate"]) == 1
-    for resources in jobs["rollout"] + jobs["calibrate"]:
-        assert "gpu=1" in resources, resources
+    for resources in jobs["rollout"]:  # memory for the 3 workers a job starts, not the config's 8
+        assert f"gpu=1, mem_mb={job_memory_mb('libero', 'libero_spatial', 3)}," in resources, resources
+    assert "gpu=1" in jobs["calibrate"][0]
+    assert output.count("threads: 4") == 22 + 1  # the GPU jobs' share of the cores
     assert not (checkout / "results" / "cells").exists()
 
     refused = dry_run(checkout, "--cores", "4", "--resources", "gpu=3", gpus=2)
