@@ -4,6 +4,7 @@ device count comes from study.execution.gpus)."""
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -21,18 +22,16 @@ from vlaquantbench.runner.journal import header_differences
 # A job: take a slot of `gpus` devices, print which (and the CUDA_VISIBLE_DEVICES it set), hold it until killed.
 HOLDER = """
 import os, sys, time
-from vlaquantbench.runner.gpus import gpu_slot, node_gpus
-with gpu_slot(sys.argv[1], node_gpus(int(sys.argv[2]))[0], f"job {os.getpid()}") as gpu:
+from vlaquantbench.runner.gpus import Gpu, gpu_slot
+with gpu_slot(sys.argv[1], [Gpu(i) for i in range(int(sys.argv[2]))], f"job {os.getpid()}") as gpu:
     print(gpu.index, os.environ["CUDA_VISIBLE_DEVICES"], flush=True)
     time.sleep(600)
 """
 
 
 def start_holders(slots: Path, gpus: int, count: int) -> list[subprocess.Popen]:
-    env = {**os.environ, "PATH": "/usr/bin:/bin"}  # no nvidia-smi: the count is taken from `gpus`
-    env.pop("CUDA_VISIBLE_DEVICES", None)
     return [subprocess.Popen([sys.executable, "-c", HOLDER, str(slots), str(gpus)], stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True, env=env) for _ in range(count)]
+                             stderr=subprocess.PIPE, text=True) for _ in range(count)]
 
 
 def stop(procs):
@@ -73,8 +72,8 @@ def test_a_slot_is_free_again_after_its_holder_is_killed_with_sigkill(tmp_path):
         stop([first])
 
 
-def test_more_gpu_jobs_than_devices_are_refused_naming_the_setting(monkeypatch):
-    monkeypatch.setenv("PATH", "/usr/bin:/bin")
+def test_more_gpu_jobs_than_devices_are_refused_naming_the_setting(monkeypatch, tmp_path):
+    monkeypatch.setenv("PATH", str(tmp_path))  # no nvidia-smi, on GPU machines too: the count is the config's
     with pytest.raises(UserError, match=r"--resources gpu=4 asks for 4 GPU jobs at once but this node has 2 GPU"):
         LocalGpuPlan.for_node(2, 4, cores=16)
     with pytest.raises(UserError, match=r"study\.execution\.gpus where nvidia-smi is missing"):
@@ -85,11 +84,16 @@ def test_more_gpu_jobs_than_devices_are_refused_naming_the_setting(monkeypatch):
 
 
 def dry_run(checkout: Path, *args: str, gpus: int | None) -> subprocess.CompletedProcess:
+    # A PATH without nvidia-smi, on GPU machines too: Python's and the one tool Snakemake calls (`which`).
+    tools = checkout / "tools"
+    if not tools.exists():
+        tools.mkdir()
+        (tools / "which").symlink_to(shutil.which("which"))
     (checkout / "gpus.yaml").write_text(yaml.safe_dump({"study": {"execution": {"gpus": gpus}}}))
     return subprocess.run(
         [*SNAKEMAKE, "--profile", "profiles/local-gpus", "--configfile", "config/paper.yaml", "gpus.yaml", "-n", *args],
         cwd=checkout, capture_output=True, text=True, timeout=600,
-        env={**os.environ, "PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin"},  # no nvidia-smi on the PATH
+        env={**os.environ, "PATH": f"{Path(sys.executable).parent}:{tools}"},
     )
 
 

@@ -73,6 +73,7 @@ def listed_gpus() -> list[Gpu] | None:
     except (OSError, subprocess.SubprocessError):  # no driver, no binary: not a GPU node as far as we can tell
         return None
     gpus = [Gpu(int(m[1]), m[2], m[3]) for m in map(_SMI_LINE.match, listing.splitlines()) if m]
+    # Indices there count in CUDA's order, fastest first: nvidia-smi's PCI order on a node of one GPU model.
     visible = os.environ.get("CUDA_VISIBLE_DEVICES")
     if visible is None:
         return gpus
@@ -153,7 +154,8 @@ def device_record(device: str) -> dict | None:
     if dev.type != "cuda":
         return None
     props = torch.cuda.get_device_properties(dev)
-    uuid = f"GPU-{props.uuid}"
+    uuid = str(props.uuid)  # torch prints it as 8-4-4-4-12 hex digits; nvidia-smi and CUDA_VISIBLE_DEVICES add `GPU-`
+    uuid = uuid if uuid.startswith("GPU-") else f"GPU-{uuid}"
     index = next((g.index for g in listed_gpus() or [] if g.uuid == uuid), None)
     return {"index": index, "name": props.name, "uuid": uuid}
 
