@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from vlaquantbench.config.study import RunnerConfig, StudyConfig
-from vlaquantbench.envs import BENCHMARK_SUITES, check_ids
+from vlaquantbench.envs import BENCHMARK_SUITES, ROLLOUT_BENCHMARKS, check_ids
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import client_conventions
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
@@ -250,6 +250,9 @@ def _check_registries(ref: str, benchmark: str, suite: str, model: str, preset: 
         raise UserError(f"cell {ref!r}: unknown benchmark {benchmark!r}; known: {', '.join(BENCHMARK_SUITES)}")
     if suite not in BENCHMARK_SUITES[benchmark]:
         raise UserError(f"cell {ref!r}: unknown {benchmark} suite {suite!r}; known: {', '.join(BENCHMARK_SUITES[benchmark])}")
+    if benchmark not in ROLLOUT_BENCHMARKS:
+        raise UserError(f"cell {ref!r}: the rollout runner drives benchmark(s) {', '.join(ROLLOUT_BENCHMARKS)}, "
+                        f"not yet {benchmark!r} (its env runs through run_episodes; its cells need the runner's simulator seam)")
     try:
         model_package(model)
         if model not in rollout_models():

@@ -126,8 +126,6 @@ class CellRun:
         activate(self.environment)  # before anything imports MuJoCo: LIBERO and its workers run on its pin
         if torch_threads:
             torch.set_num_threads(torch_threads)
-        if cfg["benchmark"] != "libero":
-            raise UserError(f"cell {cfg['ref']}: the rollout runner supports benchmark 'libero', not {cfg['benchmark']!r}")
         self.suite = LiberoSuite(cfg["suite"])
         self.specs = [self.suite.episode_spec(t, e, cfg["seed"])
                       for t, e in episode_keys(cfg["tasks"], cfg["episodes_per_task"], episode_order)]
