@@ -175,11 +175,14 @@ BAD_CELLS = [
     ("libero/libero_spatial/pi05/rtn-W4A3X-ah", "unknown quantization preset 'W4A3X'"),
     ("libero/libero_spatial/pi05/quip-W4A4-ah", "unknown method 'quip'; expected one of awq, fp8, fp8_static"),
     ("libero/libero_spatial/pi05/ablate-W4A4-ah-onlyselfattn", "subset 'onlyselfattn' of pi05: unknown subset 'onlyselfattn'"),
-    ("metaworld/metaworld_easy/pi05/rtn-W4A4-ah", "the rollout runner drives benchmark(s) libero, not yet 'metaworld'"),
+    ("metaworld/metaworld_eazy/metaworld_expert/rtn-BASELINE-e2e",
+     "unknown metaworld suite 'metaworld_eazy'; known: metaworld_easy, metaworld_medium"),
+    ("metaworlds/metaworld_easy/metaworld_expert/rtn-BASELINE-e2e", "unknown benchmark 'metaworlds'; known: libero, metaworld"),
 ]
 
 
-@pytest.mark.parametrize(("cell", "message"), BAD_CELLS, ids=["suite", "model", "preset", "method", "subset", "benchmark"])
+@pytest.mark.parametrize(("cell", "message"), BAD_CELLS,
+                         ids=["suite", "model", "preset", "method", "subset", "metaworld_suite", "benchmark"])
 def test_snakemake_dry_run_refuses_a_bad_cell_naming_the_table_and_the_cell(tmp_path, cell, message):
     returncode, output = dry_run(tmp_path, cell)
     table = tmp_path / "checkout/config/demo/tables/lattice.yaml"

@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from vlaquantbench.config.study import RunnerConfig, StudyConfig
-from vlaquantbench.envs import BENCHMARK_SUITES, ROLLOUT_BENCHMARKS, check_ids
+from vlaquantbench.envs import BENCHMARK_SUITES, check_ids
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import client_conventions
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
@@ -244,20 +244,20 @@ def _overrides(client, runner: RunnerConfig, episodes: int) -> dict[str, dict[st
 
 
 def _check_registries(ref: str, benchmark: str, suite: str, model: str, preset: str, method: str) -> None:
+    from vlaquantbench.models.layer_index import linear_names
     from vlaquantbench.quant.presets import parse_preset
 
     if benchmark not in BENCHMARK_SUITES:
         raise UserError(f"cell {ref!r}: unknown benchmark {benchmark!r}; known: {', '.join(BENCHMARK_SUITES)}")
     if suite not in BENCHMARK_SUITES[benchmark]:
         raise UserError(f"cell {ref!r}: unknown {benchmark} suite {suite!r}; known: {', '.join(BENCHMARK_SUITES[benchmark])}")
-    if benchmark not in ROLLOUT_BENCHMARKS:
-        raise UserError(f"cell {ref!r}: the rollout runner drives benchmark(s) {', '.join(ROLLOUT_BENCHMARKS)}, "
-                        f"not yet {benchmark!r} (its env runs through run_episodes; its cells need the runner's simulator seam)")
     try:
         model_package(model)
         if model not in rollout_models():
             raise UserError(f"model {model!r} has no rollout adapter; models with one: {', '.join(rollout_models())}")
         METHODS[method].check_preset(method, parse_preset(preset))
+        if not parse_preset(preset).is_baseline and not any(linear_names(model).values()):
+            raise UserError(f"model {model!r} has no network to quantize: its cells are BASELINE cells only")
     except UserError as err:
         raise UserError(f"cell {ref!r}: {err}") from None
 
@@ -309,14 +309,19 @@ def _subset_patterns(ref: str, model: str, scope: str, subset: str | None) -> tu
 
     only = exclude = None
     where = f"cell {ref!r}"
+    names = linear_names(model)
     try:
+        if not any(names.values()):  # a policy without a network: nothing to select (BASELINE cells only)
+            if subset is not None:
+                raise UserError(f"subset {subset!r}: {model} has no network, so no layer to select")
+            return None, None
         if subset is not None:
             where += f": subset {subset!r} of {model}"
             named = get_subset(model, subset)
             if named.scope != scope:
                 raise UserError(f"is defined on scope {named.scope!r}, not {scope!r}")
             only, exclude = named.only, named.exclude
-        select_names(linear_names(model), scope, only, exclude)
+        select_names(names, scope, only, exclude)
     except UserError as err:
         raise UserError(f"{where}: {err}") from None
     return only, exclude

@@ -5,7 +5,14 @@ cell references, task ids and episode counts are checked while the workflow buil
 (`tests/test_libero_suite.py` and `tests/test_metaworld_env.py` compare the sizes with the simulators'
 own lists). `make_suite` and `make_env` build a benchmark's suite and its batched worker env
 (`envs.workers.WorkerVectorEnv`: reset a slot, submit a chunk, collect, release) from the benchmark's
-name, importing only that benchmark's simulator.
+name, importing only that benchmark's simulator; `env_settings` picks a cell's env settings from its
+runner config and `simulator_versions` reads (and checks) what a cell header records of the simulator.
+The closed-loop runner, rollout calibration and replay recording take their suites, episode specs,
+step limits (`SuiteTasks.max_steps`) and envs from here only.
+
+A benchmark is a package `envs/<benchmark>/` exporting a suite class (a `SuiteTasks`), a vector env
+class (a `WorkerVectorEnv`) and `simulator_versions(pinned)` under the names `_EXPORTS` lists, plus its
+suites' sizes in `BENCHMARK_SUITES` (README "Benchmarks": adding a third one).
 """
 
 from __future__ import annotations
@@ -53,12 +60,10 @@ BENCHMARK_SUITES = {
     "metaworld": {suite: SuiteSize(tasks=tasks, init_states=SEED_STRIDE, worker_gib=0.4)
                   for suite, tasks in _METAWORLD_TASKS.items()},
 }
-# The benchmarks the closed-loop runner (`runner.cell`) drives; Meta-World's env and experts run through
-# `run_episodes`, but its cells wait for the runner's simulator seam (issue 29), so they are refused by name
-# while the DAG is built, not when their job starts.
-ROLLOUT_BENCHMARKS = ("libero",)
-# Each benchmark's package exports its suite and vector env classes under these names.
-_CLASSES = {"libero": ("LiberoSuite", "LiberoVectorEnv"), "metaworld": ("MetaWorldSuite", "MetaWorldVectorEnv")}
+# Each benchmark's package exports its suite class, its vector env class and its `simulator_versions`
+# under these names.
+_EXPORTS = {"libero": ("LiberoSuite", "LiberoVectorEnv", "simulator_versions"),
+            "metaworld": ("MetaWorldSuite", "MetaWorldVectorEnv", "simulator_versions")}
 
 
 def check_ids(field: str, ids: Iterable[int], count: int, what: str) -> None:
@@ -72,26 +77,47 @@ def check_ids(field: str, ids: Iterable[int], count: int, what: str) -> None:
         raise UserError(f"{field}: {shown} {verb} outside 0..{count - 1} ({what})")
 
 
-def _benchmark_class(benchmark: str, which: int) -> type:
-    names = lookup(_CLASSES, benchmark, "benchmark")
+def _benchmark_export(benchmark: str, which: int) -> Any:
+    names = lookup(_EXPORTS, benchmark, "benchmark")
     return getattr(importlib.import_module(f"vlaquantbench.envs.{benchmark}"), names[which])
 
 
 def make_suite(benchmark: str, suite: str) -> SuiteTasks:
     """Suite `suite` of `benchmark`; UserError naming the benchmark or suite if either is unknown."""
-    return _benchmark_class(benchmark, 0)(suite)
+    return _benchmark_export(benchmark, 0)(suite)
 
 
 def make_env(benchmark: str, suite: str | SuiteTasks, num_envs: int, **settings: Any) -> WorkerVectorEnv:
     """`num_envs` worker slots of `benchmark` on `suite` (a name or a built suite). `settings` are the
     benchmark's env settings (LIBERO: camera_size, settle_steps, control_mode, mujoco; Meta-World:
-    camera_size, None to render no image); UserError naming an unknown one, before any suite or worker."""
-    env_class = _benchmark_class(benchmark, 1)
-    accepted = [name for name, parameter in inspect.signature(env_class).parameters.items()
-                if parameter.kind is inspect.Parameter.KEYWORD_ONLY]
+    camera_size, None to render no image, and mujoco); UserError naming an unknown one, before any suite or worker."""
+    env_class = _benchmark_export(benchmark, 1)
+    accepted = _settings(env_class)
     unknown = sorted(set(settings) - set(accepted))
     if unknown:
         raise UserError(f"unknown {benchmark} env setting(s) {', '.join(unknown)}; known: {', '.join(accepted)}")
     if isinstance(suite, str):
         suite = make_suite(benchmark, suite)
     return env_class(suite, num_envs, **settings)
+
+
+def _settings(env_class: type) -> list[str]:
+    """The env settings a vector env class takes: its keyword-only parameters."""
+    return [name for name, parameter in inspect.signature(env_class).parameters.items()
+            if parameter.kind is inspect.Parameter.KEYWORD_ONLY]
+
+
+def env_settings(benchmark: str, runner: Any, reads_images: bool = True) -> dict[str, Any]:
+    """The env settings a cell's runner config (`config.study.RunnerConfig`) sets for `benchmark`: those of
+    its fields the benchmark's env takes (LIBERO: camera_size, settle_steps, control_mode, mujoco; Meta-World:
+    camera_size). A policy that reads no image (`reads_images`) gets none rendered (camera_size None)."""
+    settings = {name: getattr(runner, name) for name in _settings(_benchmark_export(benchmark, 1)) if hasattr(runner, name)}
+    if not reads_images and "camera_size" in settings:
+        settings["camera_size"] = None
+    return settings
+
+
+def simulator_versions(benchmark: str, pinned: str | None = None) -> dict[str, Any]:
+    """The simulator versions a cell header records; UserError when MuJoCo is not `pinned` (a cell's
+    `runner.mujoco`; None: the active software environment's pin)."""
+    return _benchmark_export(benchmark, 2)(pinned=pinned)

@@ -30,7 +30,7 @@ def episode_seed(task_id: int, episode: int, run_seed: int = 0) -> int:
 
 class SuiteTasks:
     """What every benchmark's suite shares: its `name`, its `tasks` (each with a `task_id`, its index)
-    and its episodes; a suite defines `episode_spec(task_id, episode, run_seed)`."""
+    and its episodes; a suite defines `episode_spec(task_id, episode, run_seed)` and `max_steps(model)`."""
 
     name: str
     tasks: tuple
@@ -48,6 +48,10 @@ class SuiteTasks:
         return self.tasks[task_id]
 
     def episode_spec(self, task_id: int, episode: int, run_seed: int = 0) -> EpisodeSpec:
+        raise NotImplementedError
+
+    def max_steps(self, model: str) -> int:
+        """Policy steps before an unfinished episode of `model` counts as a failure."""
         raise NotImplementedError
 
     def episodes(

@@ -75,6 +75,7 @@ class PolicyAdapter(Protocol):
     # prompts were tokenized with and its actions unnormalized with, with file hashes).
     checkpoint_provenance: dict
     control_mode: str  # "delta" or "absolute" end-effector actions (the LIBERO controller's mode)
+    reads_images: bool  # False: the env renders no image for it
     # Glob patterns of scoped linear layers the policy never calls (their hooks cannot fire)
     idle_layers: tuple[str, ...]
 
@@ -107,6 +108,8 @@ class AdapterBase:
     name: str
     supports_captured_sampler = False  # `AdapterConfig.sampler` "captured" (see `resolve_sampler`)
     control_mode = "delta"  # actions are end-effector pose deltas
+    # Whether the policy reads camera images; the env renders none for one that does not (`envs.env_settings`).
+    reads_images = True
     idle_layers: tuple[str, ...] = ()
 
     def __init__(self, config: AdapterConfig):

@@ -32,6 +32,7 @@ OPTIONAL_COLUMNS = (
     "subtasks_completed",
     "progress_score",
     "nonfinite_action",  # the policy output NaN/infinity; the episode ended before it (runner.loop)
+    "task_variation",  # Meta-World: the object and goal placement the episode's seeded variation drew
 )
 # Nullable dtypes: benchmarks without LIBERO init states (CALVIN, SIMPLER) leave init_state_id empty.
 _DTYPES = {
@@ -51,6 +52,7 @@ _DTYPES = {
     "subtasks_completed": "float64",
     "progress_score": "float64",
     "nonfinite_action": "bool",
+    "task_variation": "object",  # a list of floats per episode (parquet list<double>)
 }
 
 

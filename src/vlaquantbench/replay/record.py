@@ -1,4 +1,5 @@
-"""Record full-precision trajectories in LIBERO for same-observation replay.
+"""Record full-precision trajectories in LIBERO for same-observation replay (suite, episode specs, step
+limit and env from the benchmark seam, `vlaquantbench.envs`; the controller mode and MuJoCo pin the model's client's).
 
 One `<record>.npz` per trajectory (`t<task>_e<init state>.npz`) holds everything the policy saw and
 did at each call: both camera images, the state, the instruction, the episode's RNG seed and the
@@ -19,9 +20,13 @@ import torch
 from tqdm import tqdm
 
 from vlaquantbench.atomic import atomic_write, write_text
-from vlaquantbench.envs.libero import EpisodeSpec, LiberoSuite, LiberoVectorEnv, episode_seed, simulator_versions
+from vlaquantbench.config.study import RunnerConfig
+from vlaquantbench.envs import env_settings, make_env, make_suite, simulator_versions
+from vlaquantbench.envs.episodes import EpisodeSpec
+from vlaquantbench.envs.workers import WorkerVectorEnv
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+from vlaquantbench.models.client import client_conventions
 from vlaquantbench.replay.probe import PolicyProbe, torch_rng_state
 from vlaquantbench.replay.study import RecordSettings
 from vlaquantbench.runner.provenance import code_revision, versions
@@ -34,7 +39,7 @@ def adapter_config(settings: RecordSettings) -> AdapterConfig:
                          executed_chunk=settings.executed_chunk, flow_steps=settings.flow_steps)
 
 
-def _record_one(adapter, probe: PolicyProbe, env: LiberoVectorEnv, spec: EpisodeSpec, max_steps: int) -> dict:
+def _record_one(adapter, probe: PolicyProbe, env: WorkerVectorEnv, spec: EpisodeSpec, max_steps: int) -> dict:
     calls: dict[str, list] = {k: [] for k in ("agentview", "wrist", "state", "rng_state", "chunk", "flow_states", "executed")}
     actions: list[np.ndarray] = []
     generator = adapter.reset(spec.seed)
@@ -79,18 +84,21 @@ def record(settings: RecordSettings, records_json: str | Path, trajectories: lis
     if trajectories != expected:
         raise UserError(f"recording {records_json}: trajectory files {[str(p) for p in trajectories]} are not the "
                         f"recording's {[str(p) for p in expected]}")
-    suite = LiberoSuite(settings.suite)
-    specs = [EpisodeSpec(t, i, init_state_id=i, seed=episode_seed(t, i, settings.run_seed))
-             for t in settings.tasks for i in settings.init_states]
-    for spec in specs:  # bad task ids / init states fail here, before the model loads
-        suite.init_state(spec.task_id, spec.init_state_id)
+    suite = make_suite(settings.benchmark, settings.suite)
+    # Trajectory i of a task starts from init state i; bad task ids / init states fail here, before the model loads.
+    specs = [suite.episode_spec(t, i, settings.run_seed) for t in settings.tasks for i in settings.init_states]
+    # The model's released client's controller mode and MuJoCo pin; the simulator's own camera and settle steps.
+    client = client_conventions(settings.model)
+    runner = RunnerConfig(**{**client.runner(), "executed_chunk": settings.executed_chunk})
+    env_options = {k: v for k, v in env_settings(settings.benchmark, runner).items() if k in client.runner()}
+    simulator = simulator_versions(settings.benchmark, pinned=client.mujoco)
     max_steps = settings.max_steps or suite.max_steps(settings.model)
     torch.set_num_threads(settings.threads)
     adapter = make_adapter(adapter_config(settings))
     adapter.load()
     records_json.parent.mkdir(parents=True, exist_ok=True)
     records = []
-    with LiberoVectorEnv(suite, num_envs=1) as env, PolicyProbe(adapter.model, settings.observe, 7) as probe:
+    with make_env(settings.benchmark, suite, 1, **env_options) as env, PolicyProbe(adapter.model, settings.observe, 7) as probe:
         for spec, path in tqdm(list(zip(specs, trajectories)), desc="record", unit="trajectory"):
             data = _record_one(adapter, probe, env, spec, max_steps)
             with atomic_write(path, "wb") as handle:
@@ -104,7 +112,7 @@ def record(settings: RecordSettings, records_json: str | Path, trajectories: lis
         "init_states": settings.init_states, "run_seed": settings.run_seed, "max_steps": max_steps,
         "weights_seed": adapter.config.seed,
         "chunk": {"predicted": adapter.predicted_chunk, "executed": adapter.executed_chunk},
-        "observe": settings.observe, "versions": {**versions(), **simulator_versions()},
+        "observe": settings.observe, "versions": {**versions(), **simulator},
         "device": settings.device, "flow_steps": settings.flow_steps,
         "torch_threads": torch.get_num_threads(), "code_revision": code_revision(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "records": records,

@@ -69,6 +69,7 @@ class RecordSettings:
     model: str
     variant: str
     suite: str
+    benchmark: str
     tasks: list[int]
     init_states: list[int]
     observe: list[str]  # layers whose inputs the probe summarizes (e.g. the expert down_proj)
@@ -91,7 +92,8 @@ class RecordSettings:
         base = {"variant": "full", "tasks": study["tasks"], "init_states": study["init_states"]}
         if options.get("variant", "full") == "full":  # a demo policy has random weights, no checkpoint
             base.update(checkpoint=study["checkpoint"], revision=study["revision"])
-        settings = cls(model=study["model"], suite=study["suite"], observe=study["observe"], **{**base, **options})
+        settings = cls(model=study["model"], suite=study["suite"], benchmark=study["benchmark"], observe=study["observe"],
+                       **{**base, **options})
         # Checked here, while the DAG is built: a recording job would fail on them only after loading the policy.
         size = BENCHMARK_SUITES[study["benchmark"]][settings.suite]
         for key, ids, count, what in (("tasks", settings.tasks, size.tasks, "tasks"),

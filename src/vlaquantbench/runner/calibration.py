@@ -9,8 +9,8 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from vlaquantbench.config.study import ExecutionConfig
-from vlaquantbench.envs.libero import EpisodeSpec, LiberoSuite, LiberoVectorEnv, episode_seed
+from vlaquantbench.config.study import ExecutionConfig, RunnerConfig
+from vlaquantbench.envs import env_settings, make_env, make_suite
 from vlaquantbench.envs.memory import affordable_workers
 from vlaquantbench.runner.cell import calibration_settings, load_policy
 from vlaquantbench.runner.loop import run_episodes
@@ -33,14 +33,11 @@ def calibrate(
     if torch_threads:
         torch.set_num_threads(torch_threads)
     settings_cfg, runner = calib["calibration"], calib["runner"]
-    suite = LiberoSuite(calib["suite"])
-    specs = [
-        EpisodeSpec(task, state, init_state_id=state, seed=episode_seed(task, state, settings_cfg["seed"]))
-        for task in settings_cfg["tasks"]
-        for state in settings_cfg["init_states"]
-    ]
-    for spec in specs:  # out-of-range init states fail here, before the policy loads
-        suite.init_state(spec.task_id, spec.init_state_id)
+    suite = make_suite(calib["benchmark"], calib["suite"])
+    # Episode i of a task starts from init state (or task variation) i; out-of-range ones fail here, before
+    # the policy loads.
+    specs = [suite.episode_spec(task, state, settings_cfg["seed"])
+             for task in settings_cfg["tasks"] for state in settings_cfg["init_states"]]
     # Refused, never capped: the statistics are per policy call, so they depend on how many workers share one.
     workers = affordable_workers(min(num_envs, len(specs)), calib["benchmark"], calib["suite"],
                                  "study.execution.num_envs", cap=False)
@@ -61,10 +58,8 @@ def calibrate(
     )
     max_steps = runner["max_steps"] or suite.max_steps(calib["model"])
     with observe(layers, quantile=settings.quantile, sample_rows=settings.sample_rows) as observer:
-        with LiberoVectorEnv(
-            suite, workers, camera_size=runner["camera_size"], settle_steps=runner["settle_steps"],
-            control_mode=runner["control_mode"], mujoco=runner["mujoco"],
-        ) as env:
+        with make_env(calib["benchmark"], suite, workers,
+                      **env_settings(calib["benchmark"], RunnerConfig(**runner), adapter.reads_images)) as env:
             with tqdm(total=len(specs), desc=f"calibrate {calib['model']} {calib['suite']}", unit="ep",
                       disable=not progress) as bar:
                 run_episodes(adapter, env, specs, max_steps, on_finished=lambda records: bar.update(len(records)),

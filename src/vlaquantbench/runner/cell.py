@@ -1,15 +1,16 @@
 """Run one cell: load the policy, quantize it, run the missing episodes, check, write the records.
 
     run = CellRun(cfg, out_dir, checkpoint_stamp, calibration_stats)
-    run.start_env() # optional: LIBERO workers start while the policy loads
+    run.start_env() # optional: the simulator workers start while the policy loads
     run.prepare()   # load + quantize; the header is known from here on
     run.run()       # journal-backed episodes; header.json + episodes.parquet when all exist
 
 The protocol checks of the paper (Sec. 5) are enforced here: the adapter must execute the cell's
 chunk length, every selected activation hook must have fired, and the MuJoCo pin is checked when
 the simulator versions are read. Records are only written when every configured episode exists;
-until then they live in the journal, which survives any kill. `run_cell` starts the LIBERO workers,
-which build the envs of the first episodes to run, in a thread while `prepare` loads the policy:
+until then they live in the journal, which survives any kill. The suite, its episode specs, the step
+limit and the simulator workers come from the benchmark's seam (`vlaquantbench.envs`: `make_suite`,
+`make_env`), whatever the benchmark. `run_cell` starts the simulator workers, which build the envs of the first episodes to run, in a thread while `prepare` loads the policy:
 both take seconds of CPU, each mostly on one core. One process at a time writes a cell: `run_cell`
 (and `run`) hold the cell's writer lock (`runner.lock`), so a second writer is refused by name
 before it loads anything.
@@ -30,10 +31,12 @@ from tqdm import tqdm
 
 from vlaquantbench.cells import canonical, config_hash, quantizer_method
 from vlaquantbench.config.study import ExecutionConfig
-from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv, simulator_versions
+from vlaquantbench.config.study import RunnerConfig
+from vlaquantbench.envs import env_settings, make_env, make_suite, simulator_versions
 from vlaquantbench.envs.memory import affordable_workers
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+from vlaquantbench.models.registry import adapter_class
 from vlaquantbench.records import write_cell
 from vlaquantbench.records.cell import JOURNAL_FILE
 from vlaquantbench.runner.gpus import device_record
@@ -70,7 +73,7 @@ def load_policy(cfg: dict[str, Any], stamp: str | Path | None):
     if adapter.control_mode != mode:
         raise CellFailed(
             f"{cfg.get('ref', cfg['model'])}: the policy's actions are {adapter.control_mode} end-effector poses but the "
-            f"cell config runs LIBERO's controller in {mode!r} mode"
+            f"cell config runs the simulator's controller in {mode!r} mode"
         )
     return adapter
 
@@ -123,14 +126,14 @@ class CellRun:
         self.num_envs = num_envs
         self.progress = progress
         self.environment = environment_for(cfg["model"])
-        activate(self.environment)  # before anything imports MuJoCo: LIBERO and its workers run on its pin
+        activate(self.environment)  # before anything imports MuJoCo: the simulator and its workers run on its pin
         if torch_threads:
             torch.set_num_threads(torch_threads)
-        self.suite = LiberoSuite(cfg["suite"])
+        self.suite = make_suite(cfg["benchmark"], cfg["suite"])
         self.specs = [self.suite.episode_spec(t, e, cfg["seed"])
                       for t, e in episode_keys(cfg["tasks"], cfg["episodes_per_task"], episode_order)]
         self.max_steps = cfg["runner"]["max_steps"] or self.suite.max_steps(cfg["model"])
-        self._env: Future | None = None  # the LIBERO workers, once started
+        self._env: Future | None = None  # the simulator workers, once started
         self._closing = threading.Event()  # set by close_env: a start-up in progress ends early
 
     def writing(self):
@@ -138,7 +141,7 @@ class CellRun:
         return writing(self.out_dir, self.journal, self.cfg["ref"])
 
     def start_env(self) -> None:
-        """Start the LIBERO workers for the episodes the journal lacks, in a thread that also builds
+        """Start the simulator workers for the episodes the journal lacks, in a thread that also builds
         each slot's first env, so that `prepare` loads the policy meanwhile; `run` uses them (or
         starts its own), and `close_env` stops them. The journal is read unchecked here: `run`
         verifies its header before any episode runs."""
@@ -147,16 +150,15 @@ class CellRun:
     def _start_env(self, missing: list) -> Future | None:
         if not missing:
             return None
-        runner = self.cfg["runner"]
+        benchmark = self.cfg["benchmark"]
         # Before any worker starts: as many as the memory holds (a warning names both numbers).
-        num_envs = affordable_workers(max(1, min(self.num_envs, len(missing))), self.cfg["benchmark"], self.cfg["suite"],
+        num_envs = affordable_workers(max(1, min(self.num_envs, len(missing))), benchmark, self.cfg["suite"],
                                       "study.execution.num_envs")
+        # The adapter's class says whether the policy reads images (its instance is still loading).
+        settings = env_settings(benchmark, RunnerConfig(**self.cfg["runner"]), adapter_class(self.cfg["model"]).reads_images)
 
-        def start() -> LiberoVectorEnv:
-            env = LiberoVectorEnv(
-                self.suite, num_envs, camera_size=runner["camera_size"], settle_steps=runner["settle_steps"],
-                control_mode=runner["control_mode"], mujoco=runner["mujoco"],
-            )
+        def start():
+            env = make_env(benchmark, self.suite, num_envs, **settings)
             try:
                 if not closing.is_set():  # a cell stopped during its start-up skips building the envs
                     env.preload([spec.task_id for spec in missing[:num_envs]])
@@ -166,13 +168,13 @@ class CellRun:
             return env
 
         closing = self._closing = threading.Event()
-        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="libero-start")
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="env-start")
         future = pool.submit(start)
         pool.shutdown(wait=False)
         return future
 
     def close_env(self) -> None:
-        """Stop the LIBERO workers, waiting for a start-up in progress to end first (without its env
+        """Stop the simulator workers, waiting for a start-up in progress to end first (without its env
         builds: Ctrl-C or SIGTERM during the policy's load stops the workers once they have started)."""
         if self._env is not None:
             self._closing.set()
@@ -184,9 +186,10 @@ class CellRun:
 
     def prepare(self) -> None:
         from vlaquantbench.quant import QuantConfig, quantize_
+        from vlaquantbench.quant.scope import Selection
 
         cfg = self.cfg
-        self.simulator = simulator_versions(pinned=cfg["runner"]["mujoco"])
+        self.simulator = simulator_versions(cfg["benchmark"], pinned=cfg["runner"]["mujoco"])
         self.adapter = load_policy(cfg, self.checkpoint_stamp)
         calibration, stats = self._calibration()
         quant = QuantConfig.from_preset(
@@ -198,7 +201,10 @@ class CellRun:
             calibration=calibration,
             stats=stats,
         )
-        self.report = quantize_(self.adapter.model, quant, quant.select(self.adapter.model, self.adapter.components))
+        # A policy without a network (Meta-World's scripted experts) has no layer to select: its cells are
+        # BASELINE cells only (`cells.CellConfig.from_ref`).
+        selection = quant.select(self.adapter.model, self.adapter.components) if self.adapter.components else Selection({})
+        self.report = quantize_(self.adapter.model, quant, selection)
         quantized = self.report.to_header()
         inference = self.adapter.prepare_inference(self.report)
         if (probe := self.adapter.fast_path_probe()) is not None:

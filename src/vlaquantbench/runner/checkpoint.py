@@ -23,6 +23,7 @@ from typing import Any
 
 from vlaquantbench.atomic import write_text
 from vlaquantbench.errors import UserError
+from vlaquantbench.models.registry import get_model_spec
 
 DOWNLOAD_ATTEMPTS = 3
 # Between attempts: 2 s, then 4 s (tenacity's exponential wait), time for a passing hub hiccup.
@@ -105,7 +106,7 @@ def download_checkpoint(model: str, variant: str, checkpoint: str | None, revisi
     """Resolve `checkpoint` at `revision` (and its tokenizers) in the HF cache and write the stamp."""
     stamp = Path(stamp)
     info: dict[str, Any] = {"model": model, "variant": variant, "checkpoint": checkpoint, "revision": revision}
-    if variant in ("demo", "random"):  # random weights: nothing to fetch
+    if variant in ("demo", "random") or not get_model_spec(model).components:  # random weights, or no network
         info["path"] = None
     else:
         from vlaquantbench.hub.checks import PROCESSOR_FILES, check_snapshot_revision, tokenizer_names

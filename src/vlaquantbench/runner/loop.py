@@ -1,4 +1,4 @@
-"""Batched closed-loop evaluation: N LIBERO slots, the policy batched over the slots that need a
+"""Batched closed-loop evaluation: N simulator slots (any benchmark's `envs.workers.WorkerVectorEnv`), the policy batched over the slots that need a
 new chunk, each episode with its own random stream.
 
 A slot observes, receives a predicted chunk, executes its first `executed_chunk` actions inside its
@@ -36,7 +36,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from vlaquantbench.envs.libero import EpisodeSpec, LiberoVectorEnv
+from vlaquantbench.envs.episodes import EpisodeSpec
+from vlaquantbench.envs.workers import WorkerVectorEnv
 from vlaquantbench.models.adapter import PolicyAdapter
 
 
@@ -76,7 +77,7 @@ def finite_prefix(actions: np.ndarray) -> int:
 
 def run_episodes(
     adapter: PolicyAdapter,
-    env: LiberoVectorEnv,
+    env: WorkerVectorEnv,
     specs: Sequence[EpisodeSpec],
     max_steps: int,
     on_finished: Callable[[list[dict]], None],

@@ -211,8 +211,26 @@ def table_rows(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> lis
             rows.append([*_labels(row), *[UNAVAILABLE] * len(definition.values)])
         else:
             specs = [replace(spec, **row.get("override", {}).get(spec.stat, {})) for spec in definition.values]
-            rows.append([*_labels(row), *(format_value(spec, row, cells, bootstrap) for spec in specs)])
+            read = _task_episodes(row, cells) if "task" in row else cells
+            rows.append([*_labels(row), *(format_value(spec, row, read, bootstrap) for spec in specs)])
     return rows
+
+
+def _task_episodes(row: dict, cells: Mapping[str, AnyCell]) -> dict[str, AnyCell]:
+    """The row's cells restricted to their episodes of the row's `task` (a task name): a per-task row."""
+    restricted = {}
+    for ref in {row[key] for key in row if isinstance(row[key], str) and row[key] in cells}:
+        cell = cells[ref]
+        episodes = _episodes(cell, ref, f"task row {row['task']!r}")
+        if "task_name" not in episodes:
+            raise UserError(f"cell {ref}: its episodes record no task_name, so row {row['label']!r} cannot select "
+                            f"task {row['task']!r} ({cell.path})")
+        selected = episodes[episodes["task_name"] == row["task"]]
+        if selected.empty:
+            raise UserError(f"cell {ref}: no episode of task {row['task']!r} (row {row['label']!r}); its tasks: "
+                            f"{', '.join(sorted(episodes['task_name'].unique()))} ({cell.path})")
+        restricted[ref] = replace(cell, episodes=selected.reset_index(drop=True))
+    return restricted
 
 
 # Cells of the demo study run a reduced-width policy with random weights (header `variant: demo`).

@@ -91,6 +91,10 @@ class MetaWorldSuite(SuiteTasks):
         raise UserError(f"unknown task {task_name!r} in Meta-World suite {self.name}; its tasks: "
                         f"{', '.join(t.name for t in self.tasks)}")
 
+    def max_steps(self, model: str) -> int:
+        """Meta-World's limit, whatever the model: its envs refuse to step further."""
+        return STEP_LIMIT
+
     def variation_seed(self, task_id: int, variation: int) -> int:
         if variation < 0:
             raise UserError(f"variation {variation} of {self.name} task {task_id} must not be negative")

@@ -14,6 +14,7 @@ import importlib.metadata
 from vlaquantbench.envs.episodes import EpisodeSpec
 from vlaquantbench.envs.metaworld.suite import MetaWorldSuite
 from vlaquantbench.envs.metaworld.worker import EpisodeStart
+from vlaquantbench.envs.mujoco_pin import mujoco_versions
 from vlaquantbench.envs.workers import REPLY_TIMEOUT_S, WorkerError, WorkerVectorEnv, check_worker_settings
 from vlaquantbench.errors import UserError
 
@@ -26,9 +27,11 @@ class MetaWorldWorkerError(WorkerError):
     """A Meta-World worker failed or died; the message names the slot, task and episode and carries its traceback."""
 
 
-def simulator_versions() -> dict[str, str]:
-    """Versions for a cell header (read from the installed metadata, without importing MuJoCo)."""
-    return {name: importlib.metadata.version(name) for name in ("metaworld", "mujoco", "gymnasium")}
+def simulator_versions(allow_mujoco_mismatch: bool = False, pinned: str | None = None) -> dict[str, str | bool]:
+    """Versions for a cell header; UserError if MuJoCo is not the software environment's pin, or `pinned`
+    (a cell's `runner.mujoco`), as for LIBERO (`envs.mujoco_pin`)."""
+    return {**mujoco_versions("Meta-World", allow_mujoco_mismatch, pinned),
+            **{name: importlib.metadata.version(name) for name in ("metaworld", "gymnasium")}}
 
 
 class MetaWorldVectorEnv(WorkerVectorEnv):
@@ -51,13 +54,14 @@ class MetaWorldVectorEnv(WorkerVectorEnv):
         num_envs: int,
         *,
         camera_size: int | None = CAMERA_SIZE,
+        mujoco: str | None = None,  # None: the active software environment's pin
         reply_timeout_s: float = REPLY_TIMEOUT_S,
     ):
         check_worker_settings(num_envs, reply_timeout_s)
         if camera_size is not None and camera_size < 1:
             raise UserError(f"camera_size must be a positive number of pixels or None (no image), got {camera_size}")
         self.suite = suite if isinstance(suite, MetaWorldSuite) else MetaWorldSuite(suite)
-        self.versions = simulator_versions()
+        self.versions = simulator_versions(pinned=mujoco)
         self.camera_size = camera_size
         self.reply_timeout_s = reply_timeout_s
         self._start_workers(num_envs)
