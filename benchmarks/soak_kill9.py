@@ -4,6 +4,8 @@ count lost and duplicated episodes and check the resumed records against an unin
     .venv/bin/python benchmarks/soak_kill9.py --kills 20 --out benchmarks/results/soak_kill9_cpu.json
     .venv/bin/python benchmarks/soak_kill9.py --kills 2 --write-kills 1 --tasks 0 --episodes-per-task 3 \
         --max-steps 10 --window 4 --startup-window 8 --anchor-p 0 0 1  # CI's (tests/test_runner_soak.py)
+    .venv/bin/python benchmarks/soak_kill9.py --ref metaworld/metaworld_easy/metaworld_expert/rtn-BASELINE-e2e \
+        --max-steps suite --kills 2 --write-kills 1  # Meta-World's scripted experts (tests/test_metaworld_runner.py)
 
 The cell first runs uninterrupted in one folder (the reference), then, in another, through the
 kills. Each attempt runs `runner.cell.run_cell` in a fresh process group (the runner and its LIBERO
@@ -201,12 +203,19 @@ def soak(cfg: dict, folder: Path, args: argparse.Namespace, episodes: int) -> tu
     return kills, dict(ended), journaled
 
 
+# The weights each soakable model's cells run with: pi0.5's demo policy (random weights, no download), and
+# Meta-World's scripted experts, which have none.
+SOAK_WEIGHTS = {"pi05": {"variant": "demo", "checkpoint": "lerobot/pi05_libero_finetuned_v044"},
+                "metaworld_expert": {"variant": "full"}}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ref", default="libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn")
     parser.add_argument("--tasks", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--episodes-per-task", type=int, default=7)
-    parser.add_argument("--max-steps", type=int, default=10)
+    parser.add_argument("--max-steps", type=lambda text: None if text == "suite" else int(text), default=10,
+                        help="policy steps per episode; `suite`: the suite's own limit")
     parser.add_argument("--num-envs", type=int, default=2)
     parser.add_argument("--kills", type=int, default=20)
     parser.add_argument("--write-kills", type=int, default=3, help="how many of the kills land during record writes")
@@ -224,8 +233,11 @@ def main() -> None:
     if not 0 <= args.write_kills <= args.kills:
         parser.error(f"--write-kills must be between 0 and --kills ({args.kills}), not {args.write_kills}")
 
+    model = args.ref.split("/")[2]
+    if model not in SOAK_WEIGHTS:
+        parser.error(f"--ref: model {model!r} has no soak weights; known: {', '.join(SOAK_WEIGHTS)}")
     study = {
-        "models": {"pi05": {"variant": "demo", "checkpoint": "lerobot/pi05_libero_finetuned_v044"}},
+        "models": {model: SOAK_WEIGHTS[model]},
         "tasks": args.tasks,
         "episodes_per_task": args.episodes_per_task,
         "runner": {"max_steps": args.max_steps, "camera_size": 64, "flow_steps": 2},

@@ -1,0 +1,105 @@
+"""Meta-World cells through the closed-loop runner, on the real simulator (CPU): the scripted experts (the
+`metaworld_expert` model) as a cell succeed on every task, their records carry the simulator's provenance and
+each episode's task variation, the records do not depend on how many workers ran them, a kill -9 resumes
+exactly, and a bad suite or task is refused while the DAG is built."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+import yaml
+
+from paths import ROOT
+from vlaquantbench.cells import cell_config, config_hash
+from vlaquantbench.records import read_cell
+from vlaquantbench.records.cell import JOURNAL_FILE
+from vlaquantbench.runner.cell import run_cell
+
+pytestmark = pytest.mark.slow
+
+REF = "metaworld/metaworld_easy/metaworld_expert/rtn-BASELINE-e2e"
+# Five metaworld_easy tasks (button-press, button-press-topdown, button-press-topdown-wall, button-press-wall,
+# coffee-button), four variations each: all 20 succeeded when the seam was added (metaworld 3.0.0).
+STUDY = {"models": {"metaworld_expert": {"variant": "full"}}, "tasks": 5, "episodes_per_task": 4}
+TIMING = ["wall_time_s", "policy_batch_latency_mean_s"]
+
+
+def journal_episodes(folder) -> dict:
+    lines = [json.loads(line) for line in (folder / JOURNAL_FILE).read_text().splitlines()[1:]]
+    return {(r["task_id"], r["episode"]): r for r in lines if r.get("kind") == "episode"}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    cfg = cell_config(REF, STUDY)
+    folders = {}
+    for workers in (1, 4):
+        folders[workers] = tmp_path_factory.mktemp(f"experts{workers}") / config_hash(cfg)
+        run_cell(cfg, folders[workers], num_envs=workers, progress=False)
+    return cfg, folders
+
+
+def test_the_experts_as_a_cell_succeed_on_every_task_with_the_simulator_in_the_header(runs):
+    cfg, folders = runs
+    cell = read_cell(folders[1])  # the records pass the schema the header bounds
+    episodes = cell.episodes
+    assert len(episodes) == 20 and episodes["task_name"].nunique() == 5
+    for task, outcomes in episodes.groupby("task_name"):
+        assert outcomes["success"].mean() >= 0.8, (task, outcomes[["episode", "success", "steps"]].to_dict("records"))
+    header = cell.header
+    assert (header["benchmark"], header["suite"], header["max_steps"]) == ("metaworld", "metaworld_easy", 500)
+    assert header["versions"]["metaworld"] == "3.0.0" and header["versions"]["mujoco_pinned"] == "3.3.2"
+    assert header["config_hash"] == config_hash(cfg) and header["config"] == cfg
+    # Each episode records the placement its seeded variation drew, as a LIBERO episode its init state.
+    variations = [tuple(v) for v in episodes["task_variation"]]
+    assert len(set(variations)) == 20 and all(len(v) > 0 for v in variations)
+    assert (episodes["init_state_id"] == episodes["episode"]).all()
+
+
+def test_the_records_do_not_depend_on_how_many_workers_ran_them(runs):
+    _, folders = runs
+    one, four = read_cell(folders[1]).episodes, read_cell(folders[4]).episodes
+    pd.testing.assert_frame_equal(one.drop(columns=TIMING), four.drop(columns=TIMING))
+    digests = {n: {k: r["actions_sha256"] for k, r in journal_episodes(folders[n]).items()} for n in (1, 4)}
+    assert digests[1] == digests[4] and len(set(digests[1].values())) == 20
+
+
+def test_a_kill_9_in_the_middle_of_the_episodes_resumes_exactly(tmp_path):
+    """benchmarks/soak_kill9.py kills the running cell's process group right after its first journaled
+    episodes, lets it resume, and compares with an uninterrupted run: nothing lost, nothing run twice."""
+    out = tmp_path / "soak.json"
+    soak = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "soak_kill9.py"), "--ref", REF, "--max-steps", "suite", "--tasks",
+         "0", "1", "2", "3", "--episodes-per-task", "3", "--kills", "1", "--write-kills", "0", "--anchor-p", "0", "0", "1",
+         "--window", "0.2", "--seed", "1", "--out", str(out)],
+        timeout=600,
+    )
+    result = json.loads(out.read_text())
+    assert result["kills"] == 1 and result["kills_by_phase"] == {"append": 1} and result["episodes"] == 12
+    assert result["lost_episodes"] == 0 and result["duplicated_episodes"] == 0
+    assert result["outcomes_and_digests_equal"] and result["records_equal_but_timing"] and result["headers_equal"]
+    assert soak.returncode == 0
+
+
+@pytest.mark.parametrize(("study", "message"), [
+    ({"tasks": [3, 30]}, "study.tasks: 30 is outside 0..27 (metaworld_easy has 28 tasks)"),
+    ({"episodes_per_task": 1010}, "1010 episodes per task, but metaworld_easy has 1009"),
+], ids=["task", "variations"])
+def test_a_bad_task_is_refused_while_the_dag_is_built_naming_it(tmp_path, study, message):
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    for item in ("Snakefile", "rules", "workflow", "manifests", "config", "src"):
+        (checkout / item).symlink_to(ROOT / item)
+    config = yaml.safe_load((ROOT / "config/demo/metaworld_expert.yaml").read_text())
+    config["study"].update(study)
+    path = tmp_path / "metaworld_expert.yaml"
+    path.write_text(yaml.safe_dump(config))
+    result = subprocess.run([sys.executable, "-m", "snakemake", "-n", "tables/expert.tex", "--cores", "1",
+                             f"--configfile={path}"], cwd=checkout, capture_output=True, text=True, timeout=300)
+    output = result.stdout + result.stderr
+    table = checkout / "config/demo/metaworld/expert.yaml"
+    assert result.returncode != 0 and f"{table}: cell {REF!r}: " in output and message in output, output[-3000:]
