@@ -67,6 +67,7 @@ import transformers
 
 from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv
 from vlaquantbench.models.adapter import AdapterConfig, episode_generator, make_adapter
+from vlaquantbench.models.client import step_limit
 from vlaquantbench.models.pi05.fast.captured import GRAPH_SIZES, graph_plan
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.runner.provenance import versions
@@ -377,7 +378,7 @@ def main() -> Path:
     torch.set_num_threads(args.torch_threads)
 
     suite = LiberoSuite(args.suite)
-    max_steps = args.max_steps or suite.max_steps("pi05")
+    max_steps = args.max_steps or step_limit("pi05", "libero", args.suite)
     began = time.perf_counter()
     adapter = make_adapter(AdapterConfig(model="pi05", variant=args.variant, device=args.device, dtype=args.dtype,
                                          sampler=args.sampler))

@@ -19,6 +19,7 @@ from vlaquantbench.envs.libero import (
 from vlaquantbench.envs.libero import offline
 from vlaquantbench.envs.libero.worker import format_observation
 from vlaquantbench.errors import UserError
+from vlaquantbench.models.client import step_limit
 
 
 @pytest.fixture(scope="module")
@@ -69,8 +70,8 @@ def test_missing_asset_package_is_named(monkeypatch):
 def test_suites_have_ten_tasks_fifty_init_states_and_the_authors_step_limits(name, limits):
     suite = LiberoSuite(name)
     assert suite.n_tasks == 10
-    assert (suite.max_steps("pi05"), suite.max_steps("openvla_oft"), suite.max_steps("xvla")) == limits
-    assert suite.max_steps("pi0") == suite.max_steps("pi") == limits[0]
+    assert tuple(step_limit(model, "libero", name) for model in ("pi05", "openvla_oft", "xvla")) == limits
+    assert step_limit("pi0", "libero", name) == limits[0]
     states = suite.init_states(9)
     assert states.ndim == 2 and len(states) == 50
     assert all(task.bddl_file.is_file() and task.instruction for task in suite.tasks)
@@ -96,8 +97,10 @@ def test_bad_names_and_indices_are_user_errors(spatial):
         spatial.episodes(episodes_per_task=51, task_ids=[0])
     with pytest.raises(UserError, match="task_id 10 is out of range"):
         spatial.task(10)
-    with pytest.raises(UserError, match="no LIBERO step limit for model 'octo'"):
-        spatial.max_steps("octo")
+    with pytest.raises(UserError, match="unknown model 'octo'"):
+        step_limit("octo", "libero", "libero_spatial")
+    with pytest.raises(UserError, match="model 'metaworld_expert' has no step limit on libero suite 'libero_spatial'"):
+        step_limit("metaworld_expert", "libero", "libero_spatial")
     with pytest.raises(UserError, match="num_envs"):
         LiberoVectorEnv(spatial, num_envs=0)
 

@@ -8,9 +8,10 @@ import torch
 from test_pi05_fast import REL_TOL
 from test_runner_adapter import observations
 
-from vlaquantbench.cells import cell_config, config_hash
+from vlaquantbench.cells import CellConfig, cell_config, config_hash
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter, resolve_sampler
+from vlaquantbench.models.registry import adapter_class
 from vlaquantbench.quant import QuantConfig, quantize_
 from vlaquantbench.runner.cell import CellRun
 
@@ -105,9 +106,12 @@ def test_auto_is_eager_on_the_cpu_and_the_header_records_it(tmp_path):
 
 def test_auto_is_captured_on_cuda_only_where_capture_is_possible():
     cuda = {**STUDY, "runner": {**STUDY["runner"], "device": "cuda"}}
-    assert resolve_sampler(cell_config("libero/libero_spatial/pi05/rtn-W4A4-e2e", cuda)) == "captured"
-    assert resolve_sampler(cell_config("libero/libero_spatial/pi05/int8-W8-llm", cuda)) == "eager"
-    assert resolve_sampler(cell_config("libero/libero_spatial/pi0/rtn-W4A4-e2e", cuda)) == "eager"
+    def sampler(ref: str) -> str:
+        return resolve_sampler(CellConfig.from_dict(cell_config(ref, cuda)), adapter_class(ref.split("/")[2]))
+
+    assert sampler("libero/libero_spatial/pi05/rtn-W4A4-e2e") == "captured"
+    assert sampler("libero/libero_spatial/pi05/int8-W8-llm") == "eager"
+    assert sampler("libero/libero_spatial/pi0/rtn-W4A4-e2e") == "eager"
 
 
 @pytest.mark.parametrize(

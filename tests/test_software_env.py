@@ -7,12 +7,13 @@ import sys
 
 from vlaquantbench import software_env
 from vlaquantbench.envs.libero import PINNED_MUJOCO
-from vlaquantbench.software_env import MAIN, Environment, environment_for, stale_lines
+from vlaquantbench.models.client import environment_name
+from vlaquantbench.software_env import MAIN, Environment, stale_lines
 
 
 def test_main_lock_pins_exactly_the_installed_requirements():
     assert stale_lines() == [], "envs/main.lock.txt is stale: python -m vlaquantbench.software_env lock"
-    assert Environment(MAIN).mujoco == PINNED_MUJOCO and environment_for("pi05").name == MAIN
+    assert Environment(MAIN).mujoco == PINNED_MUJOCO and environment_name("pi05") == MAIN
 
 
 def test_a_stale_lock_names_each_difference(tmp_path, monkeypatch):
@@ -29,8 +30,9 @@ def test_a_stale_lock_names_each_difference(tmp_path, monkeypatch):
 XVLA_CELL_PROCESS = """
 import json, subprocess, sys
 import numpy as np
-from vlaquantbench.software_env import activate, environment_for
-env = environment_for("xvla")
+from vlaquantbench.models.client import environment_name
+from vlaquantbench.software_env import Environment, activate
+env = Environment(environment_name("xvla"))
 activate(env)  # what CellRun does first for an X-VLA cell
 from vlaquantbench.envs.libero import LiberoSuite, LiberoVectorEnv, simulator_versions
 from vlaquantbench.envs.workers import worker_environment

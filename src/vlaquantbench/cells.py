@@ -40,7 +40,7 @@ from typing import Any
 from vlaquantbench.config.study import RunnerConfig, StudyConfig
 from vlaquantbench.envs import BENCHMARK_SUITES, check_ids
 from vlaquantbench.errors import UserError
-from vlaquantbench.models.client import client_conventions
+from vlaquantbench.models.client import client_conventions, step_limit
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
 from vlaquantbench.quant.methods import METHODS, registered_methods
 from vlaquantbench.quant.patterns import scope_components
@@ -169,7 +169,11 @@ class CellConfig:
             raise UserError(f"cell {ref!r}: model {model!r} is not in study.models ({', '.join(study.models) or 'none'})")
         weights = study.models[model]
         client = client_conventions(model)
-        runner = _runner(study.runner, weights.runner, client, fields["flow_steps"])
+        try:  # the model's step limit on this suite, resolved now: hashed with the cell
+            released_limit = step_limit(model, benchmark, suite)
+        except UserError as err:
+            raise UserError(f"cell {ref!r}: {err}") from None
+        runner = _runner(study.runner, weights.runner, client, fields["flow_steps"], released_limit)
         episodes = weights.episodes_per_task or study.episodes_per_task or client.episodes_per_task
         only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
         seed = study.seed + fields["seed_offset"]
@@ -197,7 +201,7 @@ class CellConfig:
             episodes_per_task=episodes,
             runner=runner,
             client=client.as_dict(),
-            overrides=_overrides(client, runner, episodes),
+            overrides=_overrides(client, runner, episodes, released_limit),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -222,11 +226,44 @@ class CellConfig:
     def config_hash(self) -> str:
         return config_hash(self.to_dict())
 
+    @property
+    def name(self) -> str:
+        """How messages name the cell: its reference."""
+        return self.ref
 
-def _runner(study: RunnerConfig, model: dict[str, Any], client, flow_steps: int | None) -> RunnerConfig:
-    """The study's runner, then the model's own settings, then the client's conventions where unset."""
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """What a cell's calibration statistics depend on (`calibration_config`: its canonical form, hashed into the
+    statistics' file name); the rollout calibration job reads it back with `from_dict`."""
+
+    benchmark: str
+    suite: str
+    model: str
+    variant: str
+    checkpoint: str | None
+    revision: str | None
+    calibration: CellCalibration
+    runner: RunnerConfig
+
+    @classmethod
+    def from_dict(cls, cfg: dict[str, Any]) -> CalibrationConfig:
+        calibration = cfg["calibration"]
+        calibration = CellCalibration(**{**calibration, **{k: tuple(calibration[k]) for k in
+                                                            ("components", "tasks", "init_states")}})
+        return cls(**{**cfg, "calibration": calibration, "runner": RunnerConfig(**cfg["runner"])})
+
+    @property
+    def name(self) -> str:
+        """How messages name the calibration: its model (cells of several references may share it)."""
+        return self.model
+
+
+def _runner(study: RunnerConfig, model: dict[str, Any], client, flow_steps: int | None, released_limit: int) -> RunnerConfig:
+    """The study's runner, then the model's own settings, then the client's conventions (and its step limit on
+    the cell's suite) where unset."""
     values = {**asdict(study), **model}
-    for key, value in client.runner().items():
+    for key, value in {**client.runner(), "max_steps": released_limit}.items():
         if values[key] is None:
             values[key] = value
     if flow_steps is not None:
@@ -234,12 +271,10 @@ def _runner(study: RunnerConfig, model: dict[str, Any], client, flow_steps: int 
     return RunnerConfig(**values)
 
 
-def _overrides(client, runner: RunnerConfig, episodes: int) -> dict[str, dict[str, Any]]:
+def _overrides(client, runner: RunnerConfig, episodes: int, released_limit: int) -> dict[str, dict[str, Any]]:
     """The cell values that differ from the model's released client: {key: {client, cell}}."""
-    cell = {**{k: getattr(runner, k) for k in client.runner()}, "episodes_per_task": episodes}
-    released = {**client.runner(), "episodes_per_task": client.episodes_per_task}
-    if runner.max_steps is not None:
-        cell["max_steps"], released["max_steps"] = runner.max_steps, "suite limit"
+    cell = {**{k: getattr(runner, k) for k in client.runner()}, "episodes_per_task": episodes, "max_steps": runner.max_steps}
+    released = {**client.runner(), "episodes_per_task": client.episodes_per_task, "max_steps": released_limit}
     return {k: {"client": released[k], "cell": cell[k]} for k in cell if cell[k] != released[k]}
 
 

@@ -23,7 +23,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import vlaquantbench
-from vlaquantbench.cells import calibration_config, cell_config, checkpoint_key, config_hash
+from vlaquantbench.cells import CalibrationConfig, CellConfig, calibration_config, cell_config, checkpoint_key, config_hash
 from vlaquantbench.config import field_schema, integer_option, load_workflow_config
 from vlaquantbench.config.study import ExecutionConfig, StudyConfig
 from vlaquantbench.envs.memory import affordable_workers
@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
             recorded_keys(out / JOURNAL_FILE)  # episodes journaled twice differently: refused now, not after a download
             return _run(execution, cfg, project)
     except KeyboardInterrupt as stop:
-        return report_stop(stop, cfg, out, out / JOURNAL_FILE)
+        return report_stop(stop, CellConfig.from_dict(cfg), out, out / JOURNAL_FILE)
 
 
 def _run(execution: ExecutionConfig, cfg: dict, project: Path) -> int:
@@ -102,6 +102,8 @@ def _run(execution: ExecutionConfig, cfg: dict, project: Path) -> int:
     if calib is not None:
         stats = project / "results" / "calibration" / f"{config_hash(calib)}.pt"
         if not stats.exists():
-            calibrate(calib, stats, stamp, **execution.calibration_kwargs())
-    print(run_cell(cfg, project / CELLS_DIR / config_hash(cfg), stamp, stats, **execution.as_kwargs()))
+            calibrate(CalibrationConfig.from_dict(calib), stats, stamp, **execution.calibration_kwargs())
+    cell_hash = config_hash(cfg)
+    print(run_cell(CellConfig.from_dict(cfg), project / CELLS_DIR / cell_hash, stamp, stats, config_hash=cell_hash,
+                   **execution.as_kwargs()))
     return 0

@@ -36,6 +36,9 @@ class SuiteSize:
     tasks: int  # task ids 0..tasks-1, in the benchmark's task order
     init_states: int  # initial states (LIBERO) or seeded task variations (Meta-World) per task, ids 0..init_states-1
     worker_gib: float  # memory of one simulator worker process (envs.memory), measured as noted below
+    # Policy steps before an unfinished episode counts as a failure, whatever the model (Meta-World's); None:
+    # each model's client declares its own (LIBERO's, `models/<model>/client.py` STEP_LIMITS).
+    step_limit: int | None = None
 
 
 # worker_gib, LIBERO: the largest proportional set size (PSS, psutil's memory_full_info; shared libraries counted
@@ -48,6 +51,9 @@ class SuiteSize:
 # Meta-World, the same way on MT10's first task: 0.16 GiB without a camera, 0.34 GiB rendering 224 px; 0.4 allowed.
 # Its variations are seeds below SEED_STRIDE (`envs.metaworld.suite`); task counts are lerobot's groups and
 # Meta-World's MT10 / MT50 lists.
+# Meta-World's `max_path_length` (its envs refuse to step further), which lerobot's
+# `MetaworldEnv._max_episode_steps` and so lerobot-eval's rollouts use.
+METAWORLD_STEP_LIMIT = 500
 _METAWORLD_TASKS = {"metaworld_easy": 28, "metaworld_medium": 11, "metaworld_hard": 6, "metaworld_very_hard": 5,
                     "metaworld_mt10": 10, "metaworld_mt50": 50}
 BENCHMARK_SUITES = {
@@ -57,7 +63,7 @@ BENCHMARK_SUITES = {
         "libero_goal": SuiteSize(tasks=10, init_states=50, worker_gib=1.7),
         "libero_10": SuiteSize(tasks=10, init_states=50, worker_gib=2.9),
     },
-    "metaworld": {suite: SuiteSize(tasks=tasks, init_states=SEED_STRIDE, worker_gib=0.4)
+    "metaworld": {suite: SuiteSize(tasks=tasks, init_states=SEED_STRIDE, worker_gib=0.4, step_limit=METAWORLD_STEP_LIMIT)
                   for suite, tasks in _METAWORLD_TASKS.items()},
 }
 # Each benchmark's package exports its suite class, its vector env class and its `simulator_versions`

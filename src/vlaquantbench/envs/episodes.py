@@ -30,7 +30,8 @@ def episode_seed(task_id: int, episode: int, run_seed: int = 0) -> int:
 
 class SuiteTasks:
     """What every benchmark's suite shares: its `name`, its `tasks` (each with a `task_id`, its index)
-    and its episodes; a suite defines `episode_spec(task_id, episode, run_seed)` and `max_steps(model)`."""
+    and its episodes; a suite defines `episode_spec(task_id, episode, run_seed)`. Step limits are the
+    models' (`models.client.step_limit`), resolved into each cell's config when the DAG is built."""
 
     name: str
     tasks: tuple
@@ -48,10 +49,6 @@ class SuiteTasks:
         return self.tasks[task_id]
 
     def episode_spec(self, task_id: int, episode: int, run_seed: int = 0) -> EpisodeSpec:
-        raise NotImplementedError
-
-    def max_steps(self, model: str) -> int:
-        """Policy steps before an unfinished episode of `model` counts as a failure."""
         raise NotImplementedError
 
     def episodes(

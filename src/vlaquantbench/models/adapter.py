@@ -26,6 +26,19 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.models.registry import adapter_class
 
 
+class PolicyRun(Protocol):
+    """What an adapter config is made from: a typed cell config (`cells.CellConfig`) or calibration config
+    (`cells.CalibrationConfig`, whose sampler is always eager, so it names no method). Declared here rather
+    than imported, as `cells` imports the model registry."""
+
+    model: str
+    variant: str
+    checkpoint: str | None
+    revision: str | None
+    suite: str
+    runner: RunnerConfig
+
+
 @dataclass(frozen=True)
 class AdapterConfig:
     """What an adapter needs to build its policy; filled from a canonical cell config."""
@@ -48,20 +61,21 @@ class AdapterConfig:
     sampler: str = "eager"
 
     @classmethod
-    def from_cell(cls, cfg: dict[str, Any], checkpoint_dir: str | None) -> "AdapterConfig":
-        runner = cfg["runner"]
+    def from_cell(cls, cfg: PolicyRun, checkpoint_dir: str | None, policy_class: type) -> "AdapterConfig":
+        """The adapter config of a typed cell (or calibration) config; `policy_class` is the model's adapter class."""
+        runner = cfg.runner
         return cls(
-            model=cfg["model"],
-            variant=cfg["variant"],
-            checkpoint=cfg["checkpoint"],
-            revision=cfg["revision"],
+            model=cfg.model,
+            variant=cfg.variant,
+            checkpoint=cfg.checkpoint,
+            revision=cfg.revision,
             checkpoint_dir=checkpoint_dir,
-            suite=cfg.get("suite"),
-            device=runner["device"],
-            dtype=runner["dtype"],
-            executed_chunk=runner["executed_chunk"],
-            flow_steps=runner["flow_steps"],
-            sampler=resolve_sampler(cfg),
+            suite=cfg.suite,
+            device=runner.device,
+            dtype=runner.dtype,
+            executed_chunk=runner.executed_chunk,
+            flow_steps=runner.flow_steps,
+            sampler=resolve_sampler(cfg, policy_class),
         )
 
 
@@ -168,7 +182,7 @@ def make_adapter(config: AdapterConfig) -> PolicyAdapter:
     return adapter_class(config.model)(config)
 
 
-def resolve_sampler(cfg: dict[str, Any]) -> str:
+def resolve_sampler(cfg: PolicyRun, policy_class: type) -> str:
     """A cell's `runner.sampler` made concrete: "captured" or "eager".
 
     `auto` is the fastest path that computes the cell: the captured sampler (one CUDA graph per
@@ -177,23 +191,23 @@ def resolve_sampler(cfg: dict[str, Any]) -> str:
     is what makes an episode's actions bit-identical at batch 1 and batch 4 (the captured code
     computes per-chunk constants for all batch rows and steps in one product). The choices are
     the config schema's (`study.runner.sampler`), which validated `cfg`; UserError for an impossible
-    choice, before the policy loads.
+    choice, before the policy loads. `policy_class`: the model's adapter class.
     """
     from vlaquantbench.models.pi05.fast.captured import UNCAPTURABLE_METHODS
 
-    choice = cfg["runner"]["sampler"]
-    if choice == "eager":
+    choice = cfg.runner.sampler
+    if choice == "eager":  # calibration's always (`cells.calibration_config`)
         return choice
     obstacle = None
-    if not adapter_class(cfg["model"]).supports_captured_sampler:
-        obstacle = f"model {cfg['model']} has no captured sampler"
-    elif cfg["method"] in UNCAPTURABLE_METHODS:
-        obstacle = f"method {cfg['method']} cannot be captured ({UNCAPTURABLE_METHODS[cfg['method']]})"
+    if not policy_class.supports_captured_sampler:
+        obstacle = f"model {cfg.model} has no captured sampler"
+    elif cfg.method in UNCAPTURABLE_METHODS:
+        obstacle = f"method {cfg.method} cannot be captured ({UNCAPTURABLE_METHODS[cfg.method]})"
     if choice == "captured":
         if obstacle:
-            raise UserError(f"cell {cfg['ref']}: study.runner.sampler is 'captured' but {obstacle}; use 'auto' or 'eager'")
+            raise UserError(f"cell {cfg.ref}: study.runner.sampler is 'captured' but {obstacle}; use 'auto' or 'eager'")
         return choice
-    return "captured" if obstacle is None and torch.device(cfg["runner"]["device"]).type == "cuda" else "eager"
+    return "captured" if obstacle is None and torch.device(cfg.runner.device).type == "cuda" else "eager"
 
 
 # What a fast path's first chunk may differ from the eager policy's (`fast_path_probe`).

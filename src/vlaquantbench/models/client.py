@@ -3,12 +3,15 @@
 The paper evaluates every checkpoint under its own released inference client (Sec. 5): how many of
 the predicted actions are executed before observing again, how many episodes a task gets, whether
 LIBERO's arm controller takes delta or absolute end-effector poses, the MuJoCo version the client's
-environment pins, and the fixed model seed of a deterministic head. Step limits per suite are the
-other client constant; they live with the suite (`envs.libero.suite.STEP_LIMITS`).
+environment pins, and the fixed model seed of a deterministic head.
 
 A model's `client.py` declares `CLIENT`; `cells.cell_config` fills a cell's runner from it and
 records every value the study sets differently under `overrides` in the cell config (and so in the
-header). Adapters and the runner then check that what runs is what the cell says.
+header). Adapters and the runner then check that what runs is what the cell says. Beside `CLIENT`, a
+model's `client.py` may declare `STEP_LIMITS` (`{benchmark: {suite: policy steps}}`, its client's
+step limits; a benchmark with a limit of its own, Meta-World's 500, needs none) and `ENVIRONMENT` (the
+software environment its cells run in, `vlaquantbench.software_env`; main when absent). They are the
+model's own facts: no module outside `models/` names a model.
 """
 
 from __future__ import annotations
@@ -16,6 +19,8 @@ from __future__ import annotations
 import dataclasses
 import importlib
 from dataclasses import dataclass
+
+from vlaquantbench.errors import UserError
 
 
 @dataclass(frozen=True)
@@ -35,8 +40,34 @@ class ClientConventions:
         return dataclasses.asdict(self)
 
 
-def client_conventions(model: str) -> ClientConventions:
-    """`CLIENT` of the model's `client.py`; UserError for an unknown model."""
+def _client(model: str):
     from vlaquantbench.models.registry import model_package
 
-    return importlib.import_module(f"{model_package(model)}.client").CLIENT
+    return importlib.import_module(f"{model_package(model)}.client")
+
+
+def client_conventions(model: str) -> ClientConventions:
+    """`CLIENT` of the model's `client.py`; UserError for an unknown model."""
+    return _client(model).CLIENT
+
+
+def step_limit(model: str, benchmark: str, suite: str) -> int:
+    """Policy steps before an unfinished episode of `model` on `suite` counts as a failure: the model's
+    client's (`STEP_LIMITS`), else the benchmark's own (`envs.SuiteSize.step_limit`); UserError naming the
+    model, benchmark and suite when neither has one (the model's client never ran there)."""
+    from vlaquantbench.envs import BENCHMARK_SUITES
+
+    limits = getattr(_client(model), "STEP_LIMITS", {}).get(benchmark, {})
+    own = BENCHMARK_SUITES[benchmark][suite].step_limit
+    if suite not in limits and own is None:
+        declared = ", ".join(f"{b}/{s}" for b, suites in getattr(_client(model), "STEP_LIMITS", {}).items() for s in suites)
+        raise UserError(f"model {model!r} has no step limit on {benchmark} suite {suite!r} (its client.py STEP_LIMITS "
+                        f"declares {declared or 'none'}, and {benchmark} has no limit of its own)")
+    return limits.get(suite, own)
+
+
+def environment_name(model: str) -> str:
+    """The software environment the model's cells run in (`ENVIRONMENT` of its client.py; main otherwise)."""
+    from vlaquantbench.software_env import MAIN
+
+    return getattr(_client(model), "ENVIRONMENT", MAIN)

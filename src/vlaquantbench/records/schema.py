@@ -29,7 +29,7 @@ import yaml
 
 from vlaquantbench.envs import BENCHMARK_SUITES
 from vlaquantbench.envs.episodes import SEED_STRIDE
-from vlaquantbench.envs.libero_protocol import MODEL_FAMILY, STEP_LIMITS
+from vlaquantbench.models.client import step_limit as model_step_limit
 from vlaquantbench.errors import UserError
 
 
@@ -89,14 +89,13 @@ def declared_tasks(header: dict[str, Any]) -> list[int] | None:
 
 
 def step_limit(header: dict[str, Any], source: Path) -> int:
-    """The cell's step limit: the header's `max_steps`, else the protocol's limit for its model and suite."""
+    """The cell's step limit: the header's `max_steps`, else its model's limit on its suite (the authors' records)."""
     if header.get("max_steps"):
         return int(header["max_steps"])
-    family = MODEL_FAMILY.get(header["model"], header["model"])
-    if family not in STEP_LIMITS:
-        raise UserError(f"{source}: the header records no max_steps and model {header['model']!r} has no known "
-                        f"step limit (known: {', '.join(sorted({*MODEL_FAMILY, *STEP_LIMITS}))})")
-    return STEP_LIMITS[family][header["suite"]]
+    try:
+        return model_step_limit(header["model"], header["benchmark"], header["suite"])
+    except UserError as err:
+        raise UserError(f"{source}: the header records no max_steps and {err}") from None
 
 
 class EpisodeCheck:

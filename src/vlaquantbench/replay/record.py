@@ -26,7 +26,7 @@ from vlaquantbench.envs.episodes import EpisodeSpec
 from vlaquantbench.envs.workers import WorkerVectorEnv
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
-from vlaquantbench.models.client import client_conventions
+from vlaquantbench.models.client import client_conventions, step_limit
 from vlaquantbench.replay.probe import PolicyProbe, torch_rng_state
 from vlaquantbench.replay.study import RecordSettings
 from vlaquantbench.runner.provenance import code_revision, versions
@@ -92,7 +92,7 @@ def record(settings: RecordSettings, records_json: str | Path, trajectories: lis
     runner = RunnerConfig(**{**client.runner(), "executed_chunk": settings.executed_chunk})
     env_options = {k: v for k, v in env_settings(settings.benchmark, runner).items() if k in client.runner()}
     simulator = simulator_versions(settings.benchmark, pinned=client.mujoco)
-    max_steps = settings.max_steps or suite.max_steps(settings.model)
+    max_steps = settings.max_steps or step_limit(settings.model, settings.benchmark, settings.suite)
     torch.set_num_threads(settings.threads)
     adapter = make_adapter(adapter_config(settings))
     adapter.load()

@@ -76,7 +76,7 @@ class RecordSettings:
     checkpoint: str | None = None
     revision: str | None = None
     checkpoint_dir: str | None = None
-    max_steps: int | None = None  # default: the suite's step limit for the model
+    max_steps: int | None = None  # default: the model's step limit on the suite (`models.client.step_limit`)
     executed_chunk: int | None = RunnerConfig.executed_chunk  # None: the model's released client
     flow_steps: int = RunnerConfig.flow_steps
     run_seed: int = 0

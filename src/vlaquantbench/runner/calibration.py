@@ -9,8 +9,10 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from vlaquantbench.config.study import ExecutionConfig, RunnerConfig
+from vlaquantbench.cells import CalibrationConfig
+from vlaquantbench.config.study import ExecutionConfig
 from vlaquantbench.envs import env_settings, make_env, make_suite
+from vlaquantbench.models.registry import adapter_class
 from vlaquantbench.envs.memory import affordable_workers
 from vlaquantbench.runner.cell import calibration_settings, load_policy
 from vlaquantbench.runner.loop import run_episodes
@@ -18,7 +20,7 @@ from vlaquantbench.runner.provenance import code_revision
 
 
 def calibrate(
-    calib: dict[str, Any],
+    calib: CalibrationConfig | dict[str, Any],
     output: str | Path,
     checkpoint_stamp: str | Path | None = None,
     *,
@@ -26,41 +28,43 @@ def calibrate(
     torch_threads: int | None = ExecutionConfig.torch_threads,
     progress: bool = ExecutionConfig.progress,
 ) -> Path:
-    """Collect statistics for `calib` (a `cells.calibration_config`) and save them to `output`."""
+    """Collect statistics for `calib` (a `cells.CalibrationConfig`, or its canonical form `cells.calibration_config`)
+    and save them to `output`."""
     from vlaquantbench.quant import select_layers
     from vlaquantbench.quant.calibration import calibration_key, keyed_fields, observe, save_stats
 
     if torch_threads:
         torch.set_num_threads(torch_threads)
-    settings_cfg, runner = calib["calibration"], calib["runner"]
-    suite = make_suite(calib["benchmark"], calib["suite"])
+    if not isinstance(calib, CalibrationConfig):
+        calib = CalibrationConfig.from_dict(calib)
+    settings_cfg = calib.calibration
+    suite = make_suite(calib.benchmark, calib.suite)
     # Episode i of a task starts from init state (or task variation) i; out-of-range ones fail here, before
     # the policy loads.
-    specs = [suite.episode_spec(task, state, settings_cfg["seed"])
-             for task in settings_cfg["tasks"] for state in settings_cfg["init_states"]]
+    specs = [suite.episode_spec(task, state, settings_cfg.seed)
+             for task in settings_cfg.tasks for state in settings_cfg.init_states]
     # Refused, never capped: the statistics are per policy call, so they depend on how many workers share one.
-    workers = affordable_workers(min(num_envs, len(specs)), calib["benchmark"], calib["suite"],
+    workers = affordable_workers(min(num_envs, len(specs)), calib.benchmark, calib.suite,
                                  "study.execution.num_envs", cap=False)
-    adapter = load_policy(calib, checkpoint_stamp)
+    adapter = load_policy(calib, checkpoint_stamp, adapter_class(calib.model))
     settings = calibration_settings(settings_cfg, adapter)
     layers = {}
     for component in settings.components:
         layers.update(select_layers(adapter.model, adapter.components, component).flat())
     fields = dict(
-        model=calib["model"],
-        checkpoint=calib["checkpoint"],
-        revision=calib["revision"],
-        init_states=settings_cfg["init_states"],
-        tasks=len(settings_cfg["tasks"]),
-        seed=settings_cfg["seed"],
+        model=calib.model,
+        checkpoint=calib.checkpoint,
+        revision=calib.revision,
+        init_states=list(settings_cfg.init_states),
+        tasks=len(settings_cfg.tasks),
+        seed=settings_cfg.seed,
         settings=settings,
         code_revision=code_revision(),
     )
-    max_steps = runner["max_steps"] or suite.max_steps(calib["model"])
+    max_steps = calib.runner.max_steps  # resolved with the cell when the DAG was built
     with observe(layers, quantile=settings.quantile, sample_rows=settings.sample_rows) as observer:
-        with make_env(calib["benchmark"], suite, workers,
-                      **env_settings(calib["benchmark"], RunnerConfig(**runner), adapter.reads_images)) as env:
-            with tqdm(total=len(specs), desc=f"calibrate {calib['model']} {calib['suite']}", unit="ep",
+        with make_env(calib.benchmark, suite, workers, **env_settings(calib.benchmark, calib.runner, adapter.reads_images)) as env:
+            with tqdm(total=len(specs), desc=f"calibrate {calib.model} {calib.suite}", unit="ep",
                       disable=not progress) as bar:
                 run_episodes(adapter, env, specs, max_steps, on_finished=lambda records: bar.update(len(records)),
                              overlap=False)  # per-call statistics: reproducible batches

@@ -1,6 +1,6 @@
 """Run one cell: load the policy, quantize it, run the missing episodes, check, write the records.
 
-    run = CellRun(cfg, out_dir, checkpoint_stamp, calibration_stats)
+    run = CellRun(cell, out_dir, checkpoint_stamp, calibration_stats, config_hash=...)
     run.start_env() # optional: the simulator workers start while the policy loads
     run.prepare()   # load + quantize; the header is known from here on
     run.run()       # journal-backed episodes; header.json + episodes.parquet when all exist
@@ -29,13 +29,13 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from vlaquantbench.cells import canonical, config_hash, quantizer_method
+from vlaquantbench.cells import CalibrationConfig, CellCalibration, CellConfig, canonical, quantizer_method
 from vlaquantbench.config.study import ExecutionConfig
-from vlaquantbench.config.study import RunnerConfig
 from vlaquantbench.envs import env_settings, make_env, make_suite, simulator_versions
 from vlaquantbench.envs.memory import affordable_workers
 from vlaquantbench.errors import UserError
-from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+from vlaquantbench.models.adapter import AdapterConfig
+from vlaquantbench.models.client import environment_name
 from vlaquantbench.models.registry import adapter_class
 from vlaquantbench.records import write_cell
 from vlaquantbench.records.cell import JOURNAL_FILE
@@ -46,7 +46,7 @@ from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.quant.apply import hook_summary
 from vlaquantbench.quant.semantics import QUANT_SEMANTICS
 from vlaquantbench.runner.provenance import code_revision, versions
-from vlaquantbench.software_env import activate, environment_for
+from vlaquantbench.software_env import Environment, activate
 
 
 class CellFailed(UserError):
@@ -59,35 +59,36 @@ def checkpoint_dir(stamp: str | Path | None) -> str | None:
     return json.loads(Path(stamp).read_text()).get("path")
 
 
-def load_policy(cfg: dict[str, Any], stamp: str | Path | None):
-    """The cell's adapter with its policy loaded, after checking its executed chunk length."""
-    adapter = make_adapter(AdapterConfig.from_cell(cfg, checkpoint_dir(stamp)))
+def load_policy(cfg: CellConfig | CalibrationConfig, stamp: str | Path | None, policy_class: type):
+    """The adapter of `policy_class` (the model's, looked up once by the caller) with the policy of `cfg`
+    loaded, after checking its executed chunk length and controller mode."""
+    adapter = policy_class(AdapterConfig.from_cell(cfg, checkpoint_dir(stamp), policy_class))
     adapter.load()
-    expected = cfg["runner"]["executed_chunk"]
+    expected = cfg.runner.executed_chunk
     if adapter.executed_chunk != expected:
         raise CellFailed(
-            f"{cfg.get('ref', cfg['model'])}: adapter executes {adapter.executed_chunk} actions per chunk but the cell config "
+            f"{cfg.name}: adapter executes {adapter.executed_chunk} actions per chunk but the cell config "
             f"says {expected} (predicted {adapter.predicted_chunk})"
         )
-    mode = cfg["runner"]["control_mode"]
+    mode = cfg.runner.control_mode
     if adapter.control_mode != mode:
         raise CellFailed(
-            f"{cfg.get('ref', cfg['model'])}: the policy's actions are {adapter.control_mode} end-effector poses but the "
+            f"{cfg.name}: the policy's actions are {adapter.control_mode} end-effector poses but the "
             f"cell config runs the simulator's controller in {mode!r} mode"
         )
     return adapter
 
 
-def calibration_settings(settings: dict[str, Any], adapter):
+def calibration_settings(settings: CellCalibration, adapter):
     """The quantizer's calibration settings for a cell's `calibration` config, restricted to the
     components this model calibrates (the pi models leave their MP uncalibrated, paper app:calib);
     AWQ statistics (`sample_rows`) cover every component of the scope, as AWQ quantizes them all."""
     from vlaquantbench.quant import CalibrationSettings
 
-    sample_rows = settings.get("sample_rows", 0)
-    calibrated = getattr(adapter, "calibrated_components", settings["components"])
-    components = tuple(c for c in settings["components"] if sample_rows or c in calibrated)
-    return CalibrationSettings(alpha=settings["alpha"], quantile=settings["quantile"], components=components,
+    sample_rows = settings.sample_rows or 0
+    calibrated = getattr(adapter, "calibrated_components", settings.components)
+    components = tuple(c for c in settings.components if sample_rows or c in calibrated)
+    return CalibrationSettings(alpha=settings.alpha, quantile=settings.quantile, components=components,
                                sample_rows=sample_rows)
 
 
@@ -105,40 +106,47 @@ def episode_keys(tasks: list[int], episodes_per_task: int, order: str) -> list[t
 
 
 class CellRun:
+    """One cell's run. `cfg` is its typed config (a canonical dict is read into one); `config_hash` the hash
+    the DAG (or `vqb rollout`) named its folder with, recorded as is (computed from `cfg` only when a caller
+    outside the DAG gives none)."""
+
     def __init__(
         self,
-        cfg: dict[str, Any],
+        cfg: CellConfig | dict[str, Any],
         out_dir: str | Path,
         checkpoint_stamp: str | Path | None = None,
         calibration_stats: str | Path | None = None,
         *,
+        config_hash: str | None = None,
         journal: str | Path | None = None,
         num_envs: int = ExecutionConfig.num_envs,
         torch_threads: int | None = ExecutionConfig.torch_threads,
         progress: bool = ExecutionConfig.progress,
         episode_order: str = ExecutionConfig.episode_order,
     ):
-        self.cfg = cfg
+        self.cfg = cfg = cfg if isinstance(cfg, CellConfig) else CellConfig.from_dict(cfg)
+        self.config_hash = config_hash or cfg.config_hash
+        self.policy_class = adapter_class(cfg.model)
         self.out_dir = Path(out_dir)
         self.journal = Path(journal) if journal else self.out_dir / JOURNAL_FILE  # default: beside the records
         self.checkpoint_stamp = checkpoint_stamp
         self.calibration_stats = calibration_stats
         self.num_envs = num_envs
         self.progress = progress
-        self.environment = environment_for(cfg["model"])
+        self.environment = Environment(environment_name(cfg.model))
         activate(self.environment)  # before anything imports MuJoCo: the simulator and its workers run on its pin
         if torch_threads:
             torch.set_num_threads(torch_threads)
-        self.suite = make_suite(cfg["benchmark"], cfg["suite"])
-        self.specs = [self.suite.episode_spec(t, e, cfg["seed"])
-                      for t, e in episode_keys(cfg["tasks"], cfg["episodes_per_task"], episode_order)]
-        self.max_steps = cfg["runner"]["max_steps"] or self.suite.max_steps(cfg["model"])
+        self.suite = make_suite(cfg.benchmark, cfg.suite)
+        self.specs = [self.suite.episode_spec(t, e, cfg.seed)
+                      for t, e in episode_keys(list(cfg.tasks), cfg.episodes_per_task, episode_order)]
+        self.max_steps = cfg.runner.max_steps  # the model's limit on the suite unless the study set one (DAG time)
         self._env: Future | None = None  # the simulator workers, once started
         self._closing = threading.Event()  # set by close_env: a start-up in progress ends early
 
     def writing(self):
         """The cell's writer lock (re-entrant within this process); CellLocked if another holds it."""
-        return writing(self.out_dir, self.journal, self.cfg["ref"])
+        return writing(self.out_dir, self.journal, self.cfg.ref)
 
     def start_env(self) -> None:
         """Start the simulator workers for the episodes the journal lacks, in a thread that also builds
@@ -150,12 +158,12 @@ class CellRun:
     def _start_env(self, missing: list) -> Future | None:
         if not missing:
             return None
-        benchmark = self.cfg["benchmark"]
+        benchmark = self.cfg.benchmark
         # Before any worker starts: as many as the memory holds (a warning names both numbers).
-        num_envs = affordable_workers(max(1, min(self.num_envs, len(missing))), benchmark, self.cfg["suite"],
+        num_envs = affordable_workers(max(1, min(self.num_envs, len(missing))), benchmark, self.cfg.suite,
                                       "study.execution.num_envs")
         # The adapter's class says whether the policy reads images (its instance is still loading).
-        settings = env_settings(benchmark, RunnerConfig(**self.cfg["runner"]), adapter_class(self.cfg["model"]).reads_images)
+        settings = env_settings(benchmark, self.cfg.runner, self.policy_class.reads_images)
 
         def start():
             env = make_env(benchmark, self.suite, num_envs, **settings)
@@ -189,15 +197,15 @@ class CellRun:
         from vlaquantbench.quant.scope import Selection
 
         cfg = self.cfg
-        self.simulator = simulator_versions(cfg["benchmark"], pinned=cfg["runner"]["mujoco"])
-        self.adapter = load_policy(cfg, self.checkpoint_stamp)
+        self.simulator = simulator_versions(cfg.benchmark, pinned=cfg.runner.mujoco)
+        self.adapter = load_policy(cfg, self.checkpoint_stamp, self.policy_class)
         calibration, stats = self._calibration()
         quant = QuantConfig.from_preset(
-            cfg["preset"],
-            scope=cfg["scope"],
-            only=cfg["only"],
-            exclude=cfg["exclude"],
-            method=quantizer_method(cfg["method"]),
+            cfg.preset,
+            scope=cfg.scope,
+            only=None if cfg.only is None else list(cfg.only),
+            exclude=None if cfg.exclude is None else list(cfg.exclude),
+            method=quantizer_method(cfg.method),
             calibration=calibration,
             stats=stats,
         )
@@ -211,23 +219,24 @@ class CellRun:
             self.report.reset_hook_calls()  # the probe's chunk is no evidence that the episodes quantized
             inference = {**inference, "fast_path_probe": probe}
             if not probe["passed"]:
-                raise CellFailed(f"cell {cfg['ref']}: the fast path's first chunk differs from the eager policy's "
+                raise CellFailed(f"cell {cfg.ref}: the fast path's first chunk differs from the eager policy's "
                                  f"beyond its bound (fast_path_probe: {probe}); run it with study.runner.sampler: eager")
         # The CUDA device the cell runs on (index, name, UUID); none on the CPU, whose headers stay as they were.
-        device = device_record(cfg["runner"]["device"])
+        device = device_record(cfg.runner.device)
+        config = cfg.to_dict()  # the canonical form: what the hash covers, in the header as the journal's copy of it
         # JSON round trip: the header compares equal to the journal's copy of it on a rerun.
         self.header = canonical({
-            "config_hash": config_hash(cfg),
-            "ref": cfg["ref"],
-            "cell": cfg["cell"],
-            **{k: cfg[k] for k in ("model", "checkpoint", "revision", "benchmark", "suite", "preset", "scope")},
-            **{k: cfg[k] for k in ("only", "exclude", "method", "seed", "episodes_per_task", "calibration")},
-            "variant": cfg["variant"],
+            "config_hash": self.config_hash,
+            "ref": cfg.ref,
+            "cell": cfg.cell,
+            **{k: config[k] for k in ("model", "checkpoint", "revision", "benchmark", "suite", "preset", "scope")},
+            **{k: config[k] for k in ("only", "exclude", "method", "seed", "episodes_per_task", "calibration")},
+            "variant": cfg.variant,
             # The model's released client conventions and every value this cell sets differently.
-            "client": cfg["client"],
-            "overrides": cfg["overrides"],
+            "client": cfg.client,
+            "overrides": cfg.overrides,
             **{k: getattr(self.adapter, "checkpoint_provenance", {}).get(k) for k in ("tokenizer", "normalization", "widths")},
-            "config": cfg,
+            "config": config,
             "quant_report": quantized["quant_report"],
             "quant_format": quantized["quant_format"],
             "selected_layers": quantized["selected_layers"],
@@ -243,13 +252,13 @@ class CellRun:
         })
 
     def _calibration(self):
-        settings = self.cfg["calibration"]
+        settings = self.cfg.calibration
         if settings is None:
             return None, None
         from vlaquantbench.quant.calibration import load_stats
 
         if self.calibration_stats is None:
-            raise UserError(f"cell {self.cfg['ref']} is calibrated but no calibration statistics were given")
+            raise UserError(f"cell {self.cfg.ref} is calibrated but no calibration statistics were given")
         return calibration_settings(settings, self.adapter), load_stats(self.calibration_stats)
 
     def missing(self, journal: CellJournal) -> list:
@@ -270,7 +279,7 @@ class CellRun:
         bar = tqdm(
             total=len(self.specs),
             initial=len(self.specs) - len(missing),
-            desc=self.cfg["ref"],
+            desc=self.cfg.ref,
             unit="ep",
             disable=not self.progress,
         )
@@ -297,7 +306,7 @@ class CellRun:
         missed = [n for n in hooks["unfired"] if not any(fnmatch.fnmatchcase(n, p) for p in self.adapter.idle_layers)]
         if missed:
             raise CellFailed(
-                f"cell {self.cfg['ref']}: {len(missed)} of {hooks['selected']} selected layers' activation hooks never "
+                f"cell {self.cfg.ref}: {len(missed)} of {hooks['selected']} selected layers' activation hooks never "
                 f"fired, so they ran unquantized: {', '.join(missed)}"
             )
         header = {
@@ -308,10 +317,10 @@ class CellRun:
         order = {tuple(getattr(s, k) for k in EPISODE_KEY): n for n, s in enumerate(self.specs)}
         episodes = sorted(journal.episodes, key=lambda e: order[tuple(e[k] for k in EPISODE_KEY)])
         if len(episodes) != len(self.specs):
-            raise CellFailed(f"cell {self.cfg['ref']}: {len(episodes)} episodes recorded, {len(self.specs)} configured")
+            raise CellFailed(f"cell {self.cfg.ref}: {len(episodes)} episodes recorded, {len(self.specs)} configured")
         write_cell(self.out_dir, header, episodes)
         if header["nonfinite_episodes"]:
-            print(f"cell {self.cfg['ref']}: {header['nonfinite_episodes']} of {len(episodes)} episodes ended on a "
+            print(f"cell {self.cfg.ref}: {header['nonfinite_episodes']} of {len(episodes)} episodes ended on a "
                   "non-finite action of the policy (recorded as failures, nonfinite_action: true)", file=sys.stderr)
         return self.out_dir / "episodes.parquet"
 
@@ -320,7 +329,8 @@ def _key(spec) -> tuple:
     return tuple(getattr(spec, k) for k in EPISODE_KEY)
 
 
-def run_cell(cfg: dict[str, Any], out_dir: str | Path, checkpoint_stamp=None, calibration_stats=None, **options) -> Path:
+def run_cell(cfg: CellConfig | dict[str, Any], out_dir: str | Path, checkpoint_stamp=None, calibration_stats=None,
+             **options) -> Path:
     run = CellRun(cfg, out_dir, checkpoint_stamp, calibration_stats, **options)
     with run.writing():
         run.start_env()

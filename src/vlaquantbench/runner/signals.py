@@ -11,6 +11,10 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from vlaquantbench.cells import CellConfig
 
 
 class Terminated(KeyboardInterrupt):
@@ -42,14 +46,14 @@ def sigterm_interrupts() -> Iterator[None]:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-def report_stop(stop: KeyboardInterrupt, cfg: dict, out: str | Path, journal: str | Path) -> int:
+def report_stop(stop: KeyboardInterrupt, cfg: CellConfig, out: str | Path, journal: str | Path) -> int:
     """Say on stderr how far cell `cfg` got (its episodes recorded in `journal`) and how to resume it,
     after Ctrl-C or SIGTERM (`stop`); the conventional exit status, 128 + the signal's number."""
     from vlaquantbench.runner.journal import recorded_episodes
 
     signum = getattr(stop, "signum", signal.SIGINT)
     what = "interrupted" if signum == signal.SIGINT else f"terminated ({signal.Signals(signum).name})"
-    total = len(cfg["tasks"]) * cfg["episodes_per_task"]
-    print(f"\nvqb rollout: {what}: {cfg['ref']} has {recorded_episodes(Path(journal))} of {total} episodes "
+    total = len(cfg.tasks) * cfg.episodes_per_task
+    print(f"\nvqb rollout: {what}: {cfg.ref} has {recorded_episodes(Path(journal))} of {total} episodes "
           f"recorded in {out}; run the same command again to resume it", file=sys.stderr, flush=True)
     return 128 + signum

@@ -13,7 +13,6 @@ with LiberoVectorEnv(suite, num_envs=2, camera_size=256) as env:
 from vlaquantbench.envs.libero.offline import assets_dir, cache_dir, config_dir, load_libero
 from vlaquantbench.envs.libero.suite import (
     SEED_STRIDE,
-    STEP_LIMITS,
     SUITES,
     EpisodeSpec,
     LiberoSuite,
@@ -34,7 +33,6 @@ __all__ = [
     "PINNED_MUJOCO",
     "SEED_STRIDE",
     "SETTLE_STEPS",
-    "STEP_LIMITS",
     "SUITES",
     "EpisodeSpec",
     "LiberoSuite",

@@ -1,4 +1,5 @@
-"""A LIBERO suite as the authors evaluated it: tasks, official init states, seeds, step limits."""
+"""A LIBERO suite as the authors evaluated it: tasks, official init states, seeds (step limits: each model's
+client, `models/<model>/client.py`)."""
 
 from __future__ import annotations
 
@@ -10,13 +11,11 @@ import numpy as np
 from vlaquantbench.envs import BENCHMARK_SUITES
 from vlaquantbench.envs.episodes import SEED_STRIDE, EpisodeSpec, SuiteTasks, episode_seed
 from vlaquantbench.envs.libero.offline import load_libero
-from vlaquantbench.envs.libero_protocol import MODEL_FAMILY, STEP_LIMITS
 from vlaquantbench.errors import UserError
 
 SUITES = BENCHMARK_SUITES["libero"]
 
-__all__ = ["MODEL_FAMILY", "SEED_STRIDE", "STEP_LIMITS", "SUITES", "EpisodeSpec", "LiberoSuite", "LiberoTask",
-           "episode_seed"]
+__all__ = ["SEED_STRIDE", "SUITES", "EpisodeSpec", "LiberoSuite", "LiberoTask", "episode_seed"]
 
 
 @dataclass(frozen=True)
@@ -71,14 +70,6 @@ class LiberoSuite(SuiteTasks):
                 f"({len(states)} official init states: 0..{len(states) - 1})"
             )
         return states[init_state_id]
-
-    def max_steps(self, model: str) -> int:
-        """Step limit for a model (pi05, pi0, openvla_oft) or model family (pi, openvla_oft)."""
-        family = MODEL_FAMILY.get(model, model)
-        if family not in STEP_LIMITS:
-            known = sorted({*MODEL_FAMILY, *STEP_LIMITS})
-            raise UserError(f"no LIBERO step limit for model {model!r}; known: {', '.join(known)}")
-        return STEP_LIMITS[family][self.name]
 
     def episode_spec(self, task_id: int, episode: int, run_seed: int = 0) -> EpisodeSpec:
         """Episode i of a task starts from official init state i."""

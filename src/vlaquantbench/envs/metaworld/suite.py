@@ -21,7 +21,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from vlaquantbench.envs import BENCHMARK_SUITES
+from vlaquantbench.envs import BENCHMARK_SUITES, METAWORLD_STEP_LIMIT
 from vlaquantbench.envs.episodes import SEED_STRIDE, EpisodeSpec, SuiteTasks, episode_seed
 from vlaquantbench.errors import UserError
 
@@ -30,10 +30,7 @@ SUITES = BENCHMARK_SUITES["metaworld"]
 DIFFICULTY_GROUPS = {f"metaworld_{group}": group for group in ("easy", "medium", "hard", "very_hard")}
 # Meta-World's multi-task benchmarks: the `metaworld.env_dict` table of each suite.
 MULTI_TASK_LISTS = {"metaworld_mt10": "MT10_V3", "metaworld_mt50": "MT50_V3"}
-# Policy steps before an unfinished episode counts as a failure: Meta-World's `max_path_length`
-# (its envs refuse to step further), which lerobot's `MetaworldEnv._max_episode_steps` and so
-# lerobot-eval's rollouts use.
-STEP_LIMIT = 500
+STEP_LIMIT = METAWORLD_STEP_LIMIT  # whatever the model (`envs.SuiteSize.step_limit`)
 
 
 @functools.cache
@@ -90,10 +87,6 @@ class MetaWorldSuite(SuiteTasks):
                 return task.task_id
         raise UserError(f"unknown task {task_name!r} in Meta-World suite {self.name}; its tasks: "
                         f"{', '.join(t.name for t in self.tasks)}")
-
-    def max_steps(self, model: str) -> int:
-        """Meta-World's limit, whatever the model: its envs refuse to step further."""
-        return STEP_LIMIT
 
     def variation_seed(self, task_id: int, variation: int) -> int:
         if variation < 0:

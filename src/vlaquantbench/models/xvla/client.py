@@ -4,8 +4,9 @@ The client executes the whole predicted chunk (30 actions) before querying again
 absolute end-effector targets (position, 6-D rotation converted to axis-angle, gripper thresholded
 at 0.5), so the arm controller runs with `use_delta=False` after the settle steps. The authors ran
 19 episodes per task under this client (190 per suite). Its environment pins MuJoCo 3.1.6, which
-predates the box-box collision change (paper Sec. "Evaluation-Stack Checks"). Step limits
-800/800/800/900: `envs.libero.suite`.
+predates the box-box collision change (paper Sec. "Evaluation-Stack Checks"): its cells run in the
+`xvla` software environment (envs/xvla.lock.txt). Step limits 800/800/800/900: its client's horizons
+(failures in the authors' records run to 800).
 """
 
 from vlaquantbench.models.client import ClientConventions
@@ -14,3 +15,5 @@ CHUNK = 30
 
 CLIENT = ClientConventions(executed_chunk=CHUNK, episodes_per_task=19, control_mode="absolute", mujoco="3.1.6",
                            source="X-VLA libero_client.py; paper app. on benchmarks; the authors' records")
+STEP_LIMITS = {"libero": {"libero_spatial": 800, "libero_object": 800, "libero_goal": 800, "libero_10": 900}}
+ENVIRONMENT = "xvla"
