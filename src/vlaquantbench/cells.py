@@ -129,20 +129,30 @@ class CellCalibration:
     seed: int
     sample_rows: int | None = None  # AWQ's sampled input rows per layer; absent from the canonical form when None
 
+    @classmethod
+    def from_dict(cls, calibration: dict[str, Any]) -> CellCalibration:
+        return cls(**{**calibration, **{k: tuple(calibration[k]) for k in ("components", "tasks", "init_states")}})
+
 
 @dataclass(frozen=True)
-class CellConfig:
-    """One cell: everything that changes its episodes. `to_dict()` is its canonical form (hashed,
-    written to its header, passed to the runner); `from_dict` reads it back."""
+class PolicyRunConfig:
+    """What a cell and its calibration episodes share: where they run and the policy's weights."""
 
-    ref: str
-    cell: str
     benchmark: str
     suite: str
     model: str
     variant: str
     checkpoint: str | None
     revision: str | None
+
+
+@dataclass(frozen=True)
+class CellConfig(PolicyRunConfig):
+    """One cell: everything that changes its episodes. `to_dict()` is its canonical form (hashed,
+    written to its header, passed to the runner); `from_dict` reads it back."""
+
+    ref: str
+    cell: str
     method: str
     preset: str
     scope: str
@@ -215,10 +225,7 @@ class CellConfig:
         def tuple_or_none(value):
             return None if value is None else tuple(value)
 
-        calibration = cfg["calibration"]
-        if calibration is not None:
-            calibration = CellCalibration(**{**calibration, **{k: tuple(calibration[k]) for k in
-                                                                ("components", "tasks", "init_states")}})
+        calibration = None if cfg["calibration"] is None else CellCalibration.from_dict(cfg["calibration"])
         return cls(**{**cfg, "only": tuple_or_none(cfg["only"]), "exclude": tuple_or_none(cfg["exclude"]),
                       "tasks": tuple(cfg["tasks"]), "calibration": calibration, "runner": RunnerConfig(**cfg["runner"])})
 
@@ -233,25 +240,17 @@ class CellConfig:
 
 
 @dataclass(frozen=True)
-class CalibrationConfig:
+class CalibrationConfig(PolicyRunConfig):
     """What a cell's calibration statistics depend on (`calibration_config`: its canonical form, hashed into the
     statistics' file name); the rollout calibration job reads it back with `from_dict`."""
 
-    benchmark: str
-    suite: str
-    model: str
-    variant: str
-    checkpoint: str | None
-    revision: str | None
     calibration: CellCalibration
     runner: RunnerConfig
 
     @classmethod
     def from_dict(cls, cfg: dict[str, Any]) -> CalibrationConfig:
-        calibration = cfg["calibration"]
-        calibration = CellCalibration(**{**calibration, **{k: tuple(calibration[k]) for k in
-                                                            ("components", "tasks", "init_states")}})
-        return cls(**{**cfg, "calibration": calibration, "runner": RunnerConfig(**cfg["runner"])})
+        return cls(**{**cfg, "calibration": CellCalibration.from_dict(cfg["calibration"]),
+                      "runner": RunnerConfig(**cfg["runner"])})
 
     @property
     def name(self) -> str:
