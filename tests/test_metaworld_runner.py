@@ -15,9 +15,12 @@ import yaml
 
 from paths import ROOT
 from vlaquantbench.cells import cell_config, config_hash
+from vlaquantbench.errors import UserError
 from vlaquantbench.records import read_cell
 from vlaquantbench.records.cell import JOURNAL_FILE
 from vlaquantbench.runner.cell import run_cell
+from vlaquantbench.tables.definition import TableDefinition
+from vlaquantbench.tables.latex import render_latex
 
 pytestmark = pytest.mark.slow
 
@@ -103,3 +106,17 @@ def test_a_bad_task_is_refused_while_the_dag_is_built_naming_it(tmp_path, study,
     output = result.stdout + result.stderr
     table = checkout / "config/demo/metaworld/expert.yaml"
     assert result.returncode != 0 and f"{table}: cell {REF!r}: " in output and message in output, output[-3000:]
+
+
+def test_a_table_row_reads_one_tasks_episodes_of_a_cell(runs):
+    _, folders = runs
+    cells = {REF: read_cell(folders[1])}
+    raw = {"caption": "experts", "align": "lrr", "header": [["Task", "Episodes", "SR"]], "cells": {"experts": REF},
+           "values": [{"stat": "episodes", "cell": "experts"}, {"stat": "rate", "cell": "experts"}],
+           "rows": [{"label": "coffee", "task": "coffee-button-v3"}, {"label": "all"}]}
+    latex = render_latex(TableDefinition.from_dict("expert", raw), cells)
+    assert "coffee & 4 & 100.0" in latex and "all & 20 & 100.0" in latex
+    raw["rows"] = [{"label": "reach", "task": "reach-v3"}]
+    with pytest.raises(UserError, match=f"cell {REF}: no episode of task 'reach-v3' \\(row 'reach'\\); its tasks: "
+                                        "button-press-topdown-v3"):
+        render_latex(TableDefinition.from_dict("expert", raw), cells)
