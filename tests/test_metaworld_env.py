@@ -97,7 +97,7 @@ def test_unknown_benchmark_or_suite_is_refused_by_name(benchmark, suite_name, me
 
 def test_unknown_env_setting_is_refused_by_name():
     with pytest.raises(UserError, match=r"unknown metaworld env setting\(s\) settle_steps; known: camera_size, "
-                                        r"reply_timeout_s"):
+                                        r"mujoco, reply_timeout_s"):
         make_env("metaworld", "metaworld_easy", 1, settle_steps=10)
 
 
