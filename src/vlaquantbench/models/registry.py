@@ -24,8 +24,8 @@ from typing import TYPE_CHECKING
 from vlaquantbench.errors import UserError, lookup
 from vlaquantbench.quant.patterns import COMPONENT_NAMES
 
-__all__ = ["COMPONENT_NAMES", "Component", "ModelSpec", "adapter_class", "demo_build", "get_model_spec", "model_names",
-           "randomize_linears", "rollout_models", "seeded_build"]
+__all__ = ["COMPONENT_NAMES", "Component", "ModelSpec", "adapter_class", "demo_build", "get_model_spec", "model_label",
+           "model_names", "randomize_linears", "rollout_models", "seeded_build"]
 
 if TYPE_CHECKING:
     import torch
@@ -83,6 +83,11 @@ def model_names() -> list[str]:
 def model_package(name: str) -> str:
     """The package of model `name`; UserError listing the known models otherwise."""
     return lookup(MODELS, name, "model")
+
+
+def model_label(name: str) -> str | None:
+    """How the paper's tables name model `name` (`LABEL` of its package; None for a model they do not show)."""
+    return getattr(importlib.import_module(model_package(name)), "LABEL", None)
 
 
 def get_model_spec(name: str) -> ModelSpec:

@@ -8,9 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from vlaquantbench.models.layer_index import selected_counts
+from vlaquantbench.models.registry import MODELS, model_label
 from vlaquantbench.tables.booktabs import Booktabs
 
-MODELS = {"pi05": r"$\pi_{0.5}$", "pi0": r"$\pi_0$", "openvla_oft": "OpenVLA-OFT", "xvla": "X-VLA"}
 COMPONENTS = ("ve", "mp", "llm", "ah")
 CAPTION = (
     "Selected linear-layer counts / weight parameters in millions for the LIBERO-Spatial W4 end-to-end scopes. "
@@ -21,7 +21,10 @@ CAPTION = (
 
 def vla_params_table(notes: list[str] | None = None) -> Booktabs:
     rows = []
-    for model, label in MODELS.items():
+    # The models the paper names (a `LABEL` in their folder), in the registry's order.
+    for model, label in ((model, model_label(model)) for model in MODELS):
+        if label is None:
+            continue
         counts = selected_counts(model, "e2e")
         cells = [counts.get(c, {"layers": 0, "params": 0}) for c in COMPONENTS]  # absent: an empty separate scope
         rows.append([label, *(f"{c['layers']} / {c['params'] / 1e6:.1f}" for c in cells)])
