@@ -120,3 +120,24 @@ def test_a_table_row_reads_one_tasks_episodes_of_a_cell(runs):
     with pytest.raises(UserError, match=f"cell {REF}: no episode of task 'reach-v3' \\(row 'reach'\\); its tasks: "
                                         "button-press-topdown-v3"):
         render_latex(TableDefinition.from_dict("expert", raw), cells)
+
+
+def test_the_user_command_renders_success_per_task_and_the_summary(tmp_path):
+    """`snakemake tables/expert.tex tables/summary.csv --configfile=config/demo/metaworld_expert.yaml`, one
+    variation per task: the cell runs through the workflow's rollout job and both outputs list it."""
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    for item in ("Snakefile", "rules", "workflow", "manifests", "config", "src"):
+        (checkout / item).symlink_to(ROOT / item)
+    config = yaml.safe_load((ROOT / "config/demo/metaworld_expert.yaml").read_text())
+    config["study"]["episodes_per_task"] = 1
+    path = tmp_path / "metaworld_expert.yaml"
+    path.write_text(yaml.safe_dump(config))
+    result = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "tables/expert.tex", "tables/summary.csv",
+                             f"--configfile={path}"], cwd=checkout, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    table = (checkout / "tables/expert.tex").read_text()
+    assert table.count(" & 1 & ") == 28 and "all tasks & 28 & " in table
+    summary = pd.read_csv(checkout / "tables/summary.csv")
+    assert summary[["benchmark", "suite", "model", "cell", "episodes"]].values.tolist() == [
+        ["metaworld", "metaworld_easy", "metaworld_expert", "rtn-BASELINE-e2e", 28]]

@@ -36,7 +36,7 @@ class RunnerConfig:
     # None: the model's released client (`models.client`): pi 10 of 50, OpenVLA-OFT 8 of 8, X-VLA 30 of 30
     executed_chunk: int | None = None
     flow_steps: int = 10  # flow-matching integration steps (cell prefix steps<N> overrides)
-    max_steps: int | None = None  # None: the suite's step limit for the model family
+    max_steps: int | None = None  # None: the model's step limit on the suite, resolved into the cell config (cells)
     camera_size: int = 256
     settle_steps: int = 10
     # auto | captured | eager (`models.adapter.resolve_sampler`); hashed because the captured and
