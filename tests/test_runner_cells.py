@@ -173,10 +173,13 @@ def test_every_registered_method_is_reachable_from_a_cell_name():
         cfg = cell_config(ref(f"{method}-{presets.get(method, 'W8A8')}-ah"), STUDY)
         assert cfg["method"] == method and quantizer_method(method) == method
         assert callable(METHODS[method].resolve())  # the implementation the registry names exists
-        statistics = METHODS[method].statistics
-        if statistics is not None:  # calibration episodes of the scope collect what the method needs
+        recorded = METHODS[method].calibration_fields()
+        if recorded is None:
+            assert cfg["calibration"] is None
+        else:  # calibration episodes of the scope collect what the method needs
             assert cfg["calibration"]["components"] == ["ah"] and cfg["calibration"]["quantile"] is None
-            assert cfg["calibration"]["alpha"] == statistics.get("alpha")
+            assert {k: cfg["calibration"].get(k) for k in recorded} == recorded
+            assert cfg["calibration"]["alpha"] == recorded.get("alpha")
     assert quantizer_method("ablate") == quantizer_method("calib_ah") == "rtn"
 
 

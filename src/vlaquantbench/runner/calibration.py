@@ -28,7 +28,7 @@ def calibrate(
 ) -> Path:
     """Collect statistics for `calib` (a `cells.calibration_config`) and save them to `output`."""
     from vlaquantbench.quant import select_layers
-    from vlaquantbench.quant.calibration import calibration_key, keyed_fields, observe, save_stats
+    from vlaquantbench.quant.calibration import calibration_key, keyed_fields, save_stats
 
     if torch_threads:
         torch.set_num_threads(torch_threads)
@@ -60,7 +60,7 @@ def calibrate(
         code_revision=code_revision(),
     )
     max_steps = runner["max_steps"] or suite.max_steps(calib["model"])
-    with observe(layers, quantile=settings.quantile, sample_rows=settings.sample_rows) as observer:
+    with settings.observe(layers) as observer:  # exactly the statistics the cell's method declares
         with LiberoVectorEnv(
             suite, workers, camera_size=runner["camera_size"], settle_steps=runner["settle_steps"],
             control_mode=runner["control_mode"], mujoco=runner["mujoco"],
