@@ -73,7 +73,7 @@ def gptq_weight(weight: torch.Tensor, hessian: torch.Tensor, grid: WeightGrid, d
             q = row_grid.quantize_column(pending[:, i]).double()
             rounded[:, start + i] = q
             errors[:, i] = (pending[:, i] - q) / upper[start + i, start + i]
-            pending[:, i:] -= errors[:, i : i + 1] * upper[start + i, start + i:][None, :]
+            pending[:, i:] -= errors[:, i : i + 1] * upper[start + i, start + i : end][None, :]
         w[:, end:] -= errors @ upper[start:end, end:]
     result = torch.empty_like(rounded)
     result[:, order] = rounded
