@@ -4,7 +4,7 @@ A cell reference is `<benchmark>/<suite>/<model>/<cell>`; the cell name follows 
 
     [seed<N>-][steps<N>-]<method>-<preset>-<scope>[-<subset>]
 
-    method  a registered quantization method (`quant.methods`: rtn, awq, nf4, int8, int4wo,
+    method  a registered quantization method (`quant.methods`: rtn, gptq, gptq_act, awq, nf4, int8, int4wo,
             smoothquant, fp8, fp8_tensor, fp8_static, ...) | ablate (RTN on a named subset)
             | calib[_<comps>][_a<alpha*100>] | calib_set<k>_<comps>[_a<alpha*100>] (RTN after
             rollout smoothing and clipping)
