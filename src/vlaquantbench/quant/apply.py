@@ -32,7 +32,7 @@ from torch import nn
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.calibration import CalibrationSettings, CalibrationStats, ChannelStats
-from vlaquantbench.quant.hooks import CountingHook
+from vlaquantbench.quant.hooks import CountingHook, InputTransform
 from vlaquantbench.quant.methods import MethodConfig, get_method
 from vlaquantbench.quant.presets import Preset, parse_preset
 from vlaquantbench.quant.patterns import scope_components
@@ -64,13 +64,14 @@ class QuantConfig:
         transforms: Sequence | None = None,
     ) -> QuantConfig:
         """`method`: a registered name or a method config; `transforms` None: rollout smoothing
-        (`Smoothing(calibration)`) where the calibration settings smooth and the method composes."""
+        (`Smoothing(calibration)`) where the calibration settings smooth and the method composes,
+        then the transforms the method's entry names (`MethodConfig.transforms`)."""
         if calibration is not None and stats is None:
             raise UserError("calibration settings given without calibration statistics (stats=...)")
         method = get_method(method) if isinstance(method, str) else method
         if transforms is None:
             smooths = calibration is not None and calibration.alpha is not None and method.composes
-            transforms = (Smoothing(calibration),) if smooths else ()
+            transforms = ((Smoothing(calibration),) if smooths else ()) + method.named_transforms()
         return cls(
             preset=parse_preset(preset),
             scope=scope,
@@ -175,7 +176,7 @@ def quantize_(model: nn.Module, config: QuantConfig, selection: Selection) -> Qu
     in_scope = scope_components(config.scope, selection.layers)
     if list(selection.layers) != in_scope:
         raise UserError(f"selection of components {list(selection.layers)} given for scope {config.scope!r} ({in_scope})")
-    if config.preset.is_baseline and config.calibration is None:
+    if config.preset.is_baseline and config.calibration is None and not config.transforms:
         empty = Selection({comp: {} for comp in selection.layers})
         return QuantReport(config, empty, MethodResult(format="released precision"))
     if config.transforms and not method.composes:
@@ -187,7 +188,9 @@ def quantize_(model: nn.Module, config: QuantConfig, selection: Selection) -> Qu
         for name, step in transform.apply(selection, config.stats).items():
             inputs[name] = (*inputs.get(name, ()), step)
     result = method.resolve()(model, replace(selection, inputs=inputs), config)
-    result.calibrated |= set(inputs)
+    # Smoothing is described by the method's format (its calibration settings); other transforms here.
+    result.format += "".join(f"; {t.description}" for t in config.transforms if hasattr(t, "description"))
+    result.calibrated |= {name for name, steps in inputs.items() if any(isinstance(s, InputTransform) for s in steps)}
     return QuantReport(config, selection, result, errors.measure(model, result))
 
 

@@ -19,8 +19,8 @@ Compensation runs in float64; grids and rounding in float32, exactly as RTN's, s
 compensation) GPTQ gives RTN's weights bit for bit.
 
 Activations, where the preset quantizes them, are quantized per token by counting hooks as in RTN.
-GPTQ does not yet run after pre-quantization transforms (`MethodConfig.composes` False): its Hessians
-would have to be mapped into the transformed inputs' space.
+After pre-quantization transforms (`hadamard_gptq`), each layer's Hessian is mapped into the space of
+its transformed inputs by the transforms' linear input steps (`map_hessian`: R H R^T for a rotation).
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from vlaquantbench.errors import UserError
 from vlaquantbench.quant.apply import MethodResult, QuantConfig, install_input_hooks, layer_statistics
 from vlaquantbench.quant.grid import RowGrid, grid_of
 from vlaquantbench.quant.presets import WeightGrid
@@ -105,8 +106,16 @@ def gptq(model: nn.Module, selection: Selection, config: QuantConfig) -> MethodR
         usable=lambda layer: layer.hessian is not None)
     grid: WeightGrid = preset.weight
     ratios, dead = [], 0
+    hessians = {}
+    for name in selection.flat():  # in the space of the inputs the transforms leave (all checked before any rounding)
+        hessians[name] = stats[name].hessian.double()
+        for step in selection.inputs.get(name, ()):
+            if not hasattr(step, "map_hessian"):
+                raise UserError(f"method {method.name!r} cannot map layer {name}'s Hessian through the input step "
+                                f"{type(step).__name__} of a pre-quantization transform (only linear steps, e.g. Hadamard)")
+            hessians[name] = step.map_hessian(hessians[name])
     for name, layer in selection.flat().items():
-        done = gptq_weight(layer.weight, stats[name].hessian, grid, method.damp, method.act_order, method.block_size)
+        done = gptq_weight(layer.weight, hessians[name], grid, method.damp, method.act_order, method.block_size)
         with torch.no_grad():
             layer.weight.copy_(done.weight.to(layer.weight.dtype))
         dead += done.dead_columns

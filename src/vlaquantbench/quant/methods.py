@@ -52,6 +52,7 @@ class MethodConfig:
     presets: tuple[int, int | None] | str | None = None
     uncapturable: str | None = None  # why its layers cannot run inside a captured CUDA graph (None: they can)
     composes: bool = False  # runs after pre-quantization transforms (`quant.transforms`), reading `selection.inputs`
+    transforms: tuple[str, ...] = ()  # transforms (`TRANSFORMS` names) a cell of this method applies first, in order
 
     def check_preset(self, name: str, preset: Preset) -> None:
         """UserError when method `name` cannot run `preset` (the cell grammar checks it at DAG build)."""
@@ -85,10 +86,18 @@ class MethodConfig:
                 **({"hessian": True} if HESSIAN in self.statistics else {})}
 
     def resolve(self) -> Callable:
-        if callable(self.implementation):
-            return self.implementation
-        module, _, function = self.implementation.partition(":")
-        return getattr(importlib.import_module(module), function)
+        return _resolve(self.implementation)
+
+    def named_transforms(self) -> tuple:
+        """The transforms this method's cells apply before it, built (imported on first use)."""
+        return tuple(_resolve(TRANSFORMS[name])() for name in self.transforms)
+
+
+def _resolve(implementation: str | Callable) -> Callable:
+    if callable(implementation):
+        return implementation
+    module, _, name = implementation.partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 @dataclass(frozen=True)
@@ -110,7 +119,10 @@ class GPTQ(MethodConfig):
     block_size: int = 128  # columns per lazy batch update (a grouped grid uses its group size)
 
 
+# Pre-quantization transforms a method entry may name ("module:class", built without arguments).
+TRANSFORMS = {"hadamard": "vlaquantbench.quant.transforms:Hadamard"}
 _KERNELS = "vlaquantbench.quant.kernels"
+_GPTQ = "vlaquantbench.quant.gptq:gptq"
 METHODS: dict[str, MethodConfig] = {
     "rtn": MethodConfig("rtn", "vlaquantbench.quant.apply:rtn", composes=True),
     "nf4": MethodConfig("nf4", f"{_KERNELS}:nf4", presets=(4, None)),
@@ -122,9 +134,12 @@ METHODS: dict[str, MethodConfig] = {
     "fp8": MethodConfig("fp8", f"{_KERNELS}:fp8", presets=(8, 8)),
     "fp8_tensor": MethodConfig("fp8_tensor", f"{_KERNELS}:fp8_tensorwise", presets=(8, 8)),
     "fp8_static": MethodConfig("fp8_static", f"{_KERNELS}:fp8_static", frozenset({ABSMAX}), presets=(8, 8)),
-    "gptq": GPTQ("gptq", "vlaquantbench.quant.gptq:gptq", frozenset({HESSIAN, ROWS}), INTEGER_WEIGHTS),
-    "gptq_act": GPTQ("gptq_act", "vlaquantbench.quant.gptq:gptq", frozenset({HESSIAN, ROWS}), INTEGER_WEIGHTS,
-                     act_order=True),
+    "gptq": GPTQ("gptq", _GPTQ, frozenset({HESSIAN, ROWS}), INTEGER_WEIGHTS, composes=True),
+    "gptq_act": GPTQ("gptq_act", _GPTQ, frozenset({HESSIAN, ROWS}), INTEGER_WEIGHTS, composes=True, act_order=True),
+    # Rotated inputs (QuaRot-style Hadamard, `quant.transforms.Hadamard`), then RTN or GPTQ
+    "hadamard": MethodConfig("hadamard", "vlaquantbench.quant.apply:rtn", composes=True, transforms=("hadamard",)),
+    "hadamard_gptq": GPTQ("hadamard_gptq", _GPTQ, frozenset({HESSIAN, ROWS}), INTEGER_WEIGHTS, composes=True,
+                          transforms=("hadamard",)),
 }
 
 
