@@ -7,6 +7,7 @@ import copy
 
 import pytest
 import torch
+from pi_chunks import pi_chunk
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.models import get_model_spec
@@ -16,16 +17,6 @@ from vlaquantbench.quant.gptq import gptq_weight
 from vlaquantbench.quant.presets import parse_preset
 
 MODELS = ("pi05", "pi0")
-
-
-def _chunk(model_name, model, seed):
-    g = torch.Generator().manual_seed(seed)
-    images, masks = [torch.rand(1, 3, 224, 224, generator=g) * 2 - 1], [torch.ones(1, dtype=torch.bool)]
-    tokens = torch.randint(0, 257152, (1, 16), generator=g)
-    args = [images, masks, tokens, torch.ones(1, 16, dtype=torch.bool)]
-    if model_name == "pi0":
-        args.append(torch.zeros(1, 32))
-    return model.sample_actions(*args, noise=torch.randn(1, 50, 32, generator=g), num_steps=2)
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +32,7 @@ def calibrated():
         layers = select_layers(model, spec.components, "e2e").flat()
         with torch.no_grad(), calib.observe(layers, quantile=None, sample_rows=128, hessian=True) as observer:
             for seed in (0, 1):
-                _chunk(name, model, seed)
+                pi_chunk(name, model, seed)
         built[name] = (spec, model, observer.stats(f"gptq{name}", {"seed": 0}))
     yield built
     torch.set_num_threads(threads)
@@ -140,7 +131,7 @@ def test_quantize_gptq_w4a8_on_e2e(calibrated):
         config = QuantConfig.from_preset("W4A8", scope="e2e", method="gptq", stats=stats)
         report = quantize_(policy, config, config.select(policy, spec.components))
         assert report.unfired() == list(report.selection.flat())  # reporting mean_rel_mse counted no call
-        actions = _chunk("pi05", policy, 5)
+        actions = pi_chunk("pi05", policy, 5)
         rtn_policy = copy.deepcopy(demo)
         rtn_config = QuantConfig.from_preset("W4A8", scope="e2e", stats=stats)
         rtn_report = quantize_(rtn_policy, rtn_config, rtn_config.select(rtn_policy, spec.components))

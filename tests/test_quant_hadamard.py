@@ -6,6 +6,7 @@ import copy
 
 import pytest
 import torch
+from pi_chunks import pi_chunk
 
 from vlaquantbench.models import get_model_spec
 from vlaquantbench.quant import QuantConfig, quantize_, select_layers
@@ -13,16 +14,6 @@ from vlaquantbench.quant import calibration as calib
 from vlaquantbench.quant.transforms import BlockHadamard
 
 MODELS = ("pi05", "pi0")
-
-
-def _chunk(model_name, model, seed):
-    g = torch.Generator().manual_seed(seed)
-    images, masks = [torch.rand(1, 3, 224, 224, generator=g) * 2 - 1], [torch.ones(1, dtype=torch.bool)]
-    tokens = torch.randint(0, 257152, (1, 16), generator=g)
-    args = [images, masks, tokens, torch.ones(1, 16, dtype=torch.bool)]
-    if model_name == "pi0":
-        args.append(torch.zeros(1, 32))
-    return model.sample_actions(*args, noise=torch.randn(1, 50, 32, generator=g), num_steps=2)
 
 
 @pytest.fixture(scope="module")
@@ -48,10 +39,10 @@ def test_rotated_unquantized_model_produces_the_same_actions(demos, model_name):
     spec, demo = demos[model_name]
     rotated = copy.deepcopy(demo)
     with torch.no_grad():
-        reference = _chunk(model_name, demo, 3)
+        reference = pi_chunk(model_name, demo, 3)
         config = QuantConfig.from_preset("BASELINE", scope="e2e", method="hadamard")
         report = quantize_(rotated, config, config.select(rotated, spec.components))
-        actions = _chunk(model_name, rotated, 3)
+        actions = pi_chunk(model_name, rotated, 3)
     rel_l2 = ((actions - reference).norm() / reference.norm()).item()
     changed = sum(not torch.equal(layer.weight, demo.get_submodule(name).weight)
                   for name, layer in report.selection.flat().items())
@@ -66,7 +57,7 @@ def test_hadamard_w4a4_keeps_weights_and_inputs_on_the_grid(demos):
     config = QuantConfig.from_preset("W4A4", scope="e2e", method="hadamard")
     report = quantize_(policy, config, config.select(policy, spec.components))
     with torch.no_grad():
-        _chunk("pi05", policy, 3)
+        pi_chunk("pi05", policy, 3)
     header = report.to_header()
     assert header["hooks"] == {"selected": 456, "fired": 456, "unfired": []}
     assert header["quant_format"].endswith("block-Hadamard transforms folded into the weights (QuaRot online form)")
@@ -84,7 +75,7 @@ def test_hadamard_gptq_rounds_in_the_rotated_space(demos):
     spec, demo = demos["pi0"]
     layers = select_layers(demo, spec.components, "ah").flat()
     with torch.no_grad(), calib.observe(layers, quantile=None, sample_rows=128, hessian=True) as observer:
-        _chunk("pi0", demo, 0)
+        pi_chunk("pi0", demo, 0)
     stats = observer.stats("hadgptq", {})
     name = "paligemma_with_expert.gemma_expert.model.layers.0.mlp.down_proj"
     rotation = BlockHadamard(layers[name].in_features)
@@ -98,7 +89,7 @@ def test_hadamard_gptq_rounds_in_the_rotated_space(demos):
     with torch.no_grad():
         config = QuantConfig.from_preset("W4A8", scope="ah", method="hadamard_gptq", stats=stats)
         report = quantize_(policy, config, config.select(policy, spec.components))
-        _chunk("pi0", policy, 3)
+        pi_chunk("pi0", policy, 3)
     header = report.to_header()
     assert header["hooks"] == {"selected": 131, "fired": 131, "unfired": []}
     assert header["quant_report"]["gptq"]["error_vs_rtn_max"] <= 1.0  # against RTN of the rotated weights
