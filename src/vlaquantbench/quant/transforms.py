@@ -30,7 +30,6 @@ import torch
 
 from vlaquantbench.quant.calibration import FLOOR, CalibrationSettings, CalibrationStats, smoothing_factors
 from vlaquantbench.quant.hooks import InputTransform
-from vlaquantbench.quant.methods import ABSMAX
 from vlaquantbench.quant.presets import Preset
 
 if TYPE_CHECKING:
@@ -44,7 +43,6 @@ class Smoothing:
     settings' quantile is None: then an exact identity before quantization)."""
 
     settings: CalibrationSettings
-    statistics = frozenset({ABSMAX})
 
     def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, Callable]:
         steps = {}
@@ -77,7 +75,6 @@ class Hadamard:
     needs no norm to be foldable (pi0.5's action expert's adaptive RMSNorm, which scales channels by a
     per-sample vector, is not), so it applies to every model, LayerNorm ones included."""
 
-    statistics = frozenset()
     description = "inputs rotated by block-Hadamard transforms folded into the weights (QuaRot online form)"
 
     def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, Callable]:
