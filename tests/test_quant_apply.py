@@ -116,7 +116,7 @@ def test_activation_quantization_changes_actions_and_baseline_does_not(demo, pol
     config = QuantConfig.from_preset("BASELINE")
     base_report = quantize_(policy, config, config.select(policy, SPEC.components))
     assert torch.equal(sample(policy), reference)
-    assert base_report.to_header()["quant_report"]["ah"] == {"layers": 0, "params": 0}
+    assert base_report.to_header()["quant_report"]["ah"] == {"layers": 0, "params": 0, "mean_rel_mse": None}
     config = QuantConfig.from_preset("W4A4", scope="ah")
     quantize_(policy, config, config.select(policy, SPEC.components))
     assert not torch.allclose(sample(policy), reference, atol=1e-3)
@@ -158,7 +158,9 @@ def test_bad_scope_and_patterns_fail_before_any_change(policy):
     with pytest.raises(UserError, match="unknown scope 'vision'"):
         config = QuantConfig.from_preset("W4", scope="vision")
         quantize_(policy, config, config.select(policy, SPEC.components))
-    with pytest.raises(UserError, match="unknown quantization method 'gptq'"):
+    with pytest.raises(UserError, match="unknown quantization method 'obq'"):
+        QuantConfig.from_preset("W4", method="obq")
+    with pytest.raises(UserError, match=r"method 'gptq' needs GPTQ calibration statistics .* for 456 selected layers"):
         config = QuantConfig.from_preset("W4", method="gptq")
         quantize_(policy, config, config.select(policy, SPEC.components))
     for k, v in snapshot.items():

@@ -173,10 +173,13 @@ def test_every_registered_method_is_reachable_from_a_cell_name():
         cfg = cell_config(ref(f"{method}-{presets.get(method, 'W8A8')}-ah"), STUDY)
         assert cfg["method"] == method and quantizer_method(method) == method
         assert callable(METHODS[method].resolve())  # the implementation the registry names exists
-        statistics = METHODS[method].statistics
-        if statistics is not None:  # calibration episodes of the scope collect what the method needs
+        recorded = METHODS[method].calibration_fields()
+        if recorded is None:
+            assert cfg["calibration"] is None
+        else:  # calibration episodes of the scope collect what the method needs
             assert cfg["calibration"]["components"] == ["ah"] and cfg["calibration"]["quantile"] is None
-            assert cfg["calibration"]["alpha"] == statistics.get("alpha")
+            assert {k: cfg["calibration"].get(k) for k in recorded} == recorded
+            assert cfg["calibration"]["alpha"] == recorded.get("alpha")
     assert quantizer_method("ablate") == quantizer_method("calib_ah") == "rtn"
 
 
@@ -199,3 +202,42 @@ def test_typed_cell_round_trips_its_canonical_form():
         cfg = cell_config(ref(cell), STUDY)
         typed = CellConfig.from_dict(cfg)
         assert typed.to_dict() == cfg and typed.config_hash == config_hash(cfg)
+
+
+def test_gptq_cells_calibrate_hessians_and_rows_for_every_model_and_scope():
+    from demo_study import CHECKPOINTS, demo_study
+
+    study = demo_study(*CHECKPOINTS)
+    built = 0
+    for model in CHECKPOINTS:
+        for scope in ("ve", "mp", "llm", "ah", "e2e", "ve_mp_llm"):
+            try:
+                cell_config(f"libero/libero_spatial/{model}/rtn-W4-{scope}", study)
+            except UserError:  # a scope the model lacks (X-VLA has no MP)
+                continue
+            built += 1
+            for cell in (f"gptq-W4-{scope}", f"gptq_act-W4A8-{scope}"):
+                calibration = cell_config(f"libero/libero_spatial/{model}/{cell}", study)["calibration"]
+                assert calibration["hessian"] is True and calibration["sample_rows"] == 128, (model, cell)
+                assert calibration["alpha"] is None and calibration["quantile"] is None
+    assert built >= 21
+    cfg = cell_config(ref("gptq-W4A4-llm"), STUDY)
+    # GPTQ's statistics are their own cache; RTN-smoothing and AWQ caches keep their keys and forms
+    assert calibration_config(cfg) != calibration_config(cell_config(ref("awq-W4-llm"), STUDY))
+    assert "hessian" not in cell_config(ref("awq-W4-llm"), STUDY)["calibration"]
+    assert calibration_config(cfg) == calibration_config(cell_config(ref("gptq-W3G64-llm"), STUDY))
+    with pytest.raises(UserError, match=r"cell 'libero/libero_spatial/pi05/gptq-MXFP4-ah': method 'gptq' implements"):
+        cell_config(ref("gptq-MXFP4-ah"), STUDY)
+
+
+def test_a_method_needing_statistics_no_calibration_collects_is_refused_naming_it():
+    from vlaquantbench.quant.methods import METHODS, STEP_SCALES, register_method
+
+    register_method("stepscaled", lambda model, selection, config: None, statistics=[STEP_SCALES])
+    try:
+        with pytest.raises(UserError, match=r"cell 'libero/libero_spatial/pi05/stepscaled-W4A8-ah': method "
+                                            r"'stepscaled' needs calibration statistics step_scales, which the rollout "
+                                            r"calibration does not collect"):
+            cell_config(ref("stepscaled-W4A8-ah"), STUDY)
+    finally:
+        del METHODS["stepscaled"]

@@ -4,7 +4,7 @@ A cell reference is `<benchmark>/<suite>/<model>/<cell>`; the cell name follows 
 
     [seed<N>-][steps<N>-]<method>-<preset>-<scope>[-<subset>]
 
-    method  a registered quantization method (`quant.methods`: rtn, awq, nf4, int8, int4wo,
+    method  a registered quantization method (`quant.methods`: rtn, gptq, gptq_act, awq, nf4, int8, int4wo,
             smoothquant, fp8, fp8_tensor, fp8_static, ...) | ablate (RTN on a named subset)
             | calib[_<comps>][_a<alpha*100>] | calib_set<k>_<comps>[_a<alpha*100>] (RTN after
             rollout smoothing and clipping)
@@ -15,11 +15,13 @@ A cell reference is `<benchmark>/<suite>/<model>/<cell>`; the cell name follows 
 `seed<N>` offsets every episode seed by N; `steps<N>` sets the number of flow-matching
 integration steps. `calib_set<k>` collects calibration statistics on init states
 `first + 2k, first + 2k + 1` (the paper's disjoint calibration sets). Methods that need statistics
-(`Method.statistics`: AWQ's sampled input rows, FP8 static scales, SmoothQuant's migration) collect
+(`MethodConfig.statistics`: AWQ's sampled input rows, GPTQ's Hessians, FP8 static scales, SmoothQuant's
+migration; `MethodConfig.calibration_fields` says what the cell's calibration records) collect
 them in the same calibration episodes of every component of the scope, without clipping, and
 without rollout smoothing unless the method's statistics name its alpha (`smoothquant`: 0.85, the
 paper's LLM deployment setting, from the input absmax of these episodes: the paper's 512 text
-calibration samples cannot be drawn offline; the header's format says which).
+calibration samples cannot be drawn offline; the header's format says which). A method needing
+statistics the calibration cannot collect is refused here, naming it.
 
 `CellConfig` holds everything that changes an episode's outcome; its canonical JSON is hashed
 (`config_hash`) and names the cell's output folder, so two cells share a folder exactly when they
@@ -127,7 +129,8 @@ class CellCalibration:
     tasks: tuple[int, ...]
     init_states: tuple[int, ...]
     seed: int
-    sample_rows: int | None = None  # AWQ's sampled input rows per layer; absent from the canonical form when None
+    sample_rows: int | None = None  # AWQ's and GPTQ's sampled input rows per layer; absent from the canonical form when None
+    hessian: bool | None = None  # GPTQ's X^T X per layer; absent from the canonical form when None
 
     @classmethod
     def from_dict(cls, calibration: dict[str, Any]) -> CellCalibration:
@@ -216,8 +219,9 @@ class CellConfig(PolicyRunConfig):
 
     def to_dict(self) -> dict[str, Any]:
         cfg = asdict(self)
-        if cfg["calibration"] is not None and cfg["calibration"]["sample_rows"] is None:
-            del cfg["calibration"]["sample_rows"]
+        for optional in ("sample_rows", "hessian"):  # the canonical forms (and hashes) of older cells stay
+            if cfg["calibration"] is not None and cfg["calibration"][optional] is None:
+                del cfg["calibration"][optional]
         return canonical(cfg)
 
     @classmethod
@@ -384,7 +388,13 @@ def quantized_counts(ref: str) -> dict[str, int]:
 
 def _calibration(ref: str, fields: dict[str, Any], study: StudyConfig, seed: int) -> CellCalibration | None:
     parsed = fields["calibration"]
-    statistics = METHODS[fields["method"]].statistics if fields["method"] in METHODS else None
+    method = METHODS.get(fields["method"])
+    if method is not None:
+        try:
+            method.check_statistics()
+        except UserError as err:
+            raise UserError(f"cell {ref!r}: {err}") from None
+    statistics = method.calibration_fields() if method is not None else None
     if parsed is None and statistics is None:
         return None
     protocol = study.calibration

@@ -193,7 +193,7 @@ def resolve_sampler(cfg: PolicyRun, policy_class: type) -> str:
     the config schema's (`study.runner.sampler`), which validated `cfg`; UserError for an impossible
     choice, before the policy loads. `policy_class`: the model's adapter class.
     """
-    from vlaquantbench.models.pi05.fast.captured import UNCAPTURABLE_METHODS
+    from vlaquantbench.quant.methods import METHODS
 
     choice = cfg.runner.sampler
     if choice == "eager":  # calibration's always (`cells.calibration_config`)
@@ -201,8 +201,9 @@ def resolve_sampler(cfg: PolicyRun, policy_class: type) -> str:
     obstacle = None
     if not policy_class.supports_captured_sampler:
         obstacle = f"model {cfg.model} has no captured sampler"
-    elif cfg.method in UNCAPTURABLE_METHODS:
-        obstacle = f"method {cfg.method} cannot be captured ({UNCAPTURABLE_METHODS[cfg.method]})"
+    # (cell methods outside the registry, `ablate` and `calib*`, are RTN, which can be captured)
+    elif (method := METHODS.get(cfg.method)) is not None and method.uncapturable is not None:
+        obstacle = f"method {cfg.method} cannot be captured ({method.uncapturable})"
     if choice == "captured":
         if obstacle:
             raise UserError(f"cell {cfg.ref}: study.runner.sampler is 'captured' but {obstacle}; use 'auto' or 'eager'")

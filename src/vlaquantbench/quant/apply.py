@@ -1,33 +1,43 @@
 """`quantize_(model, config, selection)`: apply one quantization to a policy, torchao style.
 
-    cfg = QuantConfig.from_preset("W4A4", scope="ah", only=["*self_attn*"])
+    cfg = QuantConfig.from_preset("W4A4", scope="ah", only=["*self_attn*"], method="gptq", stats=stats)
     report = quantize_(model, cfg, cfg.select(model, adapter.components))  # or get_model_spec("pi05").components
     ...  # run episodes
     report.check_hooks_fired()          # raises HooksNotFired naming layers whose hooks never ran
     header.update(report.to_header())
 
-Layer selection (`quant.scope`) happens, and fails on bad scopes or patterns, before any weight
-changes; `quantize_` receives the selected layers and knows no model (each model declares its
-component scopes in its own folder). The quantization itself is a *method* looked up in the registry
-`quant.methods`: `rtn` (this module) fake-quantizes weights in place and installs counting activation
-hooks; real-kernel methods live in `quant.kernels`. Weight changes are in place and not undone.
+Three independent parts make a quantization:
+- the selection (`quant.scope`), a predicate on layer names: it happens, and fails on bad scopes or
+  patterns, before any weight changes; `quantize_` receives the selected layers and knows no model
+  (each model declares its component scopes in its own folder);
+- the pre-quantization transforms (`quant.transforms`, `QuantConfig.transforms`), applied in order;
+- the method, a typed `MethodConfig` of the registry `quant.methods`: `rtn` (this module)
+  fake-quantizes weights in place and installs counting activation hooks, `gptq` (`quant.gptq`)
+  does the same after GPTQ's error-compensating rounding, real-kernel methods live in `quant.kernels`.
+Weight changes are in place and not undone.
+
+Where the calibration statistics hold sampled input rows of a layer (methods that collect `rows`),
+the report's `mean_rel_mse` of its component is the mean over its layers of
+||layer_q(X) - layer(X)||^2 / ||layer(X)||^2 on those rows: the quantized layer with its input
+transform against the released one (None where no layer of the component has rows).
 """
 
 from __future__ import annotations
 
 from collections.abc import Collection, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 from torch import nn
 
 from vlaquantbench.errors import UserError
-from vlaquantbench.quant.calibration import FLOOR, CalibrationSettings, CalibrationStats, smoothing_factors
+from vlaquantbench.quant.calibration import CalibrationSettings, CalibrationStats, ChannelStats
 from vlaquantbench.quant.hooks import CountingHook, InputTransform
-from vlaquantbench.quant.methods import get_method
+from vlaquantbench.quant.methods import MethodConfig, get_method
 from vlaquantbench.quant.presets import Preset, parse_preset
 from vlaquantbench.quant.patterns import scope_components
 from vlaquantbench.quant.scope import LayerOwner, Selection, select_layers
+from vlaquantbench.quant.transforms import Smoothing, input_steps
 
 
 @dataclass(frozen=True)
@@ -36,9 +46,10 @@ class QuantConfig:
     scope: str = "e2e"
     only: tuple[str, ...] | None = None
     exclude: tuple[str, ...] | None = None
-    method: str = "rtn"
+    method: MethodConfig = field(default_factory=lambda: get_method("rtn"))
     calibration: CalibrationSettings | None = None
     stats: CalibrationStats | None = None
+    transforms: tuple = ()  # pre-quantization transforms (`quant.transforms`), applied in order
 
     @classmethod
     def from_preset(
@@ -47,12 +58,20 @@ class QuantConfig:
         scope: str = "e2e",
         only: Sequence[str] | None = None,
         exclude: Sequence[str] | None = None,
-        method: str = "rtn",
+        method: str | MethodConfig = "rtn",
         calibration: CalibrationSettings | None = None,
         stats: CalibrationStats | None = None,
+        transforms: Sequence | None = None,
     ) -> QuantConfig:
+        """`method`: a registered name or a method config; `transforms` None: rollout smoothing
+        (`Smoothing(calibration)`) where the calibration settings smooth and the method composes,
+        then the transforms the method's entry names (`MethodConfig.transforms`)."""
         if calibration is not None and stats is None:
             raise UserError("calibration settings given without calibration statistics (stats=...)")
+        method = get_method(method) if isinstance(method, str) else method
+        if transforms is None:
+            smooths = calibration is not None and calibration.alpha is not None and method.composes
+            transforms = ((Smoothing(calibration),) if smooths else ()) + method.named_transforms()
         return cls(
             preset=parse_preset(preset),
             scope=scope,
@@ -61,6 +80,7 @@ class QuantConfig:
             method=method,
             calibration=calibration,
             stats=stats,
+            transforms=tuple(transforms),
         )
 
     def select(self, model: nn.Module, components: Mapping[str, LayerOwner]) -> Selection:
@@ -98,6 +118,7 @@ class QuantReport:
     config: QuantConfig
     selection: Selection
     result: MethodResult
+    mean_rel_mse: dict[str, float | None] = field(default_factory=dict)  # by component
 
     @property
     def components(self) -> dict[str, dict[str, int]]:
@@ -131,7 +152,7 @@ class QuantReport:
     def to_header(self) -> dict:
         quant_report: dict = {}
         for comp, counts in self.components.items():
-            quant_report[comp] = dict(counts)
+            quant_report[comp] = {**counts, "mean_rel_mse": self.mean_rel_mse.get(comp)}
             if self.config.calibration is not None:
                 names = self.selection.layers[comp]
                 quant_report[comp]["calibrated_layers"] = sum(n in self.result.calibrated for n in names)
@@ -149,49 +170,96 @@ class QuantReport:
 
 def quantize_(model: nn.Module, config: QuantConfig, selection: Selection) -> QuantReport:
     """Quantize the layers of `model` in `selection` (e.g. `config.select(model, components)`) as
-    `config` says and return the report. The selection's components must be those of `config.scope`,
-    which the report records."""
-    method = get_method(config.method)
+    `config` says and return the report: the transforms in order, then the method. The selection's
+    components must be those of `config.scope`, which the report records."""
+    method = config.method
     in_scope = scope_components(config.scope, selection.layers)
     if list(selection.layers) != in_scope:
         raise UserError(f"selection of components {list(selection.layers)} given for scope {config.scope!r} ({in_scope})")
-    if config.preset.is_baseline and config.calibration is None:
+    if config.preset.is_baseline and config.calibration is None and not config.transforms:
         empty = Selection({comp: {} for comp in selection.layers})
         return QuantReport(config, empty, MethodResult(format="released precision"))
-    return QuantReport(config, selection, method.resolve()(model, selection, config))
+    if config.transforms and not method.composes:
+        raise UserError(f"method {method.name!r} does not run after pre-quantization transforms "
+                        f"({', '.join(type(t).__name__ for t in config.transforms)})")
+    errors = _OutputErrors(selection, config.stats)
+    inputs: dict[str, tuple] = {}
+    for transform in config.transforms:
+        for name, step in transform.apply(selection, config.stats).items():
+            inputs[name] = (*inputs.get(name, ()), step)
+    result = method.resolve()(model, replace(selection, inputs=inputs), config)
+    # Smoothing is described by the method's format (its calibration settings); other transforms here.
+    result.format += "".join(f"; {t.description}" for t in config.transforms if hasattr(t, "description"))
+    result.calibrated |= {name for name, steps in inputs.items() if any(isinstance(s, InputTransform) for s in steps)}
+    return QuantReport(config, selection, result, errors.measure(model, result))
+
+
+def layer_statistics(selection: Selection, config: QuantConfig, method: str, what: str, how: str,
+                     usable=lambda stats: True) -> dict[str, ChannelStats]:
+    """The calibration statistics of every selected layer; UserError before any weight changes."""
+    layers = config.stats.layers if config.stats is not None else {}
+    found = {n: layers[n] for n in selection.flat() if n in layers and usable(layers[n])}
+    missing = [n for n in selection.flat() if n not in found]
+    if missing:
+        raise UserError(f"method {method!r} needs {what} for {len(missing)} selected layers, e.g. {missing[0]}: {how}")
+    return found
+
+
+def install_input_hooks(result: MethodResult, selection: Selection, preset: Preset) -> None:
+    """Per selected layer, a counting hook running its transforms' input steps and then the preset's
+    activation quantization (none where that does nothing)."""
+    for name, layer in selection.flat().items():
+        transform = input_steps(selection.inputs.get(name, ()), preset)
+        if not transform.is_identity:
+            result.hooks[name] = CountingHook(layer, transform)
+
+
+class _OutputErrors:
+    """Each selected layer's outputs on its sampled calibration rows, kept before quantization, and
+    the mean relative squared error of the quantized layers on the same rows, by component."""
+
+    def __init__(self, selection: Selection, stats: CalibrationStats | None):
+        self.selection = selection
+        self.rows: dict[str, torch.Tensor] = {}
+        self.reference: dict[str, torch.Tensor] = {}
+        layers = stats.layers if stats is not None else {}
+        with torch.no_grad():
+            for name, layer in selection.flat().items():
+                observed: ChannelStats | None = layers.get(name)
+                if observed is None or observed.samples is None:
+                    continue
+                rows = observed.samples.to(layer.weight.device, layer.weight.dtype)
+                self.rows[name], self.reference[name] = rows, layer(rows).float()
+
+    def measure(self, model: nn.Module, result: MethodResult) -> dict[str, float | None]:
+        errors: dict[str, list[float]] = {comp: [] for comp in self.selection.layers}
+        with torch.no_grad():
+            for name, rows in self.rows.items():
+                quantized = model.get_submodule(name)  # a kernel method may have replaced the layer
+                hook = result.hooks.get(name)
+                calls = hook.calls if hook is not None else 0
+                out = quantized(rows).float()  # through the layer's input hook, as in an episode
+                if hook is not None:
+                    hook.quantizer.calls = calls  # this is no evidence that an episode quantized the layer
+                reference = self.reference[name]
+                errors[self.selection.component_of(name)].append(
+                    ((out - reference).pow(2).sum() / reference.pow(2).sum().clamp_min(1e-30)).item())
+        return {comp: sum(values) / len(values) if values else None for comp, values in errors.items()}
 
 
 def rtn(model: nn.Module, selection: Selection, config: QuantConfig) -> MethodResult:
-    """Round-to-nearest fake quantization (paper `app:quant-prelim`), with optional rollout
-    smoothing and clipping (`app:calib`) on the layers of the calibrated components."""
+    """Round-to-nearest fake quantization (paper `app:quant-prelim`), after the transforms (rollout
+    smoothing and clipping, `app:calib`, on the layers of the calibrated components)."""
     preset = config.preset
     result = MethodResult(format=_rtn_format(preset, config.calibration))
-    for name, layer in selection.flat().items():
-        transform = InputTransform(act_bits=preset.act_bits, act_format=preset.act_format)
-        layer_stats = _stats_for(name, selection, config)
+    if preset.weight is not None:
         with torch.no_grad():
-            if layer_stats is not None:
-                smooth = smoothing_factors(layer_stats.absmax, layer.weight, config.calibration.alpha)
-                clip = None
-                if config.calibration.quantile is not None:
-                    clip = (layer_stats.quantile.float().to(smooth.device) / smooth).clamp_min(FLOOR)
-                layer.weight.copy_((layer.weight.float() * smooth).to(layer.weight.dtype))
-                transform = InputTransform(smooth=smooth, clip=clip, act_bits=preset.act_bits, act_format=preset.act_format)
-                result.calibrated.add(name)
-            if preset.weight is not None:
+            for layer in selection.flat().values():
                 layer.weight.copy_(preset.weight.quantize_weight(layer.weight))
-        if not transform.is_identity:
-            result.hooks[name] = CountingHook(layer, transform)
+    install_input_hooks(result, selection, preset)
     return result
-
-
-def _stats_for(name: str, selection: Selection, config: QuantConfig):
-    if config.calibration is None or selection.component_of(name) not in config.calibration.components:
-        return None
-    return config.stats.layers.get(name)  # layers never observed during calibration stay uncalibrated
 
 
 def _rtn_format(preset: Preset, calibration: CalibrationSettings | None) -> str:
     calib = f"; rollout smoothing alpha={calibration.alpha}, clip q={calibration.quantile}" if calibration else ""
     return f"RTN {preset.describe()}{calib}"
-

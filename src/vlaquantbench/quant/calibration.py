@@ -28,6 +28,10 @@ With `sample_rows` > 0 (AWQ statistics, `vlaquantbench.quant.awq`) it also keeps
 sum of |a_j| over all rows (`absmean`) and at most `sample_rows` input rows: the rows whose index
 in the stream of all observed rows is a multiple of a stride that doubles whenever the sample would
 overflow, so the sample is deterministic and evenly spread over every call.
+With `hessian` (GPTQ statistics, `vlaquantbench.quant.gptq`) it also keeps X^T X over every observed
+row in float32 (`hessian`), on the layer's device while observing.
+Which of these a calibration collects is what its cell's method declares (`quant.methods`
+statistics kinds; `CalibrationSettings.for_cell`).
 At quantization, with a_j and w_j = max_i |W_ij| floored at 1e-5,
 d_j = max(a_j^alpha / w_j^(1 - alpha), 1e-5); weights become W diag(d), and the input hook divides
 by d, clips at max(quantile_j / d_j, 1e-5), then quantizes (`vlaquantbench.quant.hooks`).
@@ -42,9 +46,13 @@ import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
+
+if TYPE_CHECKING:  # annotation only: cells imports quant's torch-free registry
+    from vlaquantbench.cells import CellCalibration
 
 from vlaquantbench.atomic import atomic_write
 from vlaquantbench.errors import UserError
@@ -61,7 +69,24 @@ class CalibrationSettings:
     alpha: float | None = 0.5  # None: no rollout smoothing (statistics for AWQ only)
     quantile: float | None = 0.999
     components: tuple[str, ...] = ("ah",)
-    sample_rows: int = 0  # > 0: also keep mean |a_j| and this many input rows per layer (AWQ)
+    sample_rows: int = 0  # > 0: also keep mean |a_j| and this many input rows per layer (AWQ, GPTQ)
+    hessian: bool = False  # also keep X^T X per layer (GPTQ)
+
+    @classmethod
+    def for_cell(cls, calibration: CellCalibration, calibrated_components: Sequence[str]) -> CalibrationSettings:
+        """The settings of a cell's `calibration` config (`cells.CellCalibration`). Smoothing statistics
+        cover the components the model calibrates (`calibrated_components`: the pi models leave their MP
+        uncalibrated, paper app:calib); a method's input rows or Hessians cover every component of the
+        scope, as the method quantizes them all."""
+        sample_rows, hessian = calibration.sample_rows or 0, bool(calibration.hessian)
+        every = sample_rows or hessian
+        components = tuple(c for c in calibration.components if every or c in calibrated_components)
+        return cls(alpha=calibration.alpha, quantile=calibration.quantile, components=components,
+                   sample_rows=sample_rows, hessian=hessian)
+
+    def observe(self, layers: Mapping[str, nn.Linear]) -> contextlib.AbstractContextManager[ActivationObserver]:
+        """`observe` collecting exactly what these settings use."""
+        return observe(layers, quantile=self.quantile, sample_rows=self.sample_rows, hessian=self.hessian)
 
 
 @dataclass
@@ -73,6 +98,7 @@ class ChannelStats:
     rows: int = 0  # rows (tokens) observed
     samples: torch.Tensor | None = None  # [<= sample_rows, in_features], rows at `sample_stride`
     sample_stride: int = 1
+    hessian: torch.Tensor | None = None  # [in_features, in_features] float32, X^T X over every row (hessian)
 
     @property
     def absmean(self) -> torch.Tensor | None:
@@ -130,6 +156,7 @@ def keyed_fields(model, checkpoint, revision, init_states, tasks, seed, settings
         "code_revision": code_revision,
         # only when requested, so the keys of existing smoothing-only caches stay what they were
         **({"sample_rows": int(settings.sample_rows)} if settings.sample_rows else {}),
+        **({"hessian": True} if settings.hessian else {}),
     }
 
 
@@ -163,9 +190,11 @@ def keep_strided_rows(
 class ActivationObserver:
     """Forward pre-hooks collecting `ChannelStats` on linear inputs; use through `observe`."""
 
-    def __init__(self, layers: Mapping[str, nn.Linear], quantile: float | None, sample_rows: int = 0):
+    def __init__(self, layers: Mapping[str, nn.Linear], quantile: float | None, sample_rows: int = 0,
+                 hessian: bool = False):
         self.quantile = quantile
         self.sample_rows = sample_rows
+        self.hessian = hessian
         self.layers: dict[str, ChannelStats] = {}
         self._handles = [layer.register_forward_pre_hook(self._hook_for(name)) for name, layer in layers.items()]
 
@@ -184,6 +213,10 @@ class ActivationObserver:
                 seen.calls += 1
             if self.sample_rows:
                 self._track_rows(self.layers[name], x.detach().float().reshape(-1, x.shape[-1]))
+            if self.hessian:
+                rows = x.detach().float().reshape(-1, x.shape[-1])
+                stats = self.layers[name]
+                stats.hessian = rows.t() @ rows if stats.hessian is None else stats.hessian.addmm_(rows.t(), rows)
 
         return hook
 
@@ -200,16 +233,20 @@ class ActivationObserver:
             handle.remove()
 
     def stats(self, key: str, keyed: dict) -> CalibrationStats:
+        for layer in self.layers.values():
+            if layer.hessian is not None:
+                layer.hessian = layer.hessian.cpu()
         return CalibrationStats(key=key, keyed_fields=dict(keyed), layers=dict(self.layers))
 
 
 @contextlib.contextmanager
 def observe(
-    layers: Mapping[str, nn.Linear], quantile: float | None = 0.999, sample_rows: int = 0
+    layers: Mapping[str, nn.Linear], quantile: float | None = 0.999, sample_rows: int = 0, hessian: bool = False
 ) -> Iterator[ActivationObserver]:
     """Observe the inputs of `layers` (qualified name -> linear) while the block runs; with
-    `sample_rows` > 0 also keep the AWQ statistics (mean |x| and a strided sample of input rows)."""
-    observer = ActivationObserver(layers, quantile, sample_rows)
+    `sample_rows` > 0 also keep mean |x| and a strided sample of input rows (AWQ, GPTQ), with
+    `hessian` also X^T X (GPTQ)."""
+    observer = ActivationObserver(layers, quantile, sample_rows, hessian)
     try:
         yield observer
     finally:
@@ -241,6 +278,8 @@ def _layer_payload(stats: ChannelStats) -> dict:
     payload = {"absmax": stats.absmax, "quantile": stats.quantile, "calls": stats.calls}
     if stats.abs_sum is not None:
         payload.update(abs_sum=stats.abs_sum, rows=stats.rows, samples=stats.samples, sample_stride=stats.sample_stride)
+    if stats.hessian is not None:
+        payload["hessian"] = stats.hessian
     return payload
 
 

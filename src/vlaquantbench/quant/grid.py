@@ -48,14 +48,41 @@ def fma_quotient(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
 
 def fake_quant_asym(x: torch.Tensor, bits: int) -> torch.Tensor:
     """Asymmetric b-bit RTN with one scale and zero point per row of the last dimension."""
+    return grid_of(x, bits, symmetric=False).quantize(x).to(x.dtype)
+
+
+class RowGrid(NamedTuple):
+    """The b-bit grid of each row of a tensor (scale and zero point [..., 1], integer range), fixed
+    once: GPTQ (`quant.gptq`) rounds a group's columns one at a time on the grid of the whole group."""
+
+    scale: torch.Tensor
+    zero: torch.Tensor
+    q_min: int
+    q_max: int
+
+    def quantize(self, x: torch.Tensor) -> torch.Tensor:
+        """x on this grid, in float32 (x's last dimension: columns sharing a row's scale, or one column
+        [rows] against scales [rows, 1] -- use `quantize_column`)."""
+        q = torch.clamp(torch.round(x.float() / self.scale) + self.zero, self.q_min, self.q_max)
+        return (q - self.zero) * self.scale
+
+    def quantize_column(self, column: torch.Tensor) -> torch.Tensor:
+        return self.quantize(column[:, None])[:, 0]
+
+
+def grid_of(x: torch.Tensor, bits: int, symmetric: bool) -> RowGrid:
+    """The grid `fake_quant_sym` / `fake_quant_asym` put each row of x's last dimension on (float32)."""
     xf = x.float()
+    if symmetric:
+        q_max = 2 ** (bits - 1) - 1
+        scale = xf.abs().amax(dim=-1, keepdim=True).clamp_min(SCALE_FLOOR) / q_max
+        return RowGrid(scale, torch.zeros_like(scale), -(q_max + 1), q_max)
     levels = 2**bits - 1
     low = xf.amin(dim=-1, keepdim=True).clamp_max(0.0)
     high = xf.amax(dim=-1, keepdim=True).clamp_min(0.0)
     scale = ((high - low) / levels).clamp_min(SCALE_FLOOR)
     zero = torch.clamp(torch.round(-low / scale), 0, levels)
-    q = torch.clamp(torch.round(xf / scale) + zero, 0, levels)
-    return ((q - zero) * scale).to(x.dtype)
+    return RowGrid(scale, zero, 0, levels)
 
 
 def fake_quant_weight(weight: torch.Tensor, bits: int, group_size: int | None, symmetric: bool) -> torch.Tensor:

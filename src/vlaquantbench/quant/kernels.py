@@ -39,10 +39,10 @@ import torch.nn.functional as F  # noqa: N812
 from torch import nn
 
 from vlaquantbench.errors import UserError
-from vlaquantbench.quant.apply import MethodResult, QuantConfig
+from vlaquantbench.quant.apply import MethodResult, QuantConfig, layer_statistics
 from vlaquantbench.quant.methods import get_method
 from vlaquantbench.quant.awq import search_scales
-from vlaquantbench.quant.calibration import ChannelStats, smoothing_factors
+from vlaquantbench.quant.calibration import smoothing_factors
 from vlaquantbench.quant.grid import SCALE_FLOOR, CastRows, PerTokenCast, fake_quant_weight
 from vlaquantbench.quant.hooks import CountingHook, InputTransform
 from vlaquantbench.quant.scope import Selection
@@ -334,17 +334,6 @@ def int4_weight_only(model, selection, config):
                         f"int4 weight-only, asymmetric group {group}, tinygemm (torch._weight_int4pack_mm), bf16 activations")
 
 
-def _layer_stats(selection: Selection, config: QuantConfig, method: str, what: str, how: str,
-                 usable=lambda stats: True) -> dict[str, ChannelStats]:
-    """The calibration statistics of every selected layer; UserError before any weight changes."""
-    layers = config.stats.layers if config.stats is not None else {}
-    found = {n: layers[n] for n in selection.flat() if n in layers and usable(layers[n])}
-    missing = [n for n in selection.flat() if n not in found]
-    if missing:
-        raise UserError(f"method {method!r} needs {what} for {len(missing)} selected layers, e.g. {missing[0]}: {how}")
-    return found
-
-
 def _int4_kernel_fits(linear: nn.Linear, grid) -> bool:
     """tinygemm packs 4-bit asymmetric groups of 32..256 with K a multiple of 128, N of 8, on CUDA."""
     return (linear.weight.is_cuda and grid.bits == 4 and not grid.symmetric and grid.group_size in (32, 64, 128, 256)
@@ -357,7 +346,7 @@ def awq(model, selection, config):
     (its grid spans [min, max] of each group, not the zero-including range of `quant.grid`)."""
     _require(config, "awq")
     grid = config.preset.weight
-    stats = _layer_stats(selection, config, "awq", "AWQ calibration statistics (mean |x| and sampled input rows)",
+    stats = layer_statistics(selection, config, "awq", "AWQ calibration statistics (mean |x| and sampled input rows)",
                          "collect them on the unquantized policy with quant.calibration.observe(layers, "
                          "sample_rows=128) and pass stats=... (the runner's calibrate step does this for awq cells)",
                          usable=lambda layer: layer.samples is not None)
@@ -453,7 +442,7 @@ def fp8_tensorwise(model, selection, config):
 def fp8_static(model, selection, config):
     """FP8 W8A8 with static activation scales from the calibration statistics' per-channel absmax."""
     _require(config, "fp8_static")
-    layers = _layer_stats(selection, config, "fp8_static", "calibration statistics (input absmax)",
+    layers = layer_statistics(selection, config, "fp8_static", "calibration statistics (input absmax)",
                           "observe them on the unquantized policy with quant.calibration.observe(layers) "
                           "and pass stats=...")
     result = _replace_all(model, selection, lambda n, m: Fp8StaticLinear(m, layers[n].absmax),

@@ -8,8 +8,8 @@ the model passed in (e.g. `paligemma_with_expert.gemma_expert.model.layers.0.mlp
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Protocol
 
 from torch import nn
@@ -28,9 +28,12 @@ class LayerOwner(Protocol):
 
 @dataclass(frozen=True)
 class Selection:
-    """The layers one quantization acts on, grouped by component (every component in scope is a key)."""
+    """The layers one quantization acts on, grouped by component (every component in scope is a key),
+    and what the pre-quantization transforms (`quant.transforms`) left each layer's input to do before
+    it is quantized (steps in order, e.g. divide by the smoothing vector and clip), by layer name."""
 
     layers: dict[str, dict[str, nn.Linear]]
+    inputs: dict[str, tuple[Callable, ...]] = field(default_factory=dict)
 
     def flat(self) -> dict[str, nn.Linear]:
         return {name: layer for group in self.layers.values() for name, layer in group.items()}

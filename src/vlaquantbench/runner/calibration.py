@@ -31,7 +31,7 @@ def calibrate(
     """Collect statistics for `calib` (a `cells.CalibrationConfig`, or its canonical form `cells.calibration_config`)
     and save them to `output`."""
     from vlaquantbench.quant import select_layers
-    from vlaquantbench.quant.calibration import calibration_key, keyed_fields, observe, save_stats
+    from vlaquantbench.quant.calibration import calibration_key, keyed_fields, save_stats
 
     if torch_threads:
         torch.set_num_threads(torch_threads)
@@ -62,7 +62,7 @@ def calibrate(
         code_revision=code_revision(),
     )
     max_steps = calib.runner.max_steps  # resolved with the cell when the DAG was built
-    with observe(layers, quantile=settings.quantile, sample_rows=settings.sample_rows) as observer:
+    with settings.observe(layers) as observer:  # exactly the statistics the cell's method declares
         with make_env(calib.benchmark, suite, workers, **env_settings(calib.benchmark, calib.runner, adapter.reads_images)) as env:
             with tqdm(total=len(specs), desc=f"calibrate {calib.model} {calib.suite}", unit="ep",
                       disable=not progress) as bar:

@@ -80,16 +80,11 @@ def load_policy(cfg: CellConfig | CalibrationConfig, stamp: str | Path | None, p
 
 
 def calibration_settings(settings: CellCalibration, adapter):
-    """The quantizer's calibration settings for a cell's `calibration` config, restricted to the
-    components this model calibrates (the pi models leave their MP uncalibrated, paper app:calib);
-    AWQ statistics (`sample_rows`) cover every component of the scope, as AWQ quantizes them all."""
+    """The quantizer's calibration settings for a cell's `calibration` config and this model
+    (`CalibrationSettings.for_cell`: which components each kind of statistic covers)."""
     from vlaquantbench.quant import CalibrationSettings
 
-    sample_rows = settings.sample_rows or 0
-    calibrated = getattr(adapter, "calibrated_components", settings.components)
-    components = tuple(c for c in settings.components if sample_rows or c in calibrated)
-    return CalibrationSettings(alpha=settings.alpha, quantile=settings.quantile, components=components,
-                               sample_rows=sample_rows)
+    return CalibrationSettings.for_cell(settings, getattr(adapter, "calibrated_components", settings.components))
 
 
 EPISODE_ORDERS = ("task_major", "interleaved")

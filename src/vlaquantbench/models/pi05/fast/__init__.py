@@ -2,6 +2,6 @@
 (`captured`) over a capture-ready rewrite of lerobot's `sample_actions` (`static_sampling`), whose
 linears sharing an input run as one product (`linear_groups`)."""
 
-from vlaquantbench.models.pi05.fast.captured import UNCAPTURABLE_METHODS, CapturedSampler
+from vlaquantbench.models.pi05.fast.captured import CapturedSampler
 
-__all__ = ["UNCAPTURABLE_METHODS", "CapturedSampler"]
+__all__ = ["CapturedSampler"]

@@ -50,8 +50,6 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from vlaquantbench.models.pi05.fast import static_sampling
 
-# Quantization methods whose layers cannot run inside a CUDA graph, with the reason.
-UNCAPTURABLE_METHODS = {"int8": "bitsandbytes LLM.int8() synchronizes with the host on its outlier columns"}
 # Batch sizes a graph is captured for (`graph_plan`). Their sum bounds the graphs' memory.
 GRAPH_SIZES = (1, 2, 3, 4, 6, 8, 12, 16)
 # A replay's cost beyond its rows, in rows: pi0.5's captured chunk (2 cameras, bf16) took 21.8, 29.3,

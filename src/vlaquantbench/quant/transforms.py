@@ -1,0 +1,141 @@
+"""Pre-quantization transforms: rewrite selected layers, without changing what they compute, before
+a method quantizes them. `QuantConfig.transforms` is an ordered list; `quantize_` applies each in turn,
+then runs the method on the transformed weights.
+
+A transform changes weights in place and returns, per layer it changed, the step the layer's input
+must take first (a callable on the input tensor, e.g. `InputTransform(smooth=d, clip=c)`): with it, the
+layer's output is unchanged up to the transform's own approximation (clipping). Methods that compose
+with transforms (`rtn`, `gptq`) run those steps, in order, ahead of their activation quantization
+(`input_steps`); the others refuse a non-empty list.
+
+    Smoothing   rollout smoothing and clipping (paper `app:calib`): W diag(d), x / d clipped at the
+                calibrated quantile, on the layers of the calibrated components
+    Hadamard    an orthonormal block-Hadamard rotation R of every selected layer's input, folded into
+                its weight: W R^T (R x) = W x (QuaRot's online Hadamard transform, here before every
+                selected linear; see `Hadamard`)
+
+Methods that take a layer's calibration Hessian (GPTQ) map it into the transformed input space
+through the step's `map_hessian`; a step without one (smoothing's clip is not linear) is refused there.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import scipy.linalg
+import torch
+
+from vlaquantbench.quant.calibration import FLOOR, CalibrationSettings, CalibrationStats, smoothing_factors
+from vlaquantbench.quant.hooks import InputTransform
+from vlaquantbench.quant.presets import Preset
+
+if TYPE_CHECKING:
+    from vlaquantbench.quant.scope import Selection
+
+
+@dataclass(frozen=True)
+class Smoothing:
+    """SmoothQuant-style migration from rollout statistics, d_j = max(a_j^alpha / w_j^(1-alpha), 1e-5)
+    (`quant.calibration.smoothing_factors`), and clipping of x / d at quantile_j / d_j (none when the
+    settings' quantile is None: then an exact identity before quantization)."""
+
+    settings: CalibrationSettings
+
+    def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, Callable]:
+        steps = {}
+        for name, layer in selection.flat().items():
+            layer_stats = stats.layers.get(name) if selection.component_of(name) in self.settings.components else None
+            if layer_stats is None:  # layers never observed during calibration stay untransformed
+                continue
+            with torch.no_grad():
+                smooth = smoothing_factors(layer_stats.absmax, layer.weight, self.settings.alpha)
+                clip = None
+                if self.settings.quantile is not None:
+                    clip = (layer_stats.quantile.float().to(smooth.device) / smooth).clamp_min(FLOOR)
+                layer.weight.copy_((layer.weight.float() * smooth).to(layer.weight.dtype))
+            steps[name] = InputTransform(smooth=smooth, clip=clip)
+        return steps
+
+
+@dataclass(frozen=True)
+class Hadamard:
+    """Rotate each selected linear's input by R = blockdiag(H_b, ..., H_b), H_b the Sylvester Hadamard
+    matrix of order b scaled by 1/sqrt(b) (orthonormal), b the largest power of two dividing the layer's
+    input width (the whole width for the Gemma layers of pi0 and pi0.5), and fold R^T into the weight
+    (in float32, then the layer's dtype). Rotating spreads an outlier channel over b channels, which is
+    what lets 4-bit per-token activation grids keep the rest (QuaRot, Ashkboos et al. 2024).
+
+    This is QuaRot's *online* form applied to every selected layer, not its offline rotation of the
+    residual stream with RMSNorm weights folded into the next layers: every selected input is rotated
+    exactly as QuaRot's offline rotation would rotate it (an orthonormal R), so the layers compute on
+    the same kind of rotated inputs and weights, but at the cost of one transform per layer; it
+    needs no norm to be foldable (pi0.5's action expert's adaptive RMSNorm, which scales channels by a
+    per-sample vector, is not), so it applies to every model, LayerNorm ones included."""
+
+    description = "inputs rotated by block-Hadamard transforms folded into the weights (QuaRot online form)"
+
+    def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, Callable]:
+        steps = {}
+        for name, layer in selection.flat().items():
+            rotation = BlockHadamard(layer.in_features, layer.weight.device)
+            with torch.no_grad():
+                layer.weight.copy_(rotation.rotate(layer.weight, torch.float32).to(layer.weight.dtype))
+            steps[name] = rotation
+        return steps
+
+
+class BlockHadamard:
+    """x -> R x for inputs of `width` channels (rows of x as vectors: x R^T), computed in float32."""
+
+    def __init__(self, width: int, device: torch.device | str = "cpu"):
+        self.block = width & -width  # the largest power of two dividing the width
+        self.matrix = torch.tensor(scipy.linalg.hadamard(self.block), dtype=torch.float32, device=device)
+        self.matrix /= math.sqrt(self.block)
+
+    def rotate(self, x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+        """Every row of x (last dimension) times R^T, computed in `dtype`; also folds R^T into a weight."""
+        blocks = x.to(dtype).reshape(*x.shape[:-1], -1, self.block)
+        return (blocks @ self.matrix.to(dtype).t()).reshape(x.shape)
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        return self.rotate(x, torch.float32).to(x.dtype)
+
+    def map_hessian(self, hessian: torch.Tensor) -> torch.Tensor:
+        """R (X^T X) R^T, the second moment of the rotated inputs, in the Hessian's dtype."""
+        return self.rotate(self.rotate(hessian, hessian.dtype).t(), hessian.dtype).t()
+
+    @property
+    def is_identity(self) -> bool:
+        return False
+
+
+def input_steps(steps: Sequence[Callable], preset: Preset) -> Callable:
+    """One layer's input transform: the transforms' steps in order, then the preset's activation
+    quantization. A single smoothing step folds into one `InputTransform` (the form the fast paths
+    and the paper's order know: divide, clip, quantize)."""
+    quantize = InputTransform(act_bits=preset.act_bits, act_format=preset.act_format)
+    if not steps:
+        return quantize
+    if len(steps) == 1 and isinstance(steps[0], InputTransform) and steps[0].act_bits is None:
+        return InputTransform(smooth=steps[0].smooth, clip=steps[0].clip, act_bits=preset.act_bits,
+                              act_format=preset.act_format)
+    return _Chain((*steps, quantize))
+
+
+@dataclass(frozen=True)
+class _Chain:
+    """Several input steps applied in order."""
+
+    steps: tuple[Callable, ...]
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        for step in self.steps:
+            x = step(x)
+        return x
+
+    @property
+    def is_identity(self) -> bool:
+        return False
