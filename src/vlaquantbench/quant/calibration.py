@@ -46,13 +46,10 @@ import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 from torch import nn
-
-if TYPE_CHECKING:  # annotation only: cells imports quant's torch-free registry
-    from vlaquantbench.cells import CellCalibration
 
 from vlaquantbench.atomic import atomic_write
 from vlaquantbench.errors import UserError
@@ -73,8 +70,9 @@ class CalibrationSettings:
     hessian: bool = False  # also keep X^T X per layer (GPTQ)
 
     @classmethod
-    def for_cell(cls, calibration: CellCalibration, calibrated_components: Sequence[str]) -> CalibrationSettings:
-        """The settings of a cell's `calibration` config (`cells.CellCalibration`). Smoothing statistics
+    def for_cell(cls, calibration: Any, calibrated_components: Sequence[str]) -> CalibrationSettings:
+        """The settings of a cell's `calibration` config (a `cells.CellCalibration`, not imported: cells
+        imports quant's registry). Smoothing statistics
         cover the components the model calibrates (`calibrated_components`: the pi models leave their MP
         uncalibrated, paper app:calib); a method's input rows or Hessians cover every component of the
         scope, as the method quantizes them all."""
