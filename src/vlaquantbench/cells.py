@@ -158,6 +158,10 @@ class CellConfig:
     # differs from them ({key: {client, cell}}): recorded, never silent.
     client: dict[str, Any] = field(default_factory=dict)
     overrides: dict[str, Any] = field(default_factory=dict)
+    # study.sequential's stopping rule and the cell it is tested against ({ref, config_hash}, whose records
+    # the rollout reads); None (absent from the canonical form, so fixed-design hashes are unchanged) for
+    # a fixed-design cell and for the `against` cell itself.
+    sequential: dict[str, Any] | None = None
 
     @classmethod
     def from_ref(cls, ref: str, study: StudyConfig) -> CellConfig:
@@ -198,12 +202,15 @@ class CellConfig:
             runner=runner,
             client=client.as_dict(),
             overrides=_overrides(client, runner, episodes),
+            sequential=_sequential(ref, benchmark, suite, model, name, study),
         )
 
     def to_dict(self) -> dict[str, Any]:
         cfg = asdict(self)
         if cfg["calibration"] is not None and cfg["calibration"]["sample_rows"] is None:
             del cfg["calibration"]["sample_rows"]
+        if cfg["sequential"] is None:
+            del cfg["sequential"]
         return canonical(cfg)
 
     @classmethod
@@ -221,6 +228,20 @@ class CellConfig:
     @property
     def config_hash(self) -> str:
         return config_hash(self.to_dict())
+
+
+def _sequential(ref: str, benchmark: str, suite: str, model: str, name: str, study: StudyConfig) -> dict[str, Any] | None:
+    """The cell's stopping rule under study.sequential: its level, margin and the `against` cell (its
+    reference and config hash: the rollout depends on that cell's records); None for the `against` cell."""
+    design = study.sequential
+    if design is None or name == design.against:
+        return None
+    against = f"{benchmark}/{suite}/{model}/{design.against}"
+    try:
+        against_hash = CellConfig.from_ref(against, study).config_hash
+    except UserError as err:
+        raise UserError(f"cell {ref!r}: study.sequential.against: {err}") from None
+    return {"alpha": design.alpha, "margin_pp": design.margin_pp, "against": {"ref": against, "config_hash": against_hash}}
 
 
 def _runner(study: RunnerConfig, model: dict[str, Any], client, flow_steps: int | None) -> RunnerConfig:

@@ -22,6 +22,7 @@ try:
             snakemake.input.checkpoint,
             snakemake.input.calibration[0] if snakemake.input.calibration else None,
             journal=journal,
+            against_records=snakemake.input.against[0] if snakemake.input.against else None,
             **snakemake.params.execution,
         )
 except KeyboardInterrupt as stop:

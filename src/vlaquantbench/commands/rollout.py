@@ -93,7 +93,13 @@ def _run(execution: ExecutionConfig, cfg: dict, project: Path) -> int:
     from vlaquantbench.runner.calibration import calibrate
     from vlaquantbench.runner.cell import run_cell
     from vlaquantbench.runner.checkpoint import download_checkpoint
+    from vlaquantbench.records.cell import EPISODES_FILE
 
+    against = (cfg.get("sequential") or {}).get("against")
+    against_records = None if against is None else project / CELLS_DIR / against["config_hash"] / EPISODES_FILE
+    if against_records is not None and not against_records.is_file():
+        raise UserError(f"cell {cfg['ref']} stops against {against['ref']} (study.sequential), which has no records yet "
+                        f"({against_records}): run `vqb rollout {against['ref']}` first")
     stamp = project / "results" / "checkpoints" / checkpoint_key(cfg) / "checkpoint.json"
     if not stamp.exists():
         download_checkpoint(**{k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}, stamp=stamp)
@@ -103,5 +109,6 @@ def _run(execution: ExecutionConfig, cfg: dict, project: Path) -> int:
         stats = project / "results" / "calibration" / f"{config_hash(calib)}.pt"
         if not stats.exists():
             calibrate(calib, stats, stamp, **execution.calibration_kwargs())
-    print(run_cell(cfg, project / CELLS_DIR / config_hash(cfg), stamp, stats, **execution.as_kwargs()))
+    print(run_cell(cfg, project / CELLS_DIR / config_hash(cfg), stamp, stats, against_records=against_records,
+                   **execution.as_kwargs()))
     return 0

@@ -20,6 +20,7 @@ from __future__ import annotations
 import fnmatch
 import json
 import sys
+import itertools
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -43,6 +44,7 @@ from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.quant.apply import hook_summary
 from vlaquantbench.quant.semantics import QUANT_SEMANTICS
 from vlaquantbench.runner.provenance import code_revision, versions
+from vlaquantbench.runner.stopping import StoppingRule
 from vlaquantbench.software_env import activate, environment_for
 
 
@@ -114,6 +116,7 @@ class CellRun:
         torch_threads: int | None = ExecutionConfig.torch_threads,
         progress: bool = ExecutionConfig.progress,
         episode_order: str = ExecutionConfig.episode_order,
+        against_records: str | Path | None = None,
     ):
         self.cfg = cfg
         self.out_dir = Path(out_dir)
@@ -126,6 +129,11 @@ class CellRun:
         activate(self.environment)  # before anything imports MuJoCo: LIBERO and its workers run on its pin
         if torch_threads:
             torch.set_num_threads(torch_threads)
+        # study.sequential: the test against the `against` cell's records, read before anything loads; the
+        # rule reads whole task-interleaved rounds, so the cell runs in that order.
+        self.stopping = StoppingRule(cfg, against_records) if cfg.get("sequential") else None
+        if self.stopping is not None:
+            episode_order = "interleaved"
         self.suite = LiberoSuite(cfg["suite"])
         self.specs = [self.suite.episode_spec(t, e, cfg["seed"])
                       for t, e in episode_keys(cfg["tasks"], cfg["episodes_per_task"], episode_order)]
@@ -276,13 +284,26 @@ class CellRun:
             bar.update(len(records))
             bar.set_postfix(successes=sum(e["success"] for e in journal.episodes))
 
-        if missing:
+        batches = self._batches(journal)
+        first = next(batches, None)
+        if first:
             if self._env is None:  # no `start_env`, or it found the journal complete
-                self._env = self._start_env(missing)
+                self._env = self._start_env(first)
             with self._env.result() as env:
-                run_episodes(self.adapter, env, missing, self.max_steps, finished)
+                for batch in itertools.chain([first], batches):
+                    run_episodes(self.adapter, env, batch, self.max_steps, finished)
         bar.close()
         return self._finish(journal)
+
+    def _batches(self, journal: CellJournal):
+        """The missing episodes in runs of `run_episodes`: all at once, or under the stopping rule batch by batch
+        until it decides (each batch chosen after the previous one is journaled)."""
+        if self.stopping is None:
+            if missing := self.missing(journal):
+                yield missing
+            return
+        while batch := self.stopping.next_batch(journal.episodes, self.missing(journal), self.num_envs):
+            yield batch
 
     def _finish(self, journal: CellJournal) -> Path:
         # Layers the policy never calls (OFT's SigLIP attention-pool head) keep their quantized weights
@@ -298,11 +319,13 @@ class CellRun:
             **self.header,
             "hooks": hooks,
             "nonfinite_episodes": sum(bool(e.get("nonfinite_action")) for e in journal.episodes),
+            **({} if self.stopping is None else {"stopping": self.stopping.outcome(journal.episodes)}),
         }
         order = {tuple(getattr(s, k) for k in EPISODE_KEY): n for n, s in enumerate(self.specs)}
         episodes = sorted(journal.episodes, key=lambda e: order[tuple(e[k] for k in EPISODE_KEY)])
-        if len(episodes) != len(self.specs):
-            raise CellFailed(f"cell {self.cfg['ref']}: {len(episodes)} episodes recorded, {len(self.specs)} configured")
+        expected = len(self.specs) if self.stopping is None else header["stopping"]["rounds_run"] * len(self.cfg["tasks"])
+        if len(episodes) != expected:
+            raise CellFailed(f"cell {self.cfg['ref']}: {len(episodes)} episodes recorded, {expected} configured")
         write_cell(self.out_dir, header, episodes)
         if header["nonfinite_episodes"]:
             print(f"cell {self.cfg['ref']}: {header['nonfinite_episodes']} of {len(episodes)} episodes ended on a "
