@@ -32,6 +32,8 @@ OPTIONAL_COLUMNS = (
     "subtasks_completed",
     "progress_score",
     "nonfinite_action",  # the policy output NaN/infinity; the episode ended before it (runner.loop)
+    "action_rate",  # smoothness of the executed actions (records.smoothness)
+    "jerk",
 )
 # Nullable dtypes: benchmarks without LIBERO init states (CALVIN, SIMPLER) leave init_state_id empty.
 _DTYPES = {
@@ -51,6 +53,8 @@ _DTYPES = {
     "subtasks_completed": "float64",
     "progress_score": "float64",
     "nonfinite_action": "bool",
+    "action_rate": "float64",
+    "jerk": "float64",
 }
 
 
