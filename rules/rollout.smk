@@ -75,9 +75,10 @@ def memory_mb(cfg, episodes):
 
 
 def against_records(cfg):
-    """The records of the cell a sequential cell is tested against (study.sequential): they exist first."""
+    """The records (episodes first, then header) of the cell a sequential cell is tested against
+    (study.sequential): they exist before its rollout starts."""
     against = (cfg.get("sequential") or {}).get("against")
-    return [] if against is None else [f"{CELLS_DIR}/{against['config_hash']}/{EPISODES_FILE}"]
+    return [] if against is None else [f"{CELLS_DIR}/{against['config_hash']}/{name}" for name in (EPISODES_FILE, HEADER_FILE)]
 
 
 def calibration_stats(cfg):
