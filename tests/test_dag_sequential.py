@@ -5,6 +5,7 @@ why, and a margin the test cannot reach runs the cell to its cap. (Resuming a st
 tests/test_runner_stopping.py.)"""
 
 import json
+import re
 import shutil
 
 import pandas as pd
@@ -70,6 +71,7 @@ def test_sequential_demo_study_stops_a_cell_and_the_dag_and_tables_know(tmp_path
     assert len(pd.read_parquet(folder / "episodes.parquet")) == 2  # of a cap of 4
     table = (checkout / "tables" / "lattice.tex").read_text()
     assert r"not\_worse@2" in table
+    assert re.search(r" & \d+\.\d{3} \[\d+\.\d{3},\d+\.\d{3}\] \\\\", table)  # the mean jerk and its interval
     summary = pd.read_csv(checkout / "tables" / "summary.csv").set_index("cell")
     assert summary.loc["rtn-W4A4-ah", ["episodes", "sequential_decision", "sequential_episodes_used"]].tolist() == [
         2, "not_worse", 2]

@@ -52,8 +52,10 @@ def summarize(cells: Mapping[str, Cell]) -> pd.DataFrame:
     # `rtn-W4A4-ah-x.jsonl` sorts before `rtn-W4A4-ah.jsonl`; keeping it makes rows comparable line by line.
     ordered = sorted(cells.items(), key=lambda item: f"{item[0]}.jsonl")
     stopped = any(cell.header.get("stopping") for cell in cells.values())
-    return pd.DataFrame([summary_row(ref, cell) for ref, cell in ordered],
-                        columns=list(SUMMARY_COLUMNS) + list(STOPPING_COLUMNS if stopped else ()))
+    frame = pd.DataFrame([summary_row(ref, cell) for ref, cell in ordered],
+                         columns=list(SUMMARY_COLUMNS) + list(STOPPING_COLUMNS if stopped else ()))
+    # A count, empty for the fixed-design cells (not a float column because of them).
+    return frame.astype({"sequential_episodes_used": "Int64"}) if stopped else frame
 
 
 def write_summary(cell_paths: Mapping[str, str | Path], output: str | Path) -> Path:
