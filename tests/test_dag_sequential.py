@@ -6,15 +6,13 @@ tests/test_runner_stopping.py.)"""
 
 import json
 import re
-import shutil
 
 import pandas as pd
 import pytest
 import yaml
 
 from file_audit import audited_env, job_audits, undeclared
-from paths import ROOT
-from test_dag_rollout import job_counts, snakemake
+from test_dag_rollout import job_counts, snakemake, workflow_copy
 
 pytestmark = pytest.mark.slow
 
@@ -46,11 +44,7 @@ def headers(checkout):
 
 
 def test_sequential_demo_study_stops_a_cell_and_the_dag_and_tables_know(tmp_path):
-    checkout = tmp_path / "checkout"
-    checkout.mkdir()
-    for item in ("Snakefile", "rules", "workflow", "config"):
-        source = ROOT / item
-        (shutil.copytree if source.is_dir() else shutil.copy)(source, checkout / item)
+    checkout = workflow_copy(tmp_path)
     # Random weights never succeed: every paired difference is 0, which a 80 pp margin calls not worse
     # after 2 rounds at alpha 0.5 (two workers: one batch of two rounds).
     sequential_study(checkout, margin_pp=80)

@@ -17,8 +17,8 @@ from vlaquantbench.sequential import Design, paired_rounds, stopping_rule
 BASELINE = "libero/libero_spatial/pi05/rtn-BASELINE-e2e"
 CELL = "libero/libero_spatial/pi05/rtn-W4A4-ah"
 # Random-weight demo policies never succeed, so every paired difference is 0: with a 80 pp margin at
-# alpha 0.3 the not-worse test crosses 1/alpha after 3 rounds of the one task (of a cap of 6).
-STUDY = demo_study(episodes_per_task=6, max_steps=4, sequential={"alpha": 0.3, "margin_pp": 80})
+# alpha 0.3 the not-worse test crosses 1/alpha after 3 rounds of the one task (of a cap of 5).
+STUDY = demo_study(episodes_per_task=5, max_steps=4, sequential={"alpha": 0.3, "margin_pp": 80})
 
 
 def _journal_episodes(folder):
@@ -80,10 +80,22 @@ def test_a_short_record_is_complete_only_with_its_stop_decision(baseline, tmp_pa
     first_three = base.episodes[base.episodes["episode"] < 3]
     check_declared_episodes(write_cell(tmp_path / "stopped", header, first_three))
     truncated = write_cell(tmp_path / "truncated", base.header, first_three)  # no stop decision: a gap
-    with pytest.raises(UserError, match="task 0 lacks episode\\(s\\) 3, 4, 5"):
+    with pytest.raises(UserError, match="task 0 lacks episode\\(s\\) 3, 4"):
         check_declared_episodes(truncated)
     short = write_cell(tmp_path / "short", header, base.episodes[base.episodes["episode"] < 2])
     with pytest.raises(UserError, match="task 0 lacks episode\\(s\\) 2"):
         check_declared_episodes(short)
     with pytest.raises(UserError, match="stopping.decision"):
         write_cell(tmp_path / "bad", {**header, "stopping": {**header["stopping"], "decision": "better"}}, first_three)
+
+
+def test_bad_sequential_settings_are_refused_naming_the_field():
+    with pytest.raises(UserError, match="study.sequential.against: .*name 'baseline' does not follow"):
+        cell_config(CELL, demo_study(sequential={"against": "baseline"}))
+    with pytest.raises(UserError, match="study.sequential.alpha: 1.5"):
+        cell_config(CELL, demo_study(sequential={"alpha": 1.5}))
+    with pytest.raises(UserError, match="study.sequential: unknown key .max_episodes."):
+        cell_config(CELL, demo_study(sequential={"max_episodes": 100}))
+    # Off, a cell's canonical config (hence its folder) is the fixed design's, as before the option existed.
+    assert cell_config(CELL, demo_study()) == cell_config(CELL, demo_study(sequential=None))
+    assert "sequential" not in cell_config(CELL, demo_study())
