@@ -11,7 +11,7 @@ from demo_study import demo_study
 from vlaquantbench.cells import cell_config
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import check_declared_episodes, read_cell, write_cell
-from vlaquantbench.runner.cell import run_cell
+from vlaquantbench.runner.cell import CellRun, run_cell
 from vlaquantbench.sequential import Design, paired_rounds, stopping_rule
 
 BASELINE = "libero/libero_spatial/pi05/rtn-BASELINE-e2e"
@@ -55,7 +55,11 @@ def test_a_sequential_cell_stops_when_decided_and_resumes_without_more_episodes(
     assert stopping["log_capital_not_worse"] >= np.log(1 / 0.3) > stopping["log_capital_worse"]
 
     journal = (folder / "journal.jsonl").read_text()
-    run_cell(cfg, folder, progress=False, num_envs=2, against_records=baseline)  # a rerun: nothing more runs
+    rerun = CellRun(cfg, folder, progress=False, num_envs=2, against_records=baseline)
+    rerun.start_env()
+    assert rerun._env is None  # the journal holds the decision: no LIBERO worker starts
+    rerun.prepare()
+    rerun.run()  # and no episode runs
     assert (folder / "journal.jsonl").read_text() == journal
 
     # Killed after its first episode: the resumed cell decides the same, from the same episodes.

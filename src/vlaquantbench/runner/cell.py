@@ -18,9 +18,9 @@ before it loads anything.
 from __future__ import annotations
 
 import fnmatch
+import itertools
 import json
 import sys
-import itertools
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -38,7 +38,7 @@ from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.records import write_cell
 from vlaquantbench.records.cell import JOURNAL_FILE
 from vlaquantbench.runner.gpus import device_record
-from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal, recorded_keys
+from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal, journal_episodes, recorded_keys
 from vlaquantbench.runner.lock import writing
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.quant.apply import hook_summary
@@ -150,7 +150,10 @@ class CellRun:
         each slot's first env, so that `prepare` loads the policy meanwhile; `run` uses them (or
         starts its own), and `close_env` stops them. The journal is read unchecked here: `run`
         verifies its header before any episode runs."""
-        self._env = self._start_env([s for s in self.specs if _key(s) not in recorded_keys(self.journal)])
+        missing = [s for s in self.specs if _key(s) not in recorded_keys(self.journal)]
+        if self.stopping is not None:  # the first batch only: none where the journal already holds the decision
+            missing = self.stopping.next_batch(journal_episodes(self.journal), missing, self.num_envs)
+        self._env = self._start_env(missing)
 
     def _start_env(self, missing: list) -> Future | None:
         if not missing:
