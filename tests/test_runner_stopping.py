@@ -11,7 +11,9 @@ from demo_study import demo_study
 from vlaquantbench.cells import cell_config
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import check_declared_episodes, read_cell, write_cell
+from vlaquantbench.envs.episodes import EpisodeSpec
 from vlaquantbench.runner.cell import CellRun, run_cell
+from vlaquantbench.runner.stopping import StoppingRule
 from vlaquantbench.sequential import Design, paired_rounds, stopping_rule
 
 BASELINE = "libero/libero_spatial/pi05/rtn-BASELINE-e2e"
@@ -103,3 +105,52 @@ def test_bad_sequential_settings_are_refused_naming_the_field():
     # Off, a cell's canonical config (hence its folder) is the fixed design's, as before the option existed.
     assert cell_config(CELL, demo_study()) == cell_config(CELL, demo_study(sequential=None))
     assert "sequential" not in cell_config(CELL, demo_study())
+
+
+def _outcomes(tasks, episodes, success):
+    return [{"suite": "libero_spatial", "task_id": t, "episode": e, "seed": 1009 * t + e, "init_state_id": e,
+             "success": success, "steps": 4} for e in episodes for t in tasks]
+
+
+def test_batches_fill_the_workers_and_a_decided_cell_only_completes_its_rounds(tmp_path):
+    """Two tasks, a cap of 8 rounds, a baseline that always succeeds and a cell that never does: `worse` at
+    round 5. Four workers run batches of two rounds; the decision inside a batch completes only its rounds."""
+    header = {"model": "pi05", "benchmark": "libero", "suite": "libero_spatial", "seed": 0, "episodes_per_task": 8,
+              "tasks": [0, 1], "config_hash": "0123456789ab"}
+    baseline = write_cell(tmp_path / "baseline", header, _outcomes([0, 1], range(8), True)).path
+    cfg = {"ref": CELL, "tasks": [0, 1], "episodes_per_task": 8,
+           "sequential": {"alpha": 0.05, "margin_pp": 5.0, "against": {"ref": BASELINE, "config_hash": "0123456789ab"}}}
+    rule = StoppingRule(cfg, baseline)
+    specs = [EpisodeSpec(t, e, e, 1009 * t + e) for e in range(8) for t in (0, 1)]
+
+    def missing(done):
+        keys = {(d["task_id"], d["episode"]) for d in done}
+        return [s for s in specs if (s.task_id, s.episode) not in keys]
+
+    def keys(batch):
+        return [(s.task_id, s.episode) for s in batch]
+
+    assert keys(rule.next_batch([], specs, 4)) == keys(specs[:4])
+    done = _outcomes([0, 1], range(4), False)
+    assert rule.result(done) is None and keys(rule.next_batch(done, missing(done), 4)) == keys(specs[8:12])
+    done += _outcomes([0, 1], [4], False) + _outcomes([0], [5], False)  # round 5 begun: the test decided at it
+    assert rule.result(done).decision == "worse"
+    assert keys(rule.next_batch(done, missing(done), 4)) == [(1, 5)]
+    with pytest.raises(UserError, match="has not finished \\(5 complete rounds of 6 begun"):
+        rule.outcome(done)
+    done += _outcomes([1], [5], False)
+    assert rule.next_batch(done, missing(done), 4) == []
+    outcome = rule.outcome(done)
+    assert (outcome["decision"], outcome["rounds_used"], outcome["episodes_used"], outcome["rounds_run"]) == (
+        "worse", 5, 10, 6)
+
+    # A cell as good as its baseline cannot be called within 5 pp in 8 rounds: it runs to the cap, undecided.
+    equal = _outcomes([0, 1], range(7), True)
+    assert rule.result(equal) is None and keys(rule.next_batch(equal, missing(equal), 4)) == keys(specs[14:])
+    assert rule.outcome(_outcomes([0, 1], range(8), True))["decision"] == "undecided"
+
+    with pytest.raises(UserError, match="config hash '0123456789ab', but cell .* with config hash 'ffffffffffff'"):
+        StoppingRule({**cfg, "sequential": {**cfg["sequential"], "against": {"ref": BASELINE, "config_hash": "ffffffffffff"}}},
+                     baseline)
+    with pytest.raises(UserError, match="fewer than 9 episodes on some task"):
+        StoppingRule({**cfg, "episodes_per_task": 9}, baseline)

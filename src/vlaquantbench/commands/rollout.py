@@ -11,7 +11,8 @@ Fetches the checkpoint and collects calibration statistics first when the cell n
 interrupted run resumes from its journal. Ctrl-C (SIGINT) or SIGTERM (SLURM's time limit, `kill`)
 prints how many of the cell's episodes are recorded, stops the LIBERO workers and exits 130 or 143;
 the same command resumes the cell. One process writes a cell at a time: a second `vqb rollout`,
-Snakemake job or SLURM job of the same cell is refused, naming the first (`runner.lock`). The config file is validated exactly as Snakemake
+Snakemake job or SLURM job of the same cell is refused, naming the first (`runner.lock`). Under
+`study.sequential` a cell stops against another cell's records (`runner.stopping`): run that cell first. The config file is validated exactly as Snakemake
 validates it (the same schema and validator), and the cell against the registries, before anything runs.
 """
 
