@@ -74,6 +74,13 @@ def memory_mb(cfg, episodes):
     return job_memory_mb(cfg["benchmark"], cfg["suite"], min(workers, episodes))
 
 
+def against_records(cfg):
+    """The records (episodes first, then header) of the cell a sequential cell is tested against
+    (study.sequential): they exist before its rollout starts."""
+    against = (cfg.get("sequential") or {}).get("against")
+    return [] if against is None else [f"{CELLS_DIR}/{against['config_hash']}/{name}" for name in (EPISODES_FILE, HEADER_FILE)]
+
+
 def calibration_stats(cfg):
     calib = cell_configs.calibration_config(cfg)
     return [] if calib is None else [f"results/calibration/{cell_configs.config_hash(calib)}.pt"]
@@ -118,6 +125,7 @@ rule rollout:
     input:
         checkpoint=lambda wc: checkpoint_stamp(CELLS[wc.cell]),
         calibration=lambda wc: calibration_stats(CELLS[wc.cell]),
+        against=lambda wc: against_records(CELLS[wc.cell]),
     output:
         episodes=f"{CELLS_DIR}/{{cell}}/{EPISODES_FILE}",
         header=f"{CELLS_DIR}/{{cell}}/{HEADER_FILE}",

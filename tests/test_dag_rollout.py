@@ -51,12 +51,18 @@ def job_counts(output: str) -> dict[str, int]:
     return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)$", stats, re.M) if m.group(1) != "total"}
 
 
-def test_demo_dag_builds_the_table_reruns_nothing_then_only_the_changed_cell(tmp_path):
+def workflow_copy(tmp_path: Path) -> Path:
+    """A copy of the workflow (Snakefile, rules, scripts, configs) in `tmp_path/checkout`, to run and edit."""
     checkout = tmp_path / "checkout"
     checkout.mkdir()
     for item in ("Snakefile", "rules", "workflow", "config"):
         source = ROOT / item
         (shutil.copytree if source.is_dir() else shutil.copy)(source, checkout / item)
+    return checkout
+
+
+def test_demo_dag_builds_the_table_reruns_nothing_then_only_the_changed_cell(tmp_path):
+    checkout = workflow_copy(tmp_path)
     tiny_study(checkout)
 
     audit = tmp_path / "audit"

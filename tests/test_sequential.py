@@ -15,6 +15,7 @@ from vlaquantbench.sequential import (
     DECISIONS,
     Design,
     interleaved_order,
+    live_episodes,
     paired_rounds,
     retrospective,
     saved_fraction,
@@ -71,6 +72,12 @@ def test_paper_contrasts_meet_the_issue_targets(paper_contrasts):
     assert by_pair.loc[(f"{SPATIAL}/ablate-W4A4-ah-attn_adarms", BASELINE), "decision"] == "worse"
     assert by_pair.loc[(f"{SPATIAL}/ablate-W4A4-ah-only_gate", BASELINE), "decision"] != "worse"
     assert (table["episodes_used"] <= table["episodes_available"]).all()
+    # Live, a cell's batches of whole rounds fill its workers: with up to one per task it runs what the test
+    # used; with 32 (batches of 4 rounds) a decision after 2 rounds runs 4, and near-cap ones stop at the cap.
+    assert live_episodes(table, 10).tolist() == table["episodes_used"].tolist()
+    live = live_episodes(table, 32)
+    assert live[by_pair.index.get_loc((f"{SPATIAL}/ablate-W4A4-ah-attn_adarms", BASELINE))] == 40
+    assert (live >= table["episodes_used"]).all() and (live <= table["episodes_available"]).all()
 
 
 def test_rule_never_decides_on_no_evidence_and_stops_on_a_clear_difference():

@@ -171,6 +171,10 @@ class CellConfig(PolicyRunConfig):
     # differs from them ({key: {client, cell}}): recorded, never silent.
     client: dict[str, Any] = field(default_factory=dict)
     overrides: dict[str, Any] = field(default_factory=dict)
+    # study.sequential's stopping rule and the cell it is tested against ({ref, config_hash}, whose records
+    # the rollout reads); None (absent from the canonical form, so fixed-design hashes are unchanged) for
+    # a fixed-design cell and for the `against` cell itself.
+    sequential: dict[str, Any] | None = None
 
     @classmethod
     def from_ref(cls, ref: str, study: StudyConfig) -> CellConfig:
@@ -215,6 +219,7 @@ class CellConfig(PolicyRunConfig):
             runner=runner,
             client=client.as_dict(),
             overrides=_overrides(client, runner, episodes, released_limit),
+            sequential=_sequential(ref, benchmark, suite, model, name, study),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -222,6 +227,8 @@ class CellConfig(PolicyRunConfig):
         for optional in ("sample_rows", "hessian"):  # the canonical forms (and hashes) of older cells stay
             if cfg["calibration"] is not None and cfg["calibration"][optional] is None:
                 del cfg["calibration"][optional]
+        if cfg["sequential"] is None:
+            del cfg["sequential"]
         return canonical(cfg)
 
     @classmethod
@@ -260,6 +267,20 @@ class CalibrationConfig(PolicyRunConfig):
     def name(self) -> str:
         """How messages name the calibration: its model (cells of several references may share it)."""
         return self.model
+
+
+def _sequential(ref: str, benchmark: str, suite: str, model: str, name: str, study: StudyConfig) -> dict[str, Any] | None:
+    """The cell's stopping rule under study.sequential: its level, margin and the `against` cell (its
+    reference and config hash: the rollout depends on that cell's records); None for the `against` cell."""
+    design = study.sequential
+    if design is None or name == design.against:
+        return None
+    against = f"{benchmark}/{suite}/{model}/{design.against}"
+    try:
+        against_hash = CellConfig.from_ref(against, study).config_hash
+    except UserError as err:
+        raise UserError(f"cell {ref!r}: study.sequential.against: {err}") from None
+    return {"alpha": design.alpha, "margin_pp": design.margin_pp, "against": {"ref": against, "config_hash": against_hash}}
 
 
 def _runner(study: RunnerConfig, model: dict[str, Any], client, flow_steps: int | None, released_limit: int) -> RunnerConfig:

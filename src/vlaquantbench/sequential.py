@@ -187,6 +187,16 @@ def saved_fraction(table: pd.DataFrame) -> float:
     return 1.0 - table["episodes_used"].sum() / table["episodes_available"].sum()
 
 
+def live_episodes(table: pd.DataFrame, workers: int) -> pd.Series:
+    """Episodes per contrast that the live runner (`runner.stopping`) runs with `workers` LIBERO workers per cell:
+    it runs batches of ceil(workers / tasks) whole rounds, so a decision inside a batch runs the batch out
+    (within the cap); one worker per task or fewer runs exactly `episodes_used`."""
+    tasks = table["episodes_used"] // table["rounds_used"]
+    batch = np.ceil(workers / tasks)
+    rounds = np.minimum(table["episodes_available"] // tasks, np.ceil(table["rounds_used"] / batch) * batch)
+    return (rounds * tasks).astype(int)
+
+
 def write_csv(table: pd.DataFrame, path: str | Path) -> Path:
     write_text(path, table.to_csv(index=False, float_format="%.4f"))
     return Path(path)

@@ -116,6 +116,37 @@ def task_clustered_bootstrap(
     return Contrast(delta=float(delta), low=float(low), high=float(high))
 
 
+@dataclass(frozen=True)
+class ClusteredMean:
+    """The mean over episodes of a per-episode number, with the task-clustered bootstrap's 2.5/97.5 percentiles."""
+
+    mean: float
+    low: float
+    high: float
+
+
+def task_clustered_mean(episodes: pd.DataFrame, column: str, draws: int = BOOTSTRAP_DRAWS,
+                        seed: int = BOOTSTRAP_SEED) -> ClusteredMean:
+    """The one-cell analogue of `task_clustered_bootstrap` for a per-episode number (jerk, action rate): each
+    draw resamples the task identities with replacement, then each picked task's episodes, and averages the
+    task means with equal task weight; episodes whose value is missing (null) are left out. The point estimate
+    is the plain mean over episodes, as the success rate is."""
+    present = episodes.dropna(subset=[column])
+    tasks = sorted(present["task_id"].unique())
+    groups = [present.loc[present["task_id"] == task, column].to_numpy(dtype=float) for task in tasks]
+    counts = np.array([len(group) for group in groups])
+    values = np.zeros((len(tasks), counts.max()))
+    for row, group in enumerate(groups):
+        values[row, : len(group)] = group
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(0, len(tasks), (draws, len(tasks)))
+    # Episode indices below each picked task's count (a task with fewer episodes uses its first n slots).
+    drawn = rng.integers(0, np.broadcast_to(counts[picks][..., None], (draws, len(tasks), counts.max())))
+    task_means = _resampled_task_rates(values, counts, picks, drawn).mean(axis=1)
+    low, high = np.percentile(task_means, [2.5, 97.5])
+    return ClusteredMean(mean=float(present[column].mean()), low=float(low), high=float(high))
+
+
 def spearman(x, y) -> float:
     """Spearman rank correlation; ties get average ranks."""
     from scipy.stats import spearmanr

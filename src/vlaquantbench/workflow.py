@@ -68,6 +68,9 @@ class WorkflowConfig:
                 except UserError as err:
                     raise UserError(f"{self.tables_dir / f'{name}.yaml'}: {err}") from None
                 configs[cells.config_hash(cfg)] = cfg
+                if cfg.get("sequential"):  # the cell it stops against runs too, whether a table reads it or not
+                    against = cfg["sequential"]["against"]
+                    configs[against["config_hash"]] = cells.cell_config(against["ref"], self.study)
         return configs
 
     def cell_input(self, ref: str) -> str:

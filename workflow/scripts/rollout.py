@@ -25,6 +25,7 @@ try:
             snakemake.input.calibration[0] if snakemake.input.calibration else None,
             config_hash=snakemake.wildcards.cell,  # the DAG's hash of the config, which names the folder
             journal=journal,
+            against_records=snakemake.input.against[0] if snakemake.input.against else None,
             **snakemake.params.execution,
         )
 except KeyboardInterrupt as stop:

@@ -4,7 +4,7 @@
 
 from vlaquantbench.manifest import verified
 from vlaquantbench.rule_log import job_log
-from vlaquantbench.sequential import Design, saved_fraction
+from vlaquantbench.sequential import Design, live_episodes, saved_fraction
 from vlaquantbench.tables.sequential import write_sequential_table
 
 sm = snakemake
@@ -17,3 +17,7 @@ with job_log(sm):
                                           f"Records checked against {sm.params.report['checks']}."])
     print(f"{sm.output.tex}: {len(table)} contrasts, {100 * saved_fraction(table):.1f}% fewer episodes, "
           f"{int((~table['agrees']).sum())} contradicting the full-sample decision")
+    # Live, batches that fill a cell's workers may run past the deciding round (README "The paper's 409 runs").
+    for workers in (16, 32, 64):
+        run = live_episodes(table, workers).sum()
+        print(f"live with {workers} workers per cell: {run} episodes, {100 * (1 - run / table['episodes_available'].sum()):.1f}% fewer")

@@ -11,7 +11,8 @@ Fetches the checkpoint and collects calibration statistics first when the cell n
 interrupted run resumes from its journal. Ctrl-C (SIGINT) or SIGTERM (SLURM's time limit, `kill`)
 prints how many of the cell's episodes are recorded, stops the LIBERO workers and exits 130 or 143;
 the same command resumes the cell. One process writes a cell at a time: a second `vqb rollout`,
-Snakemake job or SLURM job of the same cell is refused, naming the first (`runner.lock`). The config file is validated exactly as Snakemake
+Snakemake job or SLURM job of the same cell is refused, naming the first (`runner.lock`). Under
+`study.sequential` a cell stops against another cell's records (`runner.stopping`): run that cell first. The config file is validated exactly as Snakemake
 validates it (the same schema and validator), and the cell against the registries, before anything runs.
 """
 
@@ -93,7 +94,13 @@ def _run(execution: ExecutionConfig, cfg: dict, project: Path) -> int:
     from vlaquantbench.runner.calibration import calibrate
     from vlaquantbench.runner.cell import run_cell
     from vlaquantbench.runner.checkpoint import download_checkpoint
+    from vlaquantbench.records.cell import EPISODES_FILE
 
+    against = (cfg.get("sequential") or {}).get("against")
+    against_records = None if against is None else project / CELLS_DIR / against["config_hash"] / EPISODES_FILE
+    if against_records is not None and not against_records.is_file():
+        raise UserError(f"cell {cfg['ref']} stops against {against['ref']} (study.sequential), which has no records yet "
+                        f"({against_records}): run `vqb rollout {against['ref']}` first")
     stamp = project / "results" / "checkpoints" / checkpoint_key(cfg) / "checkpoint.json"
     if not stamp.exists():
         download_checkpoint(**{k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}, stamp=stamp)
@@ -104,6 +111,6 @@ def _run(execution: ExecutionConfig, cfg: dict, project: Path) -> int:
         if not stats.exists():
             calibrate(CalibrationConfig.from_dict(calib), stats, stamp, **execution.calibration_kwargs())
     cell_hash = config_hash(cfg)
-    print(run_cell(CellConfig.from_dict(cfg), project / CELLS_DIR / cell_hash, stamp, stats, config_hash=cell_hash,
+    print(run_cell(CellConfig.from_dict(cfg), project / CELLS_DIR / cell_hash, stamp, stats, config_hash=cell_hash, against_records=against_records,
                    **execution.as_kwargs()))
     return 0

@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from vlaquantbench.config import validate
+from vlaquantbench.sequential import DEFAULT_ALPHA, DEFAULT_MARGIN_PP
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,18 @@ class CalibrationProtocol:
 
 
 @dataclass(frozen=True)
+class SequentialConfig:
+    """The stopping rule live (issue 32, `vlaquantbench.runner.stopping`): every cell of a model but the
+    `against` cell (a cell name of the same benchmark, suite and model) stops once the anytime-valid test
+    of its success rate against that cell's records decides, at level `alpha` and not-worse margin
+    `margin_pp`; the cap is the cell's episodes_per_task. Hashed: a stopped cell's records differ."""
+
+    alpha: float = DEFAULT_ALPHA
+    margin_pp: float = DEFAULT_MARGIN_PP
+    against: str = "rtn-BASELINE-e2e"
+
+
+@dataclass(frozen=True)
 class ExecutionConfig:
     """How cells run, not what they compute: never hashed, so changing it reruns nothing."""
 
@@ -95,6 +108,7 @@ class StudyConfig:
     runner: RunnerConfig = field(default_factory=RunnerConfig)
     calibration: CalibrationProtocol = field(default_factory=CalibrationProtocol)
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)
+    sequential: SequentialConfig | None = None  # None: every cell runs all its episodes
     label: str | None = None
     tables_dir: str | None = None
 
@@ -104,12 +118,14 @@ class StudyConfig:
         raw = dict(raw or {})
         validate(raw, "config", where, subschema=("study",))
         tasks = raw.pop("tasks", cls.tasks)
+        sequential = raw.pop("sequential", None)
         return cls(
             models={name: ModelWeights(**weights) for name, weights in raw.pop("models", {}).items()},
             tasks=tasks if isinstance(tasks, int) else tuple(sorted(set(tasks))),
             runner=RunnerConfig(**raw.pop("runner", {})),
             calibration=CalibrationProtocol(**raw.pop("calibration", {})),
             execution=ExecutionConfig(**raw.pop("execution", {})),
+            sequential=None if sequential is None else SequentialConfig(**sequential),
             **raw,
         )
 

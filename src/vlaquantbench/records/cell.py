@@ -33,6 +33,8 @@ OPTIONAL_COLUMNS = (
     "progress_score",
     "nonfinite_action",  # the policy output NaN/infinity; the episode ended before it (runner.loop)
     "task_variation",  # Meta-World: the object and goal placement the episode's seeded variation drew
+    "action_rate",  # smoothness of the executed actions (records.smoothness)
+    "jerk",
 )
 # Nullable dtypes: benchmarks without LIBERO init states (CALVIN, SIMPLER) leave init_state_id empty.
 _DTYPES = {
@@ -53,6 +55,8 @@ _DTYPES = {
     "progress_score": "float64",
     "nonfinite_action": "bool",
     "task_variation": "object",  # a list of floats per episode (parquet list<double>)
+    "action_rate": "float64",
+    "jerk": "float64",
 }
 
 
@@ -91,16 +95,26 @@ def episode_gaps(cell: Cell) -> list[str]:
 
     A cell may hold fewer episodes per task than declared when its protocol ran fewer (the authors' X-VLA
     cells have 19 or 20 per task under `episodes_per_task: 20`): the tables state such counts from the data.
+    A cell whose header records a sequential stop (`stopping`) must hold exactly `stopping.rounds_run`
+    episodes on every task; a short cell without one is a gap as before.
     """
     declared = cell.header.get("episodes_per_task")
     tasks = declared_tasks(cell.header)  # this project's cells list them
     gaps = []
+    # A cell the sequential rule stopped (runner.stopping) holds its whole rounds run: that many per task.
+    stopping = cell.header.get("stopping")
+    per_task = declared
+    if stopping:
+        per_task = stopping["rounds_run"]
+        if not stopping["rounds_used"] <= per_task <= int(declared):
+            gaps.append(f"stopping: {stopping['rounds_used']} rounds used and {per_task} run do not fit "
+                        f"episodes_per_task {declared}")
     by_task = cell.episodes.groupby("task_id")["episode"].apply(lambda e: sorted(int(i) for i in e)).to_dict()
     for task in tasks or ():
         if int(task) not in by_task:
             gaps.append(f"task {task} (listed in the header) has no episodes")
     for task, episodes in sorted(by_task.items()):
-        expected = range(int(declared)) if tasks and declared else range(episodes[-1] + 1)
+        expected = range(int(per_task)) if (tasks or stopping) and per_task else range(episodes[-1] + 1)
         missing = sorted(set(expected) - set(episodes))
         if missing:
             gaps.append(f"task {task} lacks episode(s) {', '.join(map(str, missing))}")

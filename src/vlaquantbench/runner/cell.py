@@ -19,6 +19,7 @@ before it loads anything.
 from __future__ import annotations
 
 import fnmatch
+import itertools
 import json
 import sys
 import threading
@@ -40,12 +41,13 @@ from vlaquantbench.models.registry import adapter_class
 from vlaquantbench.records import write_cell
 from vlaquantbench.records.cell import JOURNAL_FILE
 from vlaquantbench.runner.gpus import device_record
-from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal, recorded_keys
+from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal, journal_episodes, recorded_keys
 from vlaquantbench.runner.lock import writing
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.quant.apply import hook_summary
 from vlaquantbench.quant.semantics import QUANT_SEMANTICS
 from vlaquantbench.runner.provenance import code_revision, versions
+from vlaquantbench.runner.stopping import StoppingRule
 from vlaquantbench.software_env import Environment, activate
 
 
@@ -118,6 +120,7 @@ class CellRun:
         torch_threads: int | None = ExecutionConfig.torch_threads,
         progress: bool = ExecutionConfig.progress,
         episode_order: str = ExecutionConfig.episode_order,
+        against_records: str | Path | None = None,
     ):
         self.cfg = cfg = cfg if isinstance(cfg, CellConfig) else CellConfig.from_dict(cfg)
         self.config_hash = config_hash or cfg.config_hash
@@ -132,6 +135,11 @@ class CellRun:
         activate(self.environment)  # before anything imports MuJoCo: the simulator and its workers run on its pin
         if torch_threads:
             torch.set_num_threads(torch_threads)
+        # study.sequential: the test against the `against` cell's records, read before anything loads; the
+        # rule reads whole task-interleaved rounds, so the cell runs in that order.
+        self.stopping = StoppingRule(cfg, against_records) if cfg.sequential else None
+        if self.stopping is not None:
+            episode_order = "interleaved"
         self.suite = make_suite(cfg.benchmark, cfg.suite)
         self.specs = [self.suite.episode_spec(t, e, cfg.seed)
                       for t, e in episode_keys(list(cfg.tasks), cfg.episodes_per_task, episode_order)]
@@ -148,7 +156,10 @@ class CellRun:
         each slot's first env, so that `prepare` loads the policy meanwhile; `run` uses them (or
         starts its own), and `close_env` stops them. The journal is read unchecked here: `run`
         verifies its header before any episode runs."""
-        self._env = self._start_env([s for s in self.specs if _key(s) not in recorded_keys(self.journal)])
+        missing = [s for s in self.specs if _key(s) not in recorded_keys(self.journal)]
+        if self.stopping is not None:  # the first batch only: none where the journal already holds the decision
+            missing = self.stopping.next_batch(journal_episodes(self.journal), missing, self.num_envs)
+        self._env = self._start_env(missing)
 
     def _start_env(self, missing: list) -> Future | None:
         if not missing:
@@ -286,13 +297,26 @@ class CellRun:
             bar.update(len(records))
             bar.set_postfix(successes=sum(e["success"] for e in journal.episodes))
 
-        if missing:
+        batches = self._batches(journal)
+        first = next(batches, None)
+        if first:
             if self._env is None:  # no `start_env`, or it found the journal complete
-                self._env = self._start_env(missing)
+                self._env = self._start_env(first)
             with self._env.result() as env:
-                run_episodes(self.adapter, env, missing, self.max_steps, finished)
+                for batch in itertools.chain([first], batches):
+                    run_episodes(self.adapter, env, batch, self.max_steps, finished)
         bar.close()
         return self._finish(journal)
+
+    def _batches(self, journal: CellJournal):
+        """The missing episodes in runs of `run_episodes`: all at once, or under the stopping rule batch by batch
+        until it decides (each batch chosen after the previous one is journaled)."""
+        if self.stopping is None:
+            if missing := self.missing(journal):
+                yield missing
+            return
+        while batch := self.stopping.next_batch(journal.episodes, self.missing(journal), self.num_envs):
+            yield batch
 
     def _finish(self, journal: CellJournal) -> Path:
         # Layers the policy never calls (OFT's SigLIP attention-pool head) keep their quantized weights
@@ -308,11 +332,13 @@ class CellRun:
             **self.header,
             "hooks": hooks,
             "nonfinite_episodes": sum(bool(e.get("nonfinite_action")) for e in journal.episodes),
+            **({} if self.stopping is None else {"stopping": self.stopping.outcome(journal.episodes)}),
         }
         order = {tuple(getattr(s, k) for k in EPISODE_KEY): n for n, s in enumerate(self.specs)}
         episodes = sorted(journal.episodes, key=lambda e: order[tuple(e[k] for k in EPISODE_KEY)])
-        if len(episodes) != len(self.specs):
-            raise CellFailed(f"cell {self.cfg.ref}: {len(episodes)} episodes recorded, {len(self.specs)} configured")
+        expected = len(self.specs) if self.stopping is None else header["stopping"]["rounds_run"] * len(self.cfg.tasks)
+        if len(episodes) != expected:
+            raise CellFailed(f"cell {self.cfg.ref}: {len(episodes)} episodes recorded, {expected} configured")
         write_cell(self.out_dir, header, episodes)
         if header["nonfinite_episodes"]:
             print(f"cell {self.cfg.ref}: {header['nonfinite_episodes']} of {len(episodes)} episodes ended on a "

@@ -104,9 +104,9 @@ def unique_episodes(path: Path, numbered: list[tuple[int, dict[str, Any]]]) -> l
     return [{k: v for k, v in record.items() if k != "kind"} for _, record in first.values()]
 
 
-def _episode_lines(path: Path) -> list[dict[str, Any]]:
-    """The journal's episodes, each once, unchecked otherwise (no header comparison); a torn last line
-    does not count."""
+def journal_episodes(path: Path) -> list[dict[str, Any]]:
+    """The journal's episodes, each once, unchecked otherwise (no header comparison; for planning only);
+    a torn last line does not count."""
     if not Path(path).exists():
         return []
     return unique_episodes(path, _numbered(path, Path(path).read_bytes().split(b"\n")[:-1]))
@@ -114,14 +114,14 @@ def _episode_lines(path: Path) -> list[dict[str, Any]]:
 
 def recorded_episodes(path: Path) -> int:
     """Episodes a journal holds (0 if there is none); a torn last line does not count."""
-    return len(_episode_lines(path))
+    return len(journal_episodes(path))
 
 
 def recorded_keys(path: Path) -> set[tuple]:
     """The EPISODE_KEYs of a journal's episodes, for planning only: the header is not checked
     (`CellJournal` does that before anything is recorded); episodes recorded twice differently are
     refused here already, before a model loads."""
-    return {tuple(r[k] for k in EPISODE_KEY) for r in _episode_lines(path)}
+    return {tuple(r[k] for k in EPISODE_KEY) for r in journal_episodes(path)}
 
 
 class CellJournal:

@@ -22,6 +22,9 @@ Non-finite actions (a collapsed quantized policy outputs NaN) never reach MuJoCo
 as a failure after the finite actions before the first non-finite one (an action the episode would
 execute; a success before it ends the episode as usual), and its record says
 `nonfinite_action: true`.
+
+Each record holds the smoothness of the episode's executed actions (`jerk`, `action_rate`, defined in
+`records.smoothness`) next to their digest.
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ import torch
 from vlaquantbench.envs.episodes import EpisodeSpec
 from vlaquantbench.envs.workers import WorkerVectorEnv
 from vlaquantbench.models.adapter import PolicyAdapter
+from vlaquantbench.records.smoothness import smoothness
 
 
 @dataclass
@@ -54,6 +58,7 @@ class _Episode:
     task_variation: list[float] | None = None
     # Digest of every executed action: reruns and batch sizes can be compared episode by episode.
     digest: Any = field(default_factory=hashlib.sha256)
+    executed: list[np.ndarray] = field(default_factory=list)  # the executed actions, for their smoothness
 
 
 def episode_record(suite: str, spec: EpisodeSpec, success: bool, steps: int, **extra) -> dict:
@@ -115,6 +120,7 @@ def run_episodes(
             policy_batch_latency_mean_s=float(np.mean(episode.latencies)) if episode.latencies else float("nan"),
             nonfinite_action=episode.nonfinite and not success,
             actions_sha256=episode.digest.hexdigest(),
+            **smoothness(np.concatenate(episode.executed) if episode.executed else np.empty((0, 0))),
             **({} if episode.task_variation is None else {"task_variation": episode.task_variation}),
         )
 
@@ -133,6 +139,7 @@ def run_episodes(
             episode = episodes[reply.slot]
             if episode.sent is not None:
                 episode.digest.update(episode.sent[: reply.applied].tobytes())
+                episode.executed.append(episode.sent[: reply.applied])
                 episode.sent = None
             elif "task_variation" in reply.observation:  # a reset's reply
                 episode.task_variation = [float(x) for x in reply.observation["task_variation"]]

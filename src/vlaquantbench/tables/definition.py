@@ -59,10 +59,14 @@ STATS = {
     # `index` into a list, times `scale`, `signed` for a leading +
     "params": ("cell",),  # weight parameters of the layers the cell quantizes (its scope and subset on the model's
     # layer index, built from the architecture on the meta device), as 28.7K / 117.4M / 7.44B; `--` for none
+    "stopped": ("cell",),  # the sequential rule's stop (header `stopping`): "worse@30" = decision and episodes
+    # its test used; `--` for a fixed-design cell
+    "mean_ci": ("cell", "field"),  # mean over episodes of a per-episode number (jerk, action_rate) with its
+    # task-clustered bootstrap interval, as "0.012 [0.010,0.015]" (`digits`, default 3)
     "text": ("cell", "key"),  # a string: dotted `key` of a .json measurement file, or a field of the cell's run
     # header or summary row (`checkpoint`); `wrap: path|texttt`
 }
-DEFAULT_DIGITS = {"median_ms": 1, "max": 2, "value": 2, "params": 1}
+DEFAULT_DIGITS = {"median_ms": 1, "max": 2, "value": 2, "params": 1, "mean_ci": 3}
 ROW_KINDS = ("label", "section", "midrule")
 
 

@@ -15,7 +15,7 @@ import numpy as np
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import Cell, read_checked_cell
 from vlaquantbench.records.summary import SummaryCell, read_summary
-from vlaquantbench.stats import task_clustered_bootstrap, wilson_interval
+from vlaquantbench.stats import task_clustered_bootstrap, task_clustered_mean, wilson_interval
 from vlaquantbench.tables.booktabs import MIDRULE, Booktabs
 from vlaquantbench.tables.definition import BootstrapSpec, ColumnSpec, TableDefinition
 
@@ -142,10 +142,13 @@ def _format(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell], bootstrap
     if spec.stat == "value":
         value = cell.get(spec.key.format(**row.get("fill", {})), spec.index) * spec.scale
         return f"{round(value, spec.digits) + 0.0:{'+' if spec.signed else ''}.{spec.digits}f}"
-    if spec.stat in ("median_ms", "max"):
+    if spec.stat in ("median_ms", "max", "mean_ci"):
         values = _episodes(cell, ref, spec.stat)
         if spec.field not in values or values[spec.field].isna().all():
             raise UserError(f"cell {ref}: its episodes record no {spec.field} ({cell.path})")
+        if spec.stat == "mean_ci":
+            interval = task_clustered_mean(values, spec.field)
+            return f"{interval.mean:.{spec.digits}f} [{interval.low:.{spec.digits}f},{interval.high:.{spec.digits}f}]"
         column = values[spec.field].dropna()
         return f"{1000.0 * column.median():.{spec.digits}f}" if spec.stat == "median_ms" else f"{column.max():.{spec.digits}f}"
     if spec.stat == "episodes":
@@ -163,6 +166,9 @@ def _format(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell], bootstrap
     elif spec.stat == "text":
         text = _text(cell, spec.key, ref)
         text = rf"\{spec.wrap}{{{text}}}" if spec.wrap else text
+    elif spec.stat == "stopped":
+        stopping = cell.header.get("stopping") if isinstance(cell, Cell) else None
+        text = MISSING if not stopping else f"{_escape(stopping['decision'])}@{stopping['episodes_used']}"
     elif spec.stat == "nonfinite":
         text = MISSING if cell.n_nonfinite is None else str(cell.n_nonfinite)
     elif spec.stat == "delta":

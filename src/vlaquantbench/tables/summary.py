@@ -16,6 +16,9 @@ SUMMARY_COLUMNS = (
     "benchmark", "suite", "model", "cell", "method", "preset", "scope", "seed", "checkpoint",
     "episodes", "successes", "success_rate", "ci_low", "ci_high", "mean_subtasks", "mean_progress",
 )  # fmt: skip
+# This project's, after them where any cell was stopped by the sequential rule (study.sequential): its decision
+# and the episodes its test used (empty for a fixed-design cell). A fixed-design study's file keeps the authors' format.
+STOPPING_COLUMNS = ("sequential_decision", "sequential_episodes_used")
 _MEANS = {"mean_subtasks": "subtasks_completed", "mean_progress": "progress_score"}
 
 
@@ -35,6 +38,9 @@ def summary_row(ref: str, cell: Cell) -> dict[str, object]:
         "ci_low": round(float(low), 2),
         "ci_high": round(float(high), 2),
     }
+    stopping = cell.header.get("stopping") or {}
+    row["sequential_decision"] = stopping.get("decision")
+    row["sequential_episodes_used"] = stopping.get("episodes_used")
     for column, field in _MEANS.items():
         values = cell.episodes[field].dropna() if field in cell.episodes else ()
         row[column] = round(float(values.mean()), 3) if len(values) else None
@@ -45,7 +51,11 @@ def summarize(cells: Mapping[str, Cell]) -> pd.DataFrame:
     # The authors list cells in the order of their record file paths (`<ref>.jsonl`), where
     # `rtn-W4A4-ah-x.jsonl` sorts before `rtn-W4A4-ah.jsonl`; keeping it makes rows comparable line by line.
     ordered = sorted(cells.items(), key=lambda item: f"{item[0]}.jsonl")
-    return pd.DataFrame([summary_row(ref, cell) for ref, cell in ordered], columns=list(SUMMARY_COLUMNS))
+    stopped = any(cell.header.get("stopping") for cell in cells.values())
+    frame = pd.DataFrame([summary_row(ref, cell) for ref, cell in ordered],
+                         columns=list(SUMMARY_COLUMNS) + list(STOPPING_COLUMNS if stopped else ()))
+    # A count, empty for the fixed-design cells (not a float column because of them).
+    return frame.astype({"sequential_episodes_used": "Int64"}) if stopped else frame
 
 
 def write_summary(cell_paths: Mapping[str, str | Path], output: str | Path) -> Path:
