@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from demo_study import demo_study
 
-from vlaquantbench.cells import cell_config
+from vlaquantbench.cells import CellConfig, cell_config
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import check_declared_episodes, read_cell, write_cell
 from vlaquantbench.envs.episodes import EpisodeSpec
@@ -118,9 +118,13 @@ def test_batches_fill_the_workers_and_a_decided_cell_only_completes_its_rounds(t
     header = {"model": "pi05", "benchmark": "libero", "suite": "libero_spatial", "seed": 0, "episodes_per_task": 8,
               "tasks": [0, 1], "config_hash": "0123456789ab"}
     baseline = write_cell(tmp_path / "baseline", header, _outcomes([0, 1], range(8), True)).path
-    cfg = {"ref": CELL, "tasks": [0, 1], "episodes_per_task": 8,
-           "sequential": {"alpha": 0.05, "margin_pp": 5.0, "against": {"ref": BASELINE, "config_hash": "0123456789ab"}}}
-    rule = StoppingRule(cfg, baseline)
+    fields = {"tasks": [0, 1], "episodes_per_task": 8,
+              "sequential": {"alpha": 0.05, "margin_pp": 5.0, "against": {"ref": BASELINE, "config_hash": "0123456789ab"}}}
+
+    def typed(**changed):  # the demo cell's typed config with the fields this test sets
+        return CellConfig.from_dict({**cell_config(CELL, STUDY), **fields, **changed})
+
+    rule = StoppingRule(typed(), baseline)
     specs = [EpisodeSpec(t, e, e, 1009 * t + e) for e in range(8) for t in (0, 1)]
 
     def missing(done):
@@ -150,7 +154,7 @@ def test_batches_fill_the_workers_and_a_decided_cell_only_completes_its_rounds(t
     assert rule.outcome(_outcomes([0, 1], range(8), True))["decision"] == "undecided"
 
     with pytest.raises(UserError, match="config hash '0123456789ab', but cell .* with config hash 'ffffffffffff'"):
-        StoppingRule({**cfg, "sequential": {**cfg["sequential"], "against": {"ref": BASELINE, "config_hash": "ffffffffffff"}}},
+        StoppingRule(typed(sequential={**fields["sequential"], "against": {"ref": BASELINE, "config_hash": "ffffffffffff"}}),
                      baseline)
     with pytest.raises(UserError, match="fewer than 9 episodes on some task"):
-        StoppingRule({**cfg, "episodes_per_task": 9}, baseline)
+        StoppingRule(typed(episodes_per_task=9), baseline)
