@@ -61,6 +61,7 @@ METHODS: dict[str, Method] = {
     "awq": Method(f"{_KERNELS}:awq", statistics={"sample_rows": 128}, presets=WEIGHT_ONLY),
     # SmoothQuant's per-channel migration is the method: alpha 0.85 (the paper's deployment setting)
     "smoothquant": Method(f"{_KERNELS}:smoothquant", statistics={"alpha": 0.85}, presets=(8, 8)),
+    "int8_dynamic": Method(f"{_KERNELS}:int8_dynamic", presets=(8, 8)),
     "fp8": Method(f"{_KERNELS}:fp8", presets=(8, 8)),
     "fp8_tensor": Method(f"{_KERNELS}:fp8_tensorwise", presets=(8, 8)),
     "fp8_static": Method(f"{_KERNELS}:fp8_static", statistics={}, presets=(8, 8)),
