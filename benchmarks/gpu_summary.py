@@ -2,7 +2,7 @@
 
 Reads (each written on the GPU machine by its script) `gpu_preset_ab_cameras{2,3}.json` and
 `gpu_policy_inference_cameras2.json` (`gpu_policy_inference.py`), `gpu_real_kernels.json` and
-`closed_loop_gpu*.json` and `gpu_fp8_real*.json`, and copies out the keys issues 6, 15 and 33 ask for, each with the machine it
+`closed_loop_gpu*.json` and `gpu_fp8_real*.json` (FP8, INT8 and INT4), and copies out the keys issues 6, 15 and 33 ask for, each with the machine it
 was measured on. The policy's headline numbers are at LIBERO's two cameras, the input of every
 closed-loop run; the three-camera input of pi0.5's base configuration stands beside them.
 
@@ -126,6 +126,38 @@ def _fp8_real() -> dict:
     }
 
 
+def _int_real() -> dict:
+    """Issue 33's INT8 (W8A8, `int8real`) and INT4 (W4A16, `int4`) keys from the `gpu_fp8_real*.json`
+    runs that measured them, beside BF16 in the same process, as `_fp8_real`'s."""
+    runs = [run for run in (json.loads(p.read_text()) for p in sorted(RESULTS.glob("gpu_fp8_real*.json")))
+            if "int8real" in run.get("chunk_ms", {})]
+    if not runs:
+        return {}
+    where = "; ".join(_machine(run) for run in runs)
+    ms = [run["chunk_ms"] for run in runs]
+    memory, rel_l2 = runs[-1]["weight_memory"], runs[-1]["actions_rel_l2"]
+    out = {}
+    for name, goal in (("int8real", "<= 0.55"), ("int4", "<= 0.3")):
+        for b in (1, 8, 32):
+            ratios = [m[name][str(b)] / m["bf16"][str(b)] for m in ms]
+            out[f"{name}_vs_bf16_b{b}"] = {"value": statistics.median(ratios), "by_run": ratios,
+                                           f"{name}_ms": [m[name][str(b)] for m in ms],
+                                           "bf16_ms": [m["bf16"][str(b)] for m in ms], "machine": where}
+        out[f"{name}_chunk_ms_b1"] = {"value": statistics.median(m[name]["1"] for m in ms), "machine": where}
+        out[f"{name}_weight_memory_ratio"] = {
+            "value": memory[f"{name}_vs_bf16_released"], "vs_all_bf16": memory[f"{name}_vs_all_bf16"],
+            "note": f"the {memory['layers']} quantized linears' storages over the same layers as released",
+            "goal": goal, "machine": where}
+    out["int8real_vs_fakequant_rel_l2"] = {
+        "value": max(rel_l2["int8real_vs_fakequant_int8"].values()), "by_batch": rel_l2["int8real_vs_fakequant_int8"],
+        "int8real_vs_bf16": rel_l2["int8real_vs_bf16"], "fakequant_int8_vs_bf16": rel_l2["fakequant_int8_vs_bf16"],
+        "note": "int8_dynamic-W8A8-e2e against rtn-W8A8-e2e (same grid, fake-quantized), one chunk on the same "
+                "random inputs and weights", "goal": "<= 2e-2", "machine": where}
+    out["int4_vs_bf16_rel_l2"] = {"value": max(rel_l2["int4_vs_bf16"].values()), "by_batch": rel_l2["int4_vs_bf16"],
+                                  "machine": where}
+    return out
+
+
 def _machine(result: dict) -> str:
     return f"{result['machine']['gpu']}, torch {result['machine']['torch']}, {result['machine']['date_utc']}"
 
@@ -176,6 +208,7 @@ def main() -> None:
                                              "machine": kernel_machine},
         **_closed_loop(),
         **_fp8_real(),
+        **_int_real(),
     }
     (RESULTS / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     print(json.dumps(summary, indent=1))

@@ -128,3 +128,18 @@ def test_captured_sampler_with_real_int_kernels_matches_lerobot_on_the_quantized
     assert report.unfired() == []
     assert torch.isfinite(actual).all() and _rel(actual, expected) < REL_TOL
     assert _rel(expected, unquantized_actions) > 5e-3  # the kernels quantize
+
+
+def test_a_header_whose_weight_memory_or_kernels_are_malformed_is_refused_naming_the_field():
+    from vlaquantbench.records.schema import EpisodeCheck
+
+    header = {"model": "pi05", "benchmark": "libero", "suite": "libero_spatial", "seed": 0, "episodes_per_task": 1,
+              "max_steps": 10, "quant_report": {"weight_memory": {"layers": 2, "released_bytes": 100, "packed_bytes": 52,
+                                                                  "ratio": 0.52},
+                                                "kernels": {Int8DynamicLinear.KERNEL: 2}}}
+    EpisodeCheck(header, "h.json")
+    with pytest.raises(UserError, match=r"h.json: run header: quant_report.weight_memory.packed_bytes"):
+        EpisodeCheck({**header, "quant_report": {"weight_memory": {"layers": 2, "released_bytes": 1, "packed_bytes": "52"}}},
+                     "h.json")
+    with pytest.raises(UserError, match=r"quant_report.kernels"):
+        EpisodeCheck({**header, "quant_report": {"kernels": {"x": 0}}}, "h.json")

@@ -226,6 +226,7 @@ class Int8DynamicLinear(_PerTokenLinear):
     layer without it takes its input cast per token by its producer (`input_cast`)."""
 
     WEIGHT, INPUT = "weight_int8", torch.int8
+    KERNEL = "torch._int_mm (int8 x int8 -> int32) + float32 rescale"
 
     def __init__(self, linear: nn.Linear, smooth: torch.Tensor | None = None):
         super().__init__(linear)
@@ -263,6 +264,7 @@ class Fp8DynamicLinear(_PerTokenLinear):
     one scale per tensor for each (`tensorwise`)."""
 
     WEIGHT, INPUT = "weight_fp8", FP8
+    KERNEL = "torch._scaled_mm (e4m3 x e4m3, FP32 scales)"
 
     def __init__(self, linear: nn.Linear, tensorwise: bool = False):
         super().__init__(linear)
@@ -324,6 +326,7 @@ class Int4WeightOnlyLinear(_PackedLinear):
     the product is unchanged; its last group's range then also spans 0."""
 
     INNER_K_TILES = 8
+    KERNEL = "torch._weight_int4pack_mm (tinygemm: int4 weights, bf16 activations)"
 
     def __init__(self, linear: nn.Linear, group_size: int):
         super().__init__(linear)
@@ -394,17 +397,22 @@ def _tensor_bytes(tensors) -> int:
 
 def _replace_all(model: nn.Module, selection: Selection, make, fmt: str) -> MethodResult:
     """Every selected linear replaced by `make(name, linear)`; the header's `weight_memory` records the
-    replaced layers' bytes as released and as packed (weights, scales, biases)."""
+    replaced layers' bytes as released and as packed (weights, scales, biases), `kernels` the number of
+    layers per kernel (a class's `KERNEL`, else the library's class)."""
     result = MethodResult(format=fmt)
     released = packed = 0
+    kernels: dict[str, int] = {}
     for name, linear in selection.flat().items():
         released += _tensor_bytes([linear.weight, linear.bias])
         new = make(name, linear)
         packed += _tensor_bytes([*new.parameters(), *new.buffers()])
+        kernel = getattr(new, "KERNEL", f"{type(new).__module__.split('.')[0]}.{type(new).__name__}")
+        kernels[kernel] = kernels.get(kernel, 0) + 1
         _swap(model, name, linear, new)
         result.hooks[name] = CountingHook(new, InputTransform())  # counts calls, changes nothing
     result.details["weight_memory"] = {"layers": len(result.hooks), "released_bytes": released, "packed_bytes": packed,
                                        "ratio": packed / released if released else None}
+    result.details["kernels"] = kernels
     return result
 
 
