@@ -8,14 +8,14 @@
 #   MUJOCO_GL=egl bash benchmarks/gpu_efficiency_cells.sh /tmp/project    # ~40 s a cell on an H200
 set -u
 project=${1:?usage: gpu_efficiency_cells.sh PROJECT_FOLDER}
-cells=(rtn-BASELINE-e2e fp8-W8A8-e2e int8_dynamic-W8A8-e2e int4wo-W4-e2e rtn-FP8E4M3-e2e rtn-W8A8-e2e)
+cells=(rtn-BASELINE-e2e fp8-W8A8-e2e rtn-FP8E4M3-e2e int8_dynamic-W8A8-e2e int4wo-W4-e2e rtn-W8A8-e2e)
 for cell in "${cells[@]}"; do
   ref=libero/libero_spatial/pi05/$cell
   start=$(date +%s)
-  python -m vlaquantbench.cli rollout "$ref" --config config/efficiency_pi05.yaml --results "$project" --num-envs 1 \
+  python3 -m vlaquantbench.cli rollout "$ref" --config config/efficiency_pi05.yaml --results "$project" --num-envs 1 \
     || echo "FAILED $ref"
-  hash=$(python -m vlaquantbench.cli rollout "$ref" --config config/efficiency_pi05.yaml --results "$project" --show \
-         | python -c 'import json, sys; print(json.load(sys.stdin)["config_hash"])')
+  hash=$(python3 -m vlaquantbench.cli rollout "$ref" --config config/efficiency_pi05.yaml --results "$project" --show \
+         | python3 -c 'import json, sys; print(json.load(sys.stdin)["config_hash"])')
   if [ -f "$project/results/cells/$hash/episodes.parquet" ]; then
     mkdir -p "$project/efficiency_pi05/$ref"
     cp "$project/results/cells/$hash/header.json" "$project/results/cells/$hash/episodes.parquet" "$project/efficiency_pi05/$ref/"
