@@ -4,7 +4,7 @@
 # PROJECT/results/cells/<hash>/, then copied under PROJECT/efficiency_pi05/<ref>/ (the layout of the
 # committed results/efficiency_pi05, which `records_dir` reads; `vqb manifest results/efficiency_pi05
 # -o manifests/efficiency_pi05.tsv` writes its manifest). Cells in order of need: a cell cut short by
-# a time limit resumes from its journal on the next run.
+# a time limit resumes from its journal on the next run. Copy PROJECT/efficiency_pi05.tar back.
 #   MUJOCO_GL=egl bash benchmarks/gpu_efficiency_cells.sh /tmp/project    # ~40 s a cell on an H200
 set -u
 project=${1:?usage: gpu_efficiency_cells.sh PROJECT_FOLDER}
@@ -19,6 +19,9 @@ for cell in "${cells[@]}"; do
   if [ -f "$project/results/cells/$hash/episodes.parquet" ]; then
     mkdir -p "$project/efficiency_pi05/$ref"
     cp "$project/results/cells/$hash/header.json" "$project/results/cells/$hash/episodes.parquet" "$project/efficiency_pi05/$ref/"
+    # One file after every cell: a GPU machine's output folder returns no folder nested this deep,
+    # and a time limit may stop the next cell.
+    tar -cf "$project/efficiency_pi05.tar" -C "$project" efficiency_pi05
   fi
   echo "$ref: $(( $(date +%s) - start )) s"
 done
