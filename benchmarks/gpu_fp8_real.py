@@ -1,5 +1,5 @@
-"""pi0.5 with real FP8 kernels against BF16 and FP8 fake quantization, side by side in one process
-(issue 33): captured chunk time at batch 1, 8 and 32 with 2 cameras, weight memory, and the
+"""pi0.5 with real FP8, INT8 and INT4 kernels against BF16 and fake quantization, side by side in one
+process (issue 33): captured chunk time at batch 1, 8 and 32 with 2 cameras, weight memory, and the
 actions' relative L2 of each form against the others on the same inputs.
 
 Cells (all captured, `CapturedSampler`; lerobot 0.6.1 `PI05Pytorch` at full size, random weights
@@ -9,6 +9,12 @@ seed 0, 2 cameras at 224 px, 200 prompt tokens, 10 flow steps; scope e2e, all 45
                the products in bf16/float32 (the fused hooks, producer-fused quantization)
     fp8real    fp8-W8A8-e2e: e4m3 weights stored as FP8 (`quant.kernels.Fp8DynamicLinear`),
                per-token input casts computed by the producing op, `torch._scaled_mm` row-wise
+    int8real   int8_dynamic-W8A8-e2e: int8 weights (`quant.kernels.Int8DynamicLinear`), per-token int8
+               input casts computed by the producing op, `torch._int_mm`, float32 rescale (Triton)
+    int4       int4wo-W4-e2e: int4 weights in asymmetric groups of 128, bf16 activations, tinygemm
+               (`torch._weight_int4pack_mm`); its layers run one by one (nothing to cast)
+Not timed, for the actions only (batch 1): fakequant_int8 (rtn-W8A8-e2e, the fake-quantized
+counterpart of int8real).
 Timing: `gpu_policy_inference.alternate` (the cells take turns `--rounds` times, each turn
 capturing again), median of the repeats: the typical chunk, not the best.
 
@@ -37,9 +43,15 @@ from vlaquantbench.quant import QuantConfig, quantize_  # noqa: E402
 from vlaquantbench.quant.fused_kernel import fuse_activation_hooks  # noqa: E402
 from vlaquantbench.quant.grid import PerTokenCast  # noqa: E402
 from vlaquantbench.quant.hooks import CountingHook, InputTransform  # noqa: E402
-from vlaquantbench.quant.kernels import FP8, Fp8DynamicLinear  # noqa: E402
+from vlaquantbench.quant.kernels import FP8, Fp8DynamicLinear, Int8DynamicLinear  # noqa: E402
 
-CELLS = {"bf16": ("BASELINE", "rtn"), "fakequant": ("FP8E4M3", "rtn"), "fp8real": ("W8A8", "fp8")}
+CELLS = {"bf16": ("BASELINE", "rtn"), "fakequant": ("FP8E4M3", "rtn"), "fp8real": ("W8A8", "fp8"),
+         "int8real": ("W8A8", "int8_dynamic"), "int4": ("W4", "int4wo")}
+REFERENCE_CELLS = {"fakequant_int8": ("W8A8", "rtn")}
+REAL_CELLS = ("fp8real", "int8real", "int4")
+# (form, its fake-quantized counterpart or BF16) whose actions are compared
+ACTION_PAIRS = (("fp8real", "fakequant"), ("fp8real", "bf16"), ("fakequant", "bf16"), ("int8real", "fakequant_int8"),
+                ("int8real", "bf16"), ("fakequant_int8", "bf16"), ("int4", "bf16"))
 STEPS = 10
 GiB = 2**30
 
@@ -49,9 +61,14 @@ def rel_l2(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def kernel_checks(device) -> dict:
-    """The real-FP8 pieces on this GPU against references on fresh random inputs: the producer-fused
-    cast (compiled with an RMSNorm and with a float32 LayerNorm) against `PerTokenCast` run eagerly,
-    and a merged group's product against its members called as modules and against float64."""
+    """The real W8A8 pieces (FP8 and INT8) on this GPU against references on fresh random inputs: the
+    producer-fused cast (compiled with an RMSNorm and with a float32 LayerNorm) against `PerTokenCast`
+    run eagerly, and a merged group's product against its members called as modules and against float64."""
+    return {**_kernel_checks(device, Fp8DynamicLinear, FP8, ""),
+            **_kernel_checks(device, Int8DynamicLinear, torch.int8, "int8_")}
+
+
+def _kernel_checks(device, layer_class, dtype, prefix: str) -> dict:
     out = {}
     g = torch.Generator(device="cpu").manual_seed(1)
     for name, (op, args) in {
@@ -61,19 +78,19 @@ def kernel_checks(device) -> dict:
                                                         torch.randn(1152, generator=g).to(device),
                                                         torch.randn(1152, generator=g).to(device), 1e-6)),
     }.items():
-        layers = [Fp8DynamicLinear(torch.nn.Linear(args[0].shape[-1], 256, device=device, dtype=args[0].dtype))
+        layers = [layer_class(torch.nn.Linear(args[0].shape[-1], 256, device=device, dtype=args[0].dtype))
                   for _ in range(3)]
         for layer in layers:
             CountingHook(layer, InputTransform())
         group = LinearGroup(layers)
         rows = group.input_from(op, args, static_sampling.inductor)
-        reference = PerTokenCast(FP8)(op(*args))
+        reference = PerTokenCast(dtype)(op(*args))
         fused = group(rows)
         modules = [layer(op(*args)) for layer in layers]
         x64 = (reference.values.double() * reference.scales.double())
-        exact = [x64 @ (layer.weight_fp8.double() * layer.weight_scale.double().t()).t() + layer.bias.double()
+        exact = [x64 @ (getattr(layer, layer.WEIGHT).double() * layer.weight_scale.double().t()).t() + layer.bias.double()
                  for layer in layers]
-        out[name] = {
+        out[prefix + name] = {
             "cast_values_equal_fraction": (rows.values.view(torch.uint8) == reference.values.view(torch.uint8)).float().mean().item(),
             "cast_scales_max_rel_diff": ((rows.scales - reference.scales).abs() / reference.scales).max().item(),
             "group_vs_modules_rel_l2": max(rel_l2(a, b) for a, b in zip(fused, modules)),
@@ -118,6 +135,7 @@ def main() -> None:
     parser.add_argument("--cameras", type=int, default=2)
     parser.add_argument("--checks-only", action="store_true", help="only the kernel checks (no model)")
     parser.add_argument("--no-profile", action="store_true", help="skip the batch-1 kernel profiles")
+    parser.add_argument("--profile-cells", nargs="+", default=["bf16", "fp8real"], choices=list(CELLS))
     args = parser.parse_args()
     device = torch.device("cuda")
     results = {"machine": machine(), "cameras": args.cameras, "steps": STEPS, "batches": args.batches}
@@ -130,7 +148,7 @@ def main() -> None:
     spec = get_model_spec("pi05")
     inputs = {b: chunk_inputs(b, device, seed=b, cameras=args.cameras) for b in args.batches}
     samplers, cells = {}, {}
-    for name, (preset, method) in CELLS.items():
+    for name, (preset, method) in {**CELLS, **REFERENCE_CELLS}.items():
         torch.cuda.synchronize()
         before = torch.cuda.memory_allocated()
         t0 = time.perf_counter()
@@ -147,15 +165,18 @@ def main() -> None:
 
     # Weight memory of the quantized components: the e2e layers' storages, BF16 cell's as released.
     names = list(cells["fp8real"]["report"].result.hooks)
-    weight_bytes = {name: layer_bytes(samplers[name].model, names) for name in ("bf16", "fp8real")}
+    weight_bytes = {name: layer_bytes(samplers[name].model, names) for name in ("bf16", *REAL_CELLS)}
     bf16_equivalent = sum(2 * t.numel() for n in names for t in samplers["bf16"].model.get_submodule(n).parameters())
     results["weight_memory"] = {
-        "layers": len(names), "bf16_released_gib": weight_bytes["bf16"] / GiB, "fp8real_gib": weight_bytes["fp8real"] / GiB,
-        "fp8real_vs_bf16_released": weight_bytes["fp8real"] / weight_bytes["bf16"],
-        "fp8real_vs_all_bf16": weight_bytes["fp8real"] / bf16_equivalent,
+        "layers": len(names), "bf16_released_gib": weight_bytes["bf16"] / GiB,
+        **{f"{n}_gib": weight_bytes[n] / GiB for n in REAL_CELLS},
+        **{f"{n}_vs_bf16_released": weight_bytes[n] / weight_bytes["bf16"] for n in REAL_CELLS},
+        **{f"{n}_vs_all_bf16": weight_bytes[n] / bf16_equivalent for n in REAL_CELLS},
         "model_and_groups_gib": {n: c["model_and_groups_gib"] for n, c in cells.items()},
     }
     print("weight memory:", results["weight_memory"], flush=True)
+    write = lambda: Path(args.out).write_text(json.dumps(results, indent=1))  # noqa: E731
+    write()  # after every stage: a run cut short by a time limit keeps what it measured
 
     # Actions on the same inputs (each form's graphs captured for the batch first).
     actions = {}
@@ -163,21 +184,26 @@ def main() -> None:
         for other in samplers.values():
             other.reset()
         torch.cuda.empty_cache()
-        actions[name] = {b: sampler(*inputs[b]).float() for b in args.batches}
+        actions[name] = {b: sampler(*inputs[b]).float() for b in (args.batches if name in CELLS else args.batches[:1])}
     results["actions_rel_l2"] = {
-        f"{a}_vs_{b}": {bt: rel_l2(actions[a][bt], actions[b][bt]) for bt in args.batches}
-        for a, b in (("fp8real", "fakequant"), ("fp8real", "bf16"), ("fakequant", "bf16"))}
+        f"{a}_vs_{b}": {bt: rel_l2(actions[a][bt], actions[b][bt]) for bt in actions[a].keys() & actions[b].keys()}
+        for a, b in ACTION_PAIRS}
     print("actions rel L2:", results["actions_rel_l2"], flush=True)
+    write()
+    for name in REFERENCE_CELLS:  # timed no further: their memory goes back
+        samplers.pop(name).reset()
+    torch.cuda.empty_cache()
 
     ms = alternate(samplers, inputs, args.batches, args.repeats, args.rounds)
     results["chunk_ms"] = ms
-    results["vs_bf16"] = {n: {b: ms[n][b] / ms["bf16"][b] for b in args.batches} for n in ("fakequant", "fp8real")}
+    results["vs_bf16"] = {n: {b: ms[n][b] / ms["bf16"][b] for b in args.batches} for n in CELLS if n != "bf16"}
     results["rounds"], results["repeats_per_round"] = args.rounds, args.repeats
     print("chunk ms:", ms, "\nvs bf16:", results["vs_bf16"], flush=True)
+    write()
 
     if not args.no_profile:
         results["profiles_b1"] = {}
-        for name in ("bf16", "fp8real"):
+        for name in args.profile_cells:
             sampler = samplers[name]
             sampler(*inputs[1])
             with sampler._kernel_choices():

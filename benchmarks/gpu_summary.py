@@ -2,7 +2,7 @@
 
 Reads (each written on the GPU machine by its script) `gpu_preset_ab_cameras{2,3}.json` and
 `gpu_policy_inference_cameras2.json` (`gpu_policy_inference.py`), `gpu_real_kernels.json` and
-`closed_loop_gpu*.json` and `gpu_fp8_real*.json`, and copies out the keys issues 6, 15 and 33 ask for, each with the machine it
+`closed_loop_gpu*.json` and `gpu_fp8_real*.json` (FP8, INT8 and INT4), and copies out the keys issues 6, 15 and 33 ask for, each with the machine it
 was measured on. The policy's headline numbers are at LIBERO's two cameras, the input of every
 closed-loop run; the three-camera input of pi0.5's base configuration stands beside them.
 
@@ -92,7 +92,10 @@ def _fp8_real() -> dict:
     """Issue 33's keys from `gpu_fp8_real*.json` (`gpu_fp8_real.py`, one file per device call): real
     FP8 kernels against the BF16 captured baseline and FP8 fake quantization, the three cells taking
     turns in one process. Each value is the median over the runs (the typical run), every run beside it."""
-    runs = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("gpu_fp8_real*.json"))]
+    every = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("gpu_fp8_real*.json"))]
+    # A run cut by its time limit before the timed turns (it writes after every stage) gives its
+    # memory and actions, not chunk times.
+    runs = [run for run in every if "chunk_ms" in run]
     if not runs:
         return {}
     where = "; ".join(_machine(run) for run in runs)
@@ -124,6 +127,42 @@ def _fp8_real() -> dict:
             "note": "actions of one chunk on the same random inputs and weights (largest over batches 1, 8, 32)",
             "goal": "<= 2e-2", "machine": where},
     }
+
+
+def _int_real() -> dict:
+    """Issue 33's INT8 (W8A8, `int8real`) and INT4 (W4A16, `int4`) keys from the `gpu_fp8_real*.json`
+    runs that measured them, beside BF16 in the same process, as `_fp8_real`'s: weight memory and
+    actions from the latest such run, chunk-time ratios from the runs that reached the timed turns
+    (None, saying so, where none did)."""
+    runs = [run for run in (json.loads(p.read_text()) for p in sorted(RESULTS.glob("gpu_fp8_real*.json")))
+            if "int8real_gib" in run.get("weight_memory", {})]
+    if not runs:
+        return {}
+    timed = [run for run in runs if "chunk_ms" in run]
+    memory, rel_l2, where = runs[-1]["weight_memory"], runs[-1]["actions_rel_l2"], _machine(runs[-1])
+    not_timed = {"value": None, "note": "not measured: the only run with these cells reached its time limit before "
+                                        "the timed turns (gpu_fp8_real_run3.log)", "machine": where}
+    out = {}
+    for name, goal in (("int8real", "<= 0.55"), ("int4", "<= 0.3")):
+        for b in (1, 8, 32):
+            ratios = [run["chunk_ms"][name][str(b)] / run["chunk_ms"]["bf16"][str(b)] for run in timed]
+            out[f"{name}_vs_bf16_b{b}"] = not_timed if not timed else {
+                "value": statistics.median(ratios), "by_run": ratios, "machine": "; ".join(map(_machine, timed))}
+        out[f"{name}_chunk_ms_b1"] = not_timed if not timed else {
+            "value": statistics.median(run["chunk_ms"][name]["1"] for run in timed), "machine": "; ".join(map(_machine, timed))}
+        out[f"{name}_weight_memory_ratio"] = {
+            "value": memory[f"{name}_vs_bf16_released"], "vs_all_bf16": memory[f"{name}_vs_all_bf16"],
+            "note": f"the {memory['layers']} quantized linears' storages over the same layers as released "
+                    "(bf16; SigLIP tower and projector float32); vs_all_bf16: over their bf16 size",
+            "goal": goal, "machine": where}
+    out["int8real_vs_fakequant_rel_l2"] = {
+        "value": max(rel_l2["int8real_vs_fakequant_int8"].values()), "by_batch": rel_l2["int8real_vs_fakequant_int8"],
+        "int8real_vs_bf16": rel_l2["int8real_vs_bf16"], "fakequant_int8_vs_bf16": rel_l2["fakequant_int8_vs_bf16"],
+        "note": "int8_dynamic-W8A8-e2e against rtn-W8A8-e2e (same grid, fake-quantized), one chunk on the same "
+                "random inputs and weights (batch 1)", "goal": "<= 2e-2", "machine": where}
+    out["int4_vs_bf16_rel_l2"] = {"value": max(rel_l2["int4_vs_bf16"].values()), "by_batch": rel_l2["int4_vs_bf16"],
+                                  "note": "int4wo-W4-e2e (asymmetric groups of 128) against BF16", "machine": where}
+    return out
 
 
 def _machine(result: dict) -> str:
@@ -176,6 +215,7 @@ def main() -> None:
                                              "machine": kernel_machine},
         **_closed_loop(),
         **_fp8_real(),
+        **_int_real(),
     }
     (RESULTS / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     print(json.dumps(summary, indent=1))

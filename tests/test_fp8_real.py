@@ -83,6 +83,7 @@ def test_the_header_records_the_packed_weight_memory():
     packed = (64 * 32 + 32 * 16) + 4 * (32 + 16) + 2 * 32  # int8 weights, float32 scales, the bf16 bias
     assert result.details["weight_memory"] == {"layers": 2, "released_bytes": released, "packed_bytes": packed,
                                                "ratio": packed / released}
+    assert result.details["kernels"] == {kernels.Int8DynamicLinear.KERNEL: 2}
 
 
 def _fp8_layers(sizes, hooks=True):

@@ -2,6 +2,7 @@
 for every model with an adapter (demo policies of the real architectures). The batched run holds ready
 slots for a batch of two (`min_batch`), so every one of its policy calls really is a batch of two."""
 
+import time
 from collections import defaultdict
 
 import mujoco
@@ -31,11 +32,15 @@ def test_batch_of_two_equals_batch_of_one(model):
 
     chunks = defaultdict(list)  # episode seed -> [(state observed, chunk predicted)]
     batches = []  # batch size of every policy call
+    seconds = defaultdict(list)  # episode seed -> duration of each policy call computing its chunk
     act = adapter.act
 
     def recording_act(observations, generators):
         batches.append(len(observations))
+        began = time.perf_counter()
         out = act(observations, generators)
+        for generator in generators:
+            seconds[generator.initial_seed()].append(time.perf_counter() - began)
         for obs, generator, chunk in zip(observations, generators, out):
             chunks[generator.initial_seed()].append((obs["state"].copy(), chunk.copy()))
         return out
@@ -43,6 +48,7 @@ def test_batch_of_two_equals_batch_of_one(model):
     adapter.act = recording_act
 
     def run(num_envs):
+        seconds.clear()
         chunks.clear()
         batches.clear()
         records = []
@@ -56,6 +62,14 @@ def test_batch_of_two_equals_batch_of_one(model):
     assert batches == [2, 2]  # two chunks per episode, each call the pair
     single, single_chunks = run(1)  # one slot: each call as soon as it is ready, nothing else stepping
     assert batches == [1, 1, 1, 1]
+    # The authors' latency fields: full inference per chunk (the loop's timing encloses the call timed
+    # here), the same time per control step, and no CUDA memory on the CPU.
+    for record in single:
+        calls = seconds[record["seed"]]
+        assert len(calls) == 2 and record["inference_latency_mean_s"] >= np.mean(calls) > 0
+        assert record["inference_latency_mean_s"] == record["policy_batch_latency_mean_s"]
+        assert record["policy_latency_mean_s"] == pytest.approx(2 * record["inference_latency_mean_s"] / record["steps"])
+        assert "peak_vram_gb" not in record
 
     assert [(r["task_id"], r["episode"], r["seed"]) for r in batched] == [(0, 0, 0), (1, 0, 1009)]
     for a, b in zip(batched, single):

@@ -5,12 +5,14 @@ Registered by name in `quant.methods` (imported when a cell first uses one):
     nf4          bitsandbytes 4-bit NormalFloat, blocks of 64, bf16 compute   (preset W4)
     int8         bitsandbytes LLM.int8(): int8 weights, fp16 outlier columns  (preset W8)
     int4wo       int4 weight-only, asymmetric groups, tinygemm kernel          (preset W4[G<g>])
-                 (`torch._weight_int4pack_mm`; AWQ's INT4 GEMM format without AWQ's scale search)
+                 (`torch._weight_int4pack_mm`, on the CPU `_weight_int4pack_mm_for_cpu`; AWQ's
+                 INT4 GEMM format without AWQ's scale search)
     awq          activation-aware weight quantization (`quant.awq` scale search on calibration
                  rows): W4 on CUDA as int4wo with the scales, fake-quantized elsewhere (W<b>[G<g>])
     smoothquant  W8A8 int8: per-channel weights, dynamic per-token activations, `torch._int_mm`,
                  with SmoothQuant's per-channel migration vector (from calibration statistics,
                  required) folded into the weights                                           (W8A8)
+    int8_dynamic W8A8 int8: the same kernel without smoothing (the int8 counterpart of fp8)  (W8A8)
     fp8          W8A8 FP8 e4m3: per-channel weights, dynamic per-token activations,
                  `torch._scaled_mm` with row-wise scales (the H100's native format)          (W8A8)
     fp8_tensor   the same with one scale per weight tensor and one per activation tensor (W8A8)
@@ -21,15 +23,22 @@ Each selected `nn.Linear` is replaced in its parent by a module holding the pack
 bf16 weight is freed), and gets a counting pre-hook that changes nothing, so `unfired()` proves
 that the kernel ran; the header's `quant_report.weight_memory` records the replaced layers' bytes as
 released and as packed. bitsandbytes is an optional extra (`pip install vlaquantbench[kernels]`);
-int4wo, smoothquant and fp8 need only PyTorch (int4wo and fp8 need a CUDA GPU; `fp8` refuses any
+int4wo, smoothquant, int8_dynamic and fp8 need only PyTorch (fp8 needs a CUDA GPU and refuses any
 other device by name before it changes a weight, since row-wise `torch._scaled_mm` runs on CUDA
-GPUs of compute capability 8.9+ only).
+GPUs of compute capability 8.9+ only; the int8 and int4 products also run on the CPU).
 
-In pi0.5's captured sampler, `fp8` layers that read one input run as one product on a merged FP8
-weight (`Fp8DynamicLinear.merged`), their input cast to e4m3 rows by the op that produces it
-(`input_cast`, `quant.grid.PerTokenCast`; `models.pi05.fast.linear_groups`). Numerics: FP32
-accumulation (fast accumulation on Hopper), output in the layer's dtype (bf16, or float32 for the
-SigLIP tower and projector); scales FP32; everything between the products as in a BF16 cell.
+In pi0.5's captured sampler, `fp8` and `int8_dynamic` layers that read one input run as one product
+on a merged weight (`_PerTokenLinear.merged`), their input cast to e4m3 or int8 rows by the op that
+produces it (`input_cast`, `quant.grid.PerTokenCast`; `models.pi05.fast.linear_groups`); `int4wo`
+layers run one by one as modules (tinygemm takes bf16 inputs: nothing to cast). Numerics (W8A8
+and W4A16 alike): scales FP32; everything between the products as in a BF16 cell (norms, softmax,
+residuals, the float32 SigLIP tower's arithmetic), output in the layer's dtype (bf16, or float32
+for the SigLIP tower and projector). FP8: FP32 accumulation in the tensor cores (fast accumulation
+on Hopper) with the scales applied by `torch._scaled_mm`. INT8: exact int32 accumulation, then
+(sum * s_x) * s_w in FP32 rounded once to the output dtype (`dequantize_int32`); the int32 sums
+pass through memory once (4 bytes a value, twice a bf16 output). INT4: bf16 activations, tinygemm
+dequantizes the weights to bf16 and accumulates in FP32, output bf16 (the float32 SigLIP layers
+take and give bf16 here, their only change besides the weights).
 """
 
 from __future__ import annotations
@@ -73,6 +82,15 @@ if triton is not None:
             y = libdevice.rint(y)
         tl.store(q_ptr + row * n_cols + cols, y.to(q_ptr.dtype.element_ty), mask=inside)
         tl.store(scale_ptr + row, scale)
+
+    @triton.jit
+    def _dequantize_rows(acc_ptr, row_scale_ptr, col_scale_ptr, out_ptr, n_cols, acc_stride, BLOCK: tl.constexpr):
+        row = tl.program_id(0).to(tl.int64)
+        cols = tl.program_id(1) * BLOCK + tl.arange(0, BLOCK)
+        inside = cols < n_cols
+        acc = tl.load(acc_ptr + row * acc_stride + cols, mask=inside, other=0).to(tl.float32)
+        y = acc * tl.load(row_scale_ptr + row) * tl.load(col_scale_ptr + cols, mask=inside, other=0.0)
+        tl.store(out_ptr + row * n_cols + cols, y.to(out_ptr.dtype.element_ty), mask=inside)
 
 
 def quantize_per_token(x2d: torch.Tensor, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
@@ -123,10 +141,92 @@ class _PackedLinear(nn.Module):
         return self._output(self._matmul(x.reshape(-1, x.shape[-1])), x.shape[:-1])
 
 
-class Int8DynamicLinear(_PackedLinear):
-    """W8A8 int8: y = (round(x/s_x) @ W_q^T) * s_x * s_w (+ b), int32 accumulation in `torch._int_mm`.
+class _PerTokenLinear(_PackedLinear):
+    """W8A8 with per-output-channel weight scales (`weight_scale`, 1 x out, float32) and per-token
+    input scales: subclasses hold the low-bit weight in the buffer named `WEIGHT`, quantize their
+    input rows to `INPUT` and compute the scaled product in `_product(values, scales)`.
 
-    `smooth` (SmoothQuant's d) is folded into the weights and divided out of the input first."""
+    Per token, the input's quantization is `input_cast`, which a fast path may compute inside the
+    op that produces the input (`forward_cast` then takes the cast rows), and layers that read one
+    input may run as one product (`merged`)."""
+
+    WEIGHT: str
+    INPUT: torch.dtype
+
+    @property
+    def per_token_input(self) -> bool:
+        """Whether the input is quantized per token with nothing else applied to it first."""
+        raise NotImplementedError
+
+    @property
+    def input_cast(self) -> PerTokenCast | None:
+        """The per-token quantization of this layer's input, for a producer to compute (None:
+        tensor-wise or static scales, or a per-layer input transform, which this layer computes itself)."""
+        return _CASTS[self.INPUT] if self.per_token_input else None
+
+    def _as_merged(self) -> None:
+        """Set the attributes of a merged layer (plain per-token input) beyond the common ones."""
+        raise NotImplementedError
+
+    @classmethod
+    def merged(cls, layers: list[_PerTokenLinear]) -> _PerTokenLinear:
+        """One per-token layer computing `layers` (which read one input) as one product, their
+        outputs concatenated in order: per output channel the same weights and scales. The
+        members' low-bit weights become views of the merged weight, so the merge keeps no second copy."""
+        first = layers[0]
+        if len(layers) == 1:
+            return first
+        merged = cls.__new__(cls)
+        nn.Module.__init__(merged)
+        merged.in_features, merged.out_features = first.in_features, sum(layer.out_features for layer in layers)
+        merged.out_dtype = first.out_dtype
+        merged._as_merged()
+        merged.bias = None if first.bias is None else torch.cat([layer.bias for layer in layers])
+        with torch.no_grad():
+            merged.register_buffer(cls.WEIGHT, torch.cat([getattr(layer, cls.WEIGHT) for layer in layers]))
+            merged.register_buffer("weight_scale", torch.cat([layer.weight_scale for layer in layers], dim=1))
+        start = 0
+        for layer in layers:
+            setattr(layer, cls.WEIGHT, getattr(merged, cls.WEIGHT)[start : start + layer.out_features])
+            start += layer.out_features
+        return merged
+
+    def forward_cast(self, rows: CastRows, with_bias: bool = True) -> torch.Tensor:
+        """`forward` of an input already quantized by `input_cast` (e.g. inside its producer);
+        `with_bias=False` leaves the bias for the caller to add inside the op that reads the output."""
+        values = rows.values.reshape(-1, self.in_features)
+        return self._output(self._product(values, rows.scales.reshape(-1, 1)), rows.values.shape[:-1], with_bias)
+
+    def _product(self, values: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+
+# cuBLASLt's int8 products (`torch._int_mm` on CUDA) take more than 16 rows, in multiples of 8 here.
+INT_MM_MIN_ROWS = 32
+
+
+def dequantize_int32(acc: torch.Tensor, row_scales: torch.Tensor, col_scales: torch.Tensor,
+                     dtype: torch.dtype) -> torch.Tensor:
+    """(acc * row_scales) * col_scales in float32, rounded once to `dtype`: an int8 product's int32
+    sums back to the layer's scale. One Triton kernel in eager CUDA code (one read of the int32
+    sums, one write of the output), the same arithmetic as torch ops elsewhere."""
+    if triton is None or not acc.is_cuda or torch.compiler.is_compiling():
+        return (acc.float() * row_scales * col_scales).to(dtype)
+    rows, cols = acc.shape
+    out = torch.empty(rows, cols, dtype=dtype, device=acc.device)
+    _dequantize_rows[(rows, triton.cdiv(cols, 1024))](acc, row_scales, col_scales, out, cols, acc.stride(0), BLOCK=1024)
+    return out
+
+
+class Int8DynamicLinear(_PerTokenLinear):
+    """W8A8 int8: y = (round(x/s_x) @ W_q^T) * s_x * s_w (+ b), int32 accumulation in `torch._int_mm`
+    (exact), the scales applied in float32 and the result rounded once to the layer's dtype.
+
+    `smooth` (SmoothQuant's d) is folded into the weights and divided out of the input first; a
+    layer without it takes its input cast per token by its producer (`input_cast`)."""
+
+    WEIGHT, INPUT = "weight_int8", torch.int8
+    KERNEL = "torch._int_mm (int8 x int8 -> int32) + float32 rescale"
 
     def __init__(self, linear: nn.Linear, smooth: torch.Tensor | None = None):
         super().__init__(linear)
@@ -138,26 +238,33 @@ class Int8DynamicLinear(_PackedLinear):
         self.register_buffer("weight_scale", scale.t().contiguous())  # 1 x out
         self.register_buffer("smooth", None if smooth is None else smooth.float())
 
+    @property
+    def per_token_input(self) -> bool:
+        return self.smooth is None
+
+    def _as_merged(self) -> None:
+        self.register_buffer("smooth", None)
+
     def _matmul(self, x2d: torch.Tensor) -> torch.Tensor:
         if self.smooth is not None:
             x2d = x2d.float() / self.smooth
-        x_q, scale = quantize_per_token(x2d, torch.int8)
-        rows = x_q.shape[0]
-        # cuBLASLt int8 products need more than 16 rows (and multiples of 8): pad small batches.
-        padded = max(32, (rows + 7) // 8 * 8)
+        return self._product(*quantize_per_token(x2d, torch.int8))
+
+    def _product(self, values: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+        rows = values.shape[0]
+        padded = max(INT_MM_MIN_ROWS, (rows + 7) // 8 * 8)
         if padded != rows:
-            x_q = F.pad(x_q, (0, 0, 0, padded - rows))
-        acc = torch._int_mm(x_q, self.weight_int8.t())[:rows]
-        return acc.float() * scale * self.weight_scale
+            values = F.pad(values, (0, 0, 0, padded - rows))
+        acc = torch._int_mm(values, self.weight_int8.t())[:rows]
+        return dequantize_int32(acc, scales, self.weight_scale, self.out_dtype)
 
 
-class Fp8DynamicLinear(_PackedLinear):
+class Fp8DynamicLinear(_PerTokenLinear):
     """W8A8 FP8 e4m3 with per-output-channel weight scales and per-token activation scales, or with
-    one scale per tensor for each (`tensorwise`).
+    one scale per tensor for each (`tensorwise`)."""
 
-    Per token, the input's quantization is `input_cast`, which a fast path may compute inside the
-    op that produces the input (`forward_cast` then takes the cast rows), and layers that read one
-    input may run as one product (`merged`)."""
+    WEIGHT, INPUT = "weight_fp8", FP8
+    KERNEL = "torch._scaled_mm (e4m3 x e4m3, FP32 scales)"
 
     def __init__(self, linear: nn.Linear, tensorwise: bool = False):
         super().__init__(linear)
@@ -169,38 +276,11 @@ class Fp8DynamicLinear(_PackedLinear):
         self.register_buffer("weight_scale", scale.reshape(1, -1).contiguous())  # 1 x out (or 1 x 1), float32
 
     @property
-    def input_cast(self) -> PerTokenCast | None:
-        """The per-token quantization of this layer's input, for a producer to compute (None:
-        tensor-wise or static scales, which this layer computes itself)."""
-        return None if self.tensorwise else _CASTS[FP8]
+    def per_token_input(self) -> bool:
+        return not self.tensorwise
 
-    @classmethod
-    def merged(cls, layers: list[Fp8DynamicLinear]) -> Fp8DynamicLinear:
-        """One per-token layer computing `layers` (which read one input) as one product, their
-        outputs concatenated in order: per output channel the same weights and scales. The
-        members' FP8 weights become views of the merged weight, so the merge keeps no second copy."""
-        first = layers[0]
-        if len(layers) == 1:
-            return first
-        merged = cls.__new__(cls)
-        nn.Module.__init__(merged)
-        merged.in_features, merged.out_features = first.in_features, sum(layer.out_features for layer in layers)
-        merged.out_dtype, merged.tensorwise = first.out_dtype, False
-        merged.bias = None if first.bias is None else torch.cat([layer.bias for layer in layers])
-        with torch.no_grad():
-            merged.register_buffer("weight_fp8", torch.cat([layer.weight_fp8 for layer in layers]))
-            merged.register_buffer("weight_scale", torch.cat([layer.weight_scale for layer in layers], dim=1))
-        start = 0
-        for layer in layers:
-            layer.weight_fp8 = merged.weight_fp8[start : start + layer.out_features]
-            start += layer.out_features
-        return merged
-
-    def forward_cast(self, rows: CastRows, with_bias: bool = True) -> torch.Tensor:
-        """`forward` of an input already quantized by `input_cast` (e.g. inside its producer);
-        `with_bias=False` leaves the bias for the caller to add inside the op that reads the output."""
-        values = rows.values.reshape(-1, self.in_features)
-        return self._output(self._product(values, rows.scales.reshape(-1, 1)), rows.values.shape[:-1], with_bias)
+    def _as_merged(self) -> None:
+        self.tensorwise = False
 
     def _quantize_input(self, x2d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if not self.tensorwise:
@@ -236,31 +316,47 @@ class Fp8StaticLinear(Fp8DynamicLinear):
 
 
 class Int4WeightOnlyLinear(_PackedLinear):
-    """int4 weights in asymmetric groups along the input, bf16 activations, tinygemm kernel.
+    """int4 weights in asymmetric groups along the input, bf16 activations, PyTorch's tinygemm kernel
+    (`torch._weight_int4pack_mm` on CUDA, `torch._weight_int4pack_mm_for_cpu` on the CPU).
 
-    tinygemm dequantizes w = (q - 8) * scale + zero, so zero = min + 8 * scale for q in 0..15."""
+    tinygemm dequantizes w = (q - 8) * scale + zero, so zero = min + 8 * scale for q in 0..15. Its
+    packing takes an input size that is a multiple of 128 and of the group: a layer whose input is
+    not (SigLIP's fc2 reads 4,304 values, pi0.5's action_in_proj 32) gets zero weight columns up to
+    the next multiple, and its input zeros in the same columns (one copy of the input per call), so
+    the product is unchanged; its last group's range then also spans 0."""
 
     INNER_K_TILES = 8
+    KERNEL = "torch._weight_int4pack_mm (tinygemm: int4 weights, bf16 activations)"
 
     def __init__(self, linear: nn.Linear, group_size: int):
         super().__init__(linear)
         out_features, in_features = linear.weight.shape
-        if in_features % group_size:
-            raise UserError(f"int4wo: in_features {in_features} not divisible by group size {group_size}")
-        weight = linear.weight.detach().float().reshape(out_features, -1, group_size)
+        rows_multiple = 8 if linear.weight.is_cuda else 16  # tinygemm's packing, on CUDA and on the CPU
+        if out_features % rows_multiple:
+            raise UserError(f"int4wo: out_features {out_features} is not a multiple of {rows_multiple} "
+                            f"(tinygemm's packing on {linear.weight.device.type})")
+        multiple = max(self.INNER_K_TILES * 16, group_size)
+        self.padded_in = -(-in_features // multiple) * multiple
+        weight = F.pad(linear.weight.detach().float(), (0, self.padded_in - in_features))
+        weight = weight.reshape(out_features, -1, group_size)
         low = weight.amin(dim=-1, keepdim=True)
         scale = ((weight.amax(dim=-1, keepdim=True) - low) / 15.0).clamp_min(1e-6)
-        q = torch.clamp(torch.round((weight - low) / scale), 0, 15).to(torch.uint8).reshape(out_features, in_features)
-        packed = (q[:, ::2] << 4 | q[:, 1::2]).contiguous()
-        self.register_buffer("weight_int4", torch._convert_weight_to_int4pack(packed, self.INNER_K_TILES))
+        q = torch.clamp(torch.round((weight - low) / scale), 0, 15).reshape(out_features, self.padded_in)
+        if linear.weight.is_cuda:
+            packed = (q[:, ::2].to(torch.uint8) << 4 | q[:, 1::2].to(torch.uint8)).contiguous()
+            self.register_buffer("weight_int4", torch._convert_weight_to_int4pack(packed, self.INNER_K_TILES))
+        else:
+            self.register_buffer("weight_int4", torch._convert_weight_to_int4pack_for_cpu(q.to(torch.int32),
+                                                                                          self.INNER_K_TILES))
         zero = low + 8.0 * scale
         scales_zeros = torch.stack([scale.squeeze(-1), zero.squeeze(-1)], dim=-1)  # out x groups x 2
         self.register_buffer("scales_and_zeros", scales_zeros.transpose(0, 1).contiguous().to(torch.bfloat16))
         self.group_size = group_size
 
     def _matmul(self, x2d: torch.Tensor) -> torch.Tensor:
-        return torch._weight_int4pack_mm(x2d.to(torch.bfloat16), self.weight_int4, self.group_size,
-                                         self.scales_and_zeros)
+        x2d = F.pad(x2d.to(torch.bfloat16), (0, self.padded_in - self.in_features))
+        product = torch._weight_int4pack_mm if x2d.is_cuda else torch._weight_int4pack_mm_for_cpu
+        return product(x2d, self.weight_int4, self.group_size, self.scales_and_zeros)
 
 
 def _bnb_linear(linear: nn.Linear, kind: str) -> nn.Module:
@@ -301,17 +397,22 @@ def _tensor_bytes(tensors) -> int:
 
 def _replace_all(model: nn.Module, selection: Selection, make, fmt: str) -> MethodResult:
     """Every selected linear replaced by `make(name, linear)`; the header's `weight_memory` records the
-    replaced layers' bytes as released and as packed (weights, scales, biases)."""
+    replaced layers' bytes as released and as packed (weights, scales, biases), `kernels` the number of
+    layers per kernel (a class's `KERNEL`, else the library's class)."""
     result = MethodResult(format=fmt)
     released = packed = 0
+    kernels: dict[str, int] = {}
     for name, linear in selection.flat().items():
         released += _tensor_bytes([linear.weight, linear.bias])
         new = make(name, linear)
         packed += _tensor_bytes([*new.parameters(), *new.buffers()])
+        kernel = getattr(new, "KERNEL", f"{type(new).__module__.split('.')[0]}.{type(new).__name__}")
+        kernels[kernel] = kernels.get(kernel, 0) + 1
         _swap(model, name, linear, new)
         result.hooks[name] = CountingHook(new, InputTransform())  # counts calls, changes nothing
     result.details["weight_memory"] = {"layers": len(result.hooks), "released_bytes": released, "packed_bytes": packed,
                                        "ratio": packed / released if released else None}
+    result.details["kernels"] = kernels
     return result
 
 
@@ -332,6 +433,16 @@ def int4_weight_only(model, selection, config):
     group = config.preset.weight.group_size or 128
     return _replace_all(model, selection, lambda n, m: Int4WeightOnlyLinear(m, group),
                         f"int4 weight-only, asymmetric group {group}, tinygemm (torch._weight_int4pack_mm), bf16 activations")
+
+
+def int8_dynamic(model, selection, config):
+    """W8A8 int8 without smoothing: the int8 counterpart of `fp8` (in pi0.5's captured sampler the
+    producing op casts the input rows, and q/k/v and gate/up run as one product)."""
+    _require(config, "int8_dynamic")
+    return _replace_all(model, selection, lambda n, m: Int8DynamicLinear(m),
+                        "W8A8 int8 (per-channel weights, dynamic per-token activations, torch._int_mm, "
+                        "int32 accumulation, float32 rescale)")
+
 
 
 def _int4_kernel_fits(linear: nn.Linear, grid) -> bool:

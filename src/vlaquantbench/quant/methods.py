@@ -131,6 +131,7 @@ METHODS: dict[str, MethodConfig] = {
     "int4wo": MethodConfig("int4wo", f"{_KERNELS}:int4_weight_only", presets=(4, None)),
     "awq": MethodConfig("awq", f"{_KERNELS}:awq", frozenset({ROWS}), presets=WEIGHT_ONLY),
     "smoothquant": SmoothQuant("smoothquant", f"{_KERNELS}:smoothquant", frozenset({ABSMAX}), presets=(8, 8)),
+    "int8_dynamic": MethodConfig("int8_dynamic", f"{_KERNELS}:int8_dynamic", presets=(8, 8)),
     "fp8": MethodConfig("fp8", f"{_KERNELS}:fp8", presets=(8, 8)),
     "fp8_tensor": MethodConfig("fp8_tensor", f"{_KERNELS}:fp8_tensorwise", presets=(8, 8)),
     "fp8_static": MethodConfig("fp8_static", f"{_KERNELS}:fp8_static", frozenset({ABSMAX}), presets=(8, 8)),

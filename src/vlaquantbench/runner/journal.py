@@ -33,8 +33,9 @@ PROBE_MEASUREMENTS = ("max_abs_diff", "rel_l2", "eager_ulp_spread")
 # Which GPU of a model ran the cell (runner.gpus gives each job any free one): a rerun resumes on another
 # device of the same name, whose arithmetic is the same; a device of another name is refused (README "GPUs").
 DEVICE_SLOT = ("index", "uuid")
-# What two runs of one episode may record differently: how long it took.
-TIMING_FIELDS = ("wall_time_s", "policy_batch_latency_mean_s")
+# What two runs of one episode may record differently: how long it took, and the memory it took.
+TIMING_FIELDS = ("wall_time_s", "policy_batch_latency_mean_s", "policy_latency_mean_s", "inference_latency_mean_s",
+                 "peak_vram_gb")
 
 
 def _compared(header: dict[str, Any]) -> dict[str, Any]:

@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# The closed-loop cells of tab:efficiency_pi05 (issue 33) on one CUDA GPU: each cell of
+# config/efficiency_pi05.yaml through `vqb rollout` (the real runner, one LIBERO slot), into
+# PROJECT/results/cells/<hash>/, then copied under PROJECT/efficiency_pi05/<ref>/ (the layout of the
+# committed results/efficiency_pi05, which `records_dir` reads; `vqb manifest results/efficiency_pi05
+# -o manifests/efficiency_pi05.tsv` writes its manifest). Cells in order of need: a cell cut short by
+# a time limit resumes from its journal on the next run. Copy PROJECT/efficiency_pi05.tar back.
+#   MUJOCO_GL=egl bash benchmarks/gpu_efficiency_cells.sh /tmp/project    # ~40 s a cell on an H200
+set -u
+project=${1:?usage: gpu_efficiency_cells.sh PROJECT_FOLDER}
+cells=(rtn-BASELINE-e2e fp8-W8A8-e2e rtn-FP8E4M3-e2e int8_dynamic-W8A8-e2e int4wo-W4-e2e rtn-W8A8-e2e)
+for cell in "${cells[@]}"; do
+  ref=libero/libero_spatial/pi05/$cell
+  start=$(date +%s)
+  python3 -m vlaquantbench.cli rollout "$ref" --config config/efficiency_pi05.yaml --results "$project" --num-envs 1 \
+    || echo "FAILED $ref"
+  hash=$(python3 -m vlaquantbench.cli rollout "$ref" --config config/efficiency_pi05.yaml --results "$project" --show \
+         | python3 -c 'import json, sys; print(json.load(sys.stdin)["config_hash"])')
+  if [ -f "$project/results/cells/$hash/episodes.parquet" ]; then
+    mkdir -p "$project/efficiency_pi05/$ref"
+    cp "$project/results/cells/$hash/header.json" "$project/results/cells/$hash/episodes.parquet" "$project/efficiency_pi05/$ref/"
+    # One file after every cell: a GPU machine's output folder returns no folder nested this deep,
+    # and a time limit may stop the next cell.
+    tar -cf "$project/efficiency_pi05.tar" -C "$project" efficiency_pi05
+  fi
+  echo "$ref: $(( $(date +%s) - start )) s"
+done
