@@ -1,0 +1,135 @@
+"""Training the pi0.5 policy from scratch (`vlaquantbench.training`) on a tiny LeRobotDataset written
+with lerobot's own writer, then loading the result through the rollout path's checkpoint loader."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vlaquantbench.models.paligemma_family import REDUCED_WIDTHS_FILE
+
+TASKS = ("Close a drawer", "Press a button from the top")
+IMAGE = 28  # two 14-pixel patches a side: the 27-layer vision tower stays cheap on a CPU
+TINY_POLICY = {
+    "chunk_size": 4, "n_action_steps": 2, "tokenizer_max_length": 24,
+    "normalization": {"VISUAL": "IDENTITY", "STATE": "QUANTILES", "ACTION": "QUANTILES"},
+    "lr": 1e-3, "warmup_steps": 2, "decay_steps": 10, "decay_lr": 1e-4,
+    "widths": {"vision": {"hidden_size": 16, "intermediate_size": 32, "num_attention_heads": 2},
+               "gemma_2b": {"width": 32, "mlp_dim": 64, "head_dim": 4},
+               "gemma_300m": {"width": 16, "mlp_dim": 32}},
+}
+
+
+def write_tiny_dataset(root: Path, episodes_per_task: int = 2, frames: int = 6) -> Path:
+    """A LeRobotDataset shaped like the Meta-World demonstrations: one camera, 4-D state and action."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    features = {
+        "observation.image": {"dtype": "image", "shape": (IMAGE, IMAGE, 3), "names": ["height", "width", "channel"]},
+        "observation.state": {"dtype": "float32", "shape": (4,), "names": None},
+        "action": {"dtype": "float32", "shape": (4,), "names": None},
+    }
+    dataset = LeRobotDataset.create("vlaquantbench/tiny-demos", fps=80, features=features, root=root, use_videos=False)
+    rng = np.random.default_rng(0)
+    for task in TASKS:
+        for _ in range(episodes_per_task):
+            for _ in range(frames):
+                dataset.add_frame({
+                    "observation.image": rng.integers(0, 256, (IMAGE, IMAGE, 3), dtype=np.uint8),
+                    "observation.state": rng.uniform(-0.5, 0.5, 4).astype(np.float32),
+                    "action": rng.uniform(-1, 1, 4).astype(np.float32),
+                    "task": task,
+                })
+            dataset.save_episode()
+    dataset.finalize()
+    return root
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    from vlaquantbench.training import train_policy
+
+    tmp = tmp_path_factory.mktemp("training")
+    root = write_tiny_dataset(tmp / "dataset")
+    manifest = tmp / "manifest.tsv"
+    manifest.write_text("path\tsha256\n")
+    config = {"model": "pi05", "device": "cpu", "seed": 0, "steps": 3, "batch_size": 4, "num_workers": 0,
+              "log_every": 1, "dataset_repo_id": "vlaquantbench/tiny-demos",
+              "checkpoint_repo": "vlaquantbench/pi05-tiny", "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer",
+              "policy": TINY_POLICY}
+    record = train_policy(root, manifest, tmp / "hf", tmp / "training.json", config)
+    return {"home": tmp / "hf", "record": record, "provenance": tmp / "training.json"}
+
+
+def test_provenance_records_the_run(trained):
+    record = json.loads(trained["provenance"].read_text())
+    assert record == trained["record"]
+    assert record["steps"] == 3 and record["batch_size"] == 4 and record["seed"] == 0
+    assert len(record["loss_curve"]["mean_loss"]) == 3 and all(np.isfinite(record["loss_curve"]["mean_loss"]))
+    assert record["dataset"]["episodes"] == 4 and record["dataset"]["tasks"] == sorted(TASKS)
+    assert len(record["dataset"]["manifest_sha256"]) == 64
+
+
+def test_checkpoint_is_in_hub_layout_at_its_weights_hash(trained):
+    from vlaquantbench.training import weights_revision
+
+    record = trained["record"]
+    repo = trained["home"] / "hub" / "models--vlaquantbench--pi05-tiny"
+    snapshot = repo / "snapshots" / record["revision"]
+    assert (repo / "refs" / "main").read_text() == record["revision"]
+    assert weights_revision(snapshot / "model.safetensors") == record["revision"]
+    widths = json.loads((snapshot / REDUCED_WIDTHS_FILE).read_text())
+    assert widths["vision"]["num_hidden_layers"] == 27 and widths["gemma_2b"]["depth"] == 18
+    assert widths["gemma_300m"]["depth"] == 18 and widths["vocab_size"] % 64 == 0
+    steps = json.loads((snapshot / "policy_preprocessor.json").read_text())["steps"]
+    assert [s["config"]["tokenizer_name"] for s in steps if "tokenizer_name" in s.get("config", {})] == [
+        "vlaquantbench/pi05-tiny-tokenizer"]
+
+
+def _load(trained, device="cpu"):
+    from vlaquantbench.hub.cache import offline_cache
+    from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+
+    record = trained["record"]
+    snapshot = trained["home"] / "hub" / "models--vlaquantbench--pi05-tiny" / "snapshots" / record["revision"]
+    adapter = make_adapter(AdapterConfig(model="pi05", variant="full", checkpoint=record["checkpoint"],
+                                         revision=record["revision"], checkpoint_dir=str(snapshot), executed_chunk=2))
+    with offline_cache(trained["home"]):
+        adapter.load()
+    return adapter
+
+
+def test_the_rollout_path_loads_it_as_a_released_checkpoint_and_acts_on_the_envs_observation(trained):
+    import torch
+
+    adapter = _load(trained)
+    provenance = adapter.checkpoint_provenance
+    assert provenance["tokenizer"]["repo"] == "vlaquantbench/pi05-tiny-tokenizer"
+    assert provenance["tokenizer"]["revision"] == trained["record"]["tokenizer"]["revision"]
+    assert provenance["widths"] == "reduced (trained here)" and provenance["training"]["steps"] == 3
+    assert provenance["normalization"]["policy_preprocessor"]["norm_map"]["STATE"] == "QUANTILES"
+    # A Meta-World observation: one `image`, 4-D state, the task description.
+    rng = np.random.default_rng(1)
+    observations = [{"image": rng.integers(0, 256, (IMAGE, IMAGE, 3), dtype=np.uint8),
+                     "state": rng.uniform(-0.5, 0.5, 4), "instruction": task} for task in TASKS]
+    actions = adapter.act(observations, [adapter.reset(0), adapter.reset(1)])
+    assert actions.shape == (2, 4, 4) and np.isfinite(actions).all()
+    # The prompt is tokenized with no unknown word.
+    tokens = adapter.preprocessor(adapter._lerobot_batch(observations))["observation.language.tokens"]
+    unknown = adapter.preprocessor.steps[-2].input_tokenizer.unk_token_id
+    assert not bool((tokens == unknown).any()) and tokens.dtype == torch.long
+
+
+def test_an_observation_without_the_checkpoints_camera_or_state_size_is_refused(trained):
+    from vlaquantbench.errors import UserError
+
+    adapter = _load(trained)
+    wrist_only = {"wrist": np.zeros((IMAGE, IMAGE, 3), np.uint8), "state": np.zeros(4), "instruction": TASKS[0]}
+    with pytest.raises(UserError, match=r"feed none of the checkpoint's cameras \['observation.image'\]"):
+        adapter.act([wrist_only], [adapter.reset(0)])
+    libero_state = {"image": np.zeros((IMAGE, IMAGE, 3), np.uint8), "state": np.zeros(8), "instruction": TASKS[0]}
+    with pytest.raises(UserError, match="state has 8 dimensions; the checkpoint's observation.state has 4"):
+        adapter.act([libero_state], [adapter.reset(0)])
