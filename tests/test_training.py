@@ -57,10 +57,10 @@ def trained(tmp_path_factory):
     manifest = tmp / "manifest.tsv"
     manifest.write_text("path\tsha256\n")
     config = {"model": "pi05", "device": "cpu", "seed": 0, "steps": 3, "batch_size": 4, "num_workers": 0,
-              "log_every": 1, "dataset_repo_id": "vlaquantbench/tiny-demos",
+              "log_every": 1,
               "checkpoint_repo": "vlaquantbench/pi05-tiny", "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer",
               "policy": TINY_POLICY}
-    record = train_policy(root, manifest, tmp / "hf", tmp / "training.json", config)
+    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, tmp / "hf", tmp / "training.json", config)
     return {"home": tmp / "hf", "record": record, "provenance": tmp / "training.json"}
 
 

@@ -54,10 +54,11 @@ def _device_record(device) -> dict[str, Any]:
             "cuda": torch.version.cuda}
 
 
-def train_policy(dataset_root: str | Path, dataset_manifest: str | Path, output: str | Path,
+def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifest: str | Path, output: str | Path,
                  provenance: str | Path, training: dict[str, Any]) -> dict[str, Any]:
-    """Train `training["model"]` on the LeRobotDataset at `dataset_root`; write the HF_HOME folder
-    `output` and the provenance JSON `provenance`; returns the provenance."""
+    """Train `training["model"]` (the config's `training` section) on the LeRobotDataset `dataset_repo_id`
+    at `dataset_root`; write the HF_HOME folder `output` and the provenance JSON `provenance`; returns
+    the provenance."""
     import torch
     from lerobot.datasets.factory import resolve_delta_timestamps
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
@@ -77,13 +78,12 @@ def train_policy(dataset_root: str | Path, dataset_manifest: str | Path, output:
     # TF32 matmuls on the GPU: the float32 weights train at tensor-core speed.
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
 
-    repo_id = training["dataset_repo_id"]
-    meta = LeRobotDatasetMetadata(repo_id, root=dataset_root)
+    meta = LeRobotDatasetMetadata(dataset_repo_id, root=dataset_root)
     descriptions = sorted(meta.tasks.index) if hasattr(meta.tasks, "index") else sorted(meta.tasks)
     tokenizer = tokenizers.build_task_tokenizer(descriptions)
     policy, preprocessor, postprocessor, widths = trained.build_policy(
         meta, training["policy"], training["tokenizer_repo"], tokenizer, str(device))
-    dataset = LeRobotDataset(repo_id, root=dataset_root, delta_timestamps=resolve_delta_timestamps(policy.config, meta))
+    dataset = LeRobotDataset(dataset_repo_id, root=dataset_root, delta_timestamps=resolve_delta_timestamps(policy.config, meta))
     sampler = EpisodeAwareSampler(meta.episodes["dataset_from_index"], meta.episodes["dataset_to_index"],
                                   episode_indices_to_use=dataset.episodes, shuffle=True, seed=training["seed"],
                                   absolute_to_relative_idx=dataset.absolute_to_relative_idx)
@@ -126,7 +126,7 @@ def train_policy(dataset_root: str | Path, dataset_manifest: str | Path, output:
         folder = trained.save(Path(scratch) / "checkpoint", policy.to("cpu"), preprocessor, postprocessor, widths)
         revision = weights_revision(folder / "model.safetensors")
         record = _provenance(training, revision, folder, n_params, tokenizer, tokenizer_revision, descriptions,
-                             dataset_root, dataset_manifest, dataset, losses, wall_s, device)
+                             dataset_root, dataset_repo_id, dataset_manifest, dataset, losses, wall_s, device)
         # The snapshot carries it too: the rollout path's headers cite it (PiFamilyAdapter).
         write_text(folder / TRAINING_FILE, json.dumps(record, indent=2) + "\n")
         write_snapshot(hub, training["checkpoint_repo"], revision, folder)
@@ -135,7 +135,7 @@ def train_policy(dataset_root: str | Path, dataset_manifest: str | Path, output:
 
 
 def _provenance(training, revision, folder, n_params, tokenizer, tokenizer_revision, descriptions, dataset_root,
-                dataset_manifest, dataset, losses, wall_s, device) -> dict[str, Any]:
+                dataset_repo_id, dataset_manifest, dataset, losses, wall_s, device) -> dict[str, Any]:
     from vlaquantbench.hub.checks import sha256
 
     span = max(1, len(losses) // LOSS_CURVE_POINTS)
@@ -145,7 +145,7 @@ def _provenance(training, revision, folder, n_params, tokenizer, tokenizer_revis
         "tokenizer": {"repo": training["tokenizer_repo"], "revision": tokenizer_revision, "vocabulary": len(tokenizer),
                       "source": "word-level tokenizer built from the dataset's task descriptions "
                                 "(vlaquantbench.models.pi05.task_tokenizer)"},
-        "dataset": {"root": str(dataset_root), "repo_id": training["dataset_repo_id"], "manifest_sha256": sha256(dataset_manifest),
+        "dataset": {"root": str(dataset_root), "repo_id": dataset_repo_id, "manifest_sha256": sha256(dataset_manifest),
                     "frames": dataset.num_frames, "episodes": dataset.num_episodes, "tasks": descriptions},
         "steps": training["steps"], "batch_size": training["batch_size"], "seed": training["seed"],
         "policy": training["policy"],
