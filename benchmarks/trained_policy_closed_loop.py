@@ -32,7 +32,7 @@ def evaluate(home: Path, suite_name: str, tasks: list[str], episodes: int, first
     training = json.loads((home / "training.json").read_text())
     snapshot = repo_folder(home / "hub", training["checkpoint"]) / "snapshots" / training["revision"]
     adapter = make_adapter(AdapterConfig(model="pi05", variant="full", checkpoint=training["checkpoint"],
-                                         revision=training["revision"], checkpoint_dir=str(snapshot), device=device,
+                                         revision=training["revision"], checkpoint_dir=str(snapshot), device=device, dtype="float32",
                                          executed_chunk=training["policy"]["n_action_steps"], flow_steps=flow_steps))
     with offline_cache(home):
         adapter.load()

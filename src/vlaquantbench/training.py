@@ -101,7 +101,12 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
     losses: list[float] = []
     start = time.monotonic()
     batches = cycle(loader)
+    # A wall-clock bound (the GPU machine's command limit): training stops there, recording the steps it made.
+    time_limit_s = training.get("time_limit_s")
     for step in range(1, training["steps"] + 1):
+        if time_limit_s is not None and time.monotonic() - start > time_limit_s:
+            LOG.warning("time limit %d s reached after %d of %d steps", time_limit_s, step - 1, training["steps"])
+            break
         batch = preprocessor(next(batches))
         loss, _ = policy.forward(batch)
         if not math.isfinite(loss.item()):
@@ -147,7 +152,8 @@ def _provenance(training, revision, folder, n_params, tokenizer, tokenizer_revis
                                 "(vlaquantbench.models.pi05.task_tokenizer)"},
         "dataset": {"root": str(dataset_root), "repo_id": dataset_repo_id, "manifest_sha256": sha256(dataset_manifest),
                     "frames": dataset.num_frames, "episodes": dataset.num_episodes, "tasks": descriptions},
-        "steps": training["steps"], "batch_size": training["batch_size"], "seed": training["seed"],
+        "steps": len(losses), "planned_steps": training["steps"], "batch_size": training["batch_size"],
+        "seed": training["seed"],
         "policy": training["policy"],
         "loss_curve": {"span_steps": span,
                        "mean_loss": [round(sum(losses[i:i + span]) / len(losses[i:i + span]), 5)
