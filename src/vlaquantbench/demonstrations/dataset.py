@@ -95,6 +95,20 @@ def check_disjoint_from_evaluation(config: DemonstrationConfig, cells: Iterable[
                     f"demonstrations.first_variation above {highest}")
 
 
+def _available_rgb_encoder():
+    """A video encoder config this machine's FFmpeg can build. The dataset stores no video
+    (`use_videos=False`), but lerobot 0.6.1's writer still builds its default encoder config, which
+    refuses a codec the PyAV build lacks (the GPU machine's PyAV has no libsvtav1, lerobot's default)."""
+    from lerobot.configs.video import HW_VIDEO_CODECS, RGBEncoderConfig
+    from lerobot.datasets import detect_available_encoders_pyav
+
+    preference = ["libsvtav1", "h264", "hevc", "libaom-av1", *HW_VIDEO_CODECS]
+    available = detect_available_encoders_pyav(preference)
+    if not available:
+        raise RuntimeError(f"PyAV's FFmpeg offers none of lerobot's video encoders ({', '.join(preference)})")
+    return RGBEncoderConfig(vcodec=available[0])
+
+
 def _features(image_size: int) -> dict[str, dict]:
     """lerobot's feature spec of the dataset, named as lerobot's Meta-World env names them for policies."""
     from lerobot.utils.constants import ACTION, OBS_IMAGE, OBS_STATE
@@ -193,7 +207,8 @@ def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, num_e
     out.mkdir(parents=True, exist_ok=True)
     dataset = LeRobotDataset.create(
         config.repo_id, fps=MetaworldEnv.fps, features=_features(config.image_size), root=out / DATASET_DIR,
-        robot_type=ROBOT_TYPE, use_videos=False, image_writer_threads=config.image_writer_threads)
+        robot_type=ROBOT_TYPE, use_videos=False, image_writer_threads=config.image_writer_threads,
+        rgb_encoder=_available_rgb_encoder())
     expert = make_adapter(AdapterConfig(model="metaworld_expert", variant="full"))
     expert.load()
 
