@@ -38,11 +38,8 @@ LOSS_CURVE_POINTS = 50
 
 def weights_revision(weights: Path) -> str:
     """The hub revision of a trained checkpoint: the SHA-1 of its weights file (a commit id's 40 hex digits)."""
-    digest = hashlib.sha1()
     with open(weights, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+        return hashlib.file_digest(f, "sha1").hexdigest()
 
 
 def _device_record(device) -> dict[str, Any]:
