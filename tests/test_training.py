@@ -138,3 +138,33 @@ def test_an_observation_without_the_checkpoints_camera_or_state_size_is_refused(
     libero_state = {"image": np.zeros((IMAGE, IMAGE, 3), np.uint8), "state": np.zeros(8), "instruction": TASKS[0]}
     with pytest.raises(UserError, match="state has 8 dimensions; the checkpoint's observation.state has 4"):
         adapter.act([libero_state], [adapter.reset(0)])
+
+
+@pytest.mark.slow
+def test_the_rule_trains_on_the_demonstrations_rules_dataset(tmp_path):
+    """`snakemake <output>/training.json`: rule demonstrations (one task, two episodes at 28 px), then
+    rule train_policy on its dataset, the provenance naming the dataset's manifest."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    from paths import ROOT
+    from vlaquantbench.hub.checks import sha256
+
+    demonstrations = {"dir": "results/demos", "tasks": ["handle-press-v3"], "episodes_per_task": 2, "image_size": IMAGE,
+                      "image_writer_threads": 1}
+    training = {"model": "pi05", "output": "checkpoints/tiny", "checkpoint_repo": "vlaquantbench/pi05-tiny",
+                "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer", "device": "cpu", "seed": 0, "steps": 2,
+                "batch_size": 4, "num_workers": 0, "log_every": 1, "policy": TINY_POLICY}
+    (tmp_path / "study.yaml").write_text(yaml.safe_dump({"demonstrations": demonstrations, "training": training}))
+    command = [sys.executable, "-m", "snakemake", "checkpoints/tiny/training.json", "--cores", "2",
+               "--snakefile", str(ROOT / "Snakefile"), "--directory", str(tmp_path),
+               "--configfile", str(ROOT / "config" / "config.yaml"), str(tmp_path / "study.yaml")]
+    run = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    record = json.loads((tmp_path / "checkpoints" / "tiny" / "training.json").read_text())
+    assert record["dataset"]["manifest_sha256"] == sha256(tmp_path / "results" / "demos" / "manifest.tsv")
+    assert record["dataset"]["episodes"] == 2 and record["dataset"]["tasks"] == ["Press a handle down"]
+    snapshot = tmp_path / "checkpoints" / "tiny" / "hub" / "models--vlaquantbench--pi05-tiny" / "snapshots" / record["revision"]
+    assert (snapshot / "model.safetensors").is_file() and (tmp_path / "logs" / "train_policy.log").is_file()
