@@ -14,6 +14,8 @@ include: "rules/analysis.smk"
 include: "rules/rollout.smk"
 include: "rules/replay.smk"
 include: "rules/sequential.smk"
+include: "rules/demonstrations.smk"
+include: "rules/training.smk"
 
 
 onerror:

@@ -19,7 +19,7 @@ import torch
 
 from vlaquantbench.models.adapter import AdapterConfig, episode_generator, make_adapter
 from vlaquantbench.models.pi05.fast.captured import graph_plan
-from vlaquantbench.models.pi_family_adapter import CAMERA_KEYS, STATE_DIM
+from vlaquantbench.models.pi_family_adapter import LIBERO_CAMERAS, STATE_DIM
 
 INSTRUCTIONS = ("pick up the black bowl and place it on the plate", "open the drawer")
 
@@ -44,7 +44,7 @@ def main() -> None:
     rng = np.random.default_rng(0)
     result = {}
     for batch_size in args.batches:
-        observations = [{**{view: rng.integers(0, 256, (224, 224, 3), dtype=np.uint8) for view in CAMERA_KEYS},
+        observations = [{**{view: rng.integers(0, 256, (224, 224, 3), dtype=np.uint8) for view in LIBERO_CAMERAS},
                          "state": rng.uniform(-0.05, 0.05, STATE_DIM).astype(np.float32),
                          "instruction": INSTRUCTIONS[i % 2]} for i in range(batch_size)]
         batch = adapter.preprocessor(adapter._lerobot_batch(observations))

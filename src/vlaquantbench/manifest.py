@@ -174,3 +174,34 @@ def verified(manifests: list[str], records_dir: str | Path, cells: list[str]) ->
     for manifest in manifests:
         verify_manifest(manifest, records_dir, cells)
     return cells
+
+
+def write_file_manifest(root: str | Path, output: str | Path) -> Path:
+    """A manifest of every data file under `root` but `output` (a dataset rather than cell records: its
+    rows carry a path and a SHA-256 only), in the same TSV format as a records manifest."""
+    root = Path(root)
+    files = _data_files(root, Path(output))
+    return _write_rows([ManifestRow(path, None, None, sha256_file(root / path)) for path in files], output)
+
+
+def _data_files(root: Path, manifest: Path) -> list[str]:
+    """Paths under `root`, relative, of its files but `manifest` and hidden bookkeeping (Snakemake's
+    `.snakemake_timestamp` in a directory output)."""
+    return sorted(f.relative_to(root).as_posix() for f in root.rglob("*")
+                  if f.is_file() and f.resolve() != manifest.resolve() and not f.name.startswith("."))
+
+
+def verify_file_manifest(manifest: str | Path, root: str | Path) -> list[ManifestRow]:
+    """Check the files under `root` against a `write_file_manifest` manifest: UserError naming the first
+    file that is listed but missing, present but unlisted, or changed; returns the verified rows."""
+    root, manifest = Path(root), Path(manifest)
+    listed = read_manifest(manifest)
+    present = set(_data_files(root, manifest))
+    if missing := sorted(set(listed) - present):
+        raise UserError(f"file {root / missing[0]} listed in manifest {manifest} is missing")
+    if unlisted := sorted(present - set(listed)):
+        raise UserError(f"file {root / unlisted[0]} is not listed in manifest {manifest}")
+    for path, row in sorted(listed.items()):
+        if sha256_file(root / path) != row.sha256:
+            raise UserError(f"file {root / path} does not match manifest {manifest} (SHA-256 differs)")
+    return [listed[path] for path in sorted(listed)]

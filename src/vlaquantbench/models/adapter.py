@@ -111,7 +111,7 @@ class PolicyAdapter(Protocol):
     def reset(self, seed: int) -> torch.Generator: ...
 
     def act(self, observations: Sequence[dict], generators: Sequence[torch.Generator]) -> np.ndarray:
-        """Action chunks `[n, predicted_chunk, 7]` in environment units for n observations."""
+        """Action chunks `[n, predicted_chunk, action dimensions]` in environment units for n observations."""
         ...
 
 

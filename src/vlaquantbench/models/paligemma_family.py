@@ -34,6 +34,8 @@ DEMO_WIDTHS = {
 # `vqb hub-fixture`): lerobot hard-codes the released widths, so loading it needs `reduced_widths`.
 # Released checkpoints have no such file and load unpatched.
 REDUCED_WIDTHS_FILE = "vlaquantbench_reduced_widths.json"
+# A checkpoint trained here (`vlaquantbench.training`) holds its training provenance in this file.
+TRAINING_FILE = "vlaquantbench_training.json"
 
 
 def pi_components(action_projections: Sequence[str]) -> dict[str, Component]:
@@ -69,21 +71,34 @@ def reduced_widths(modeling: types.ModuleType, widths: dict[str, dict] = DEMO_WI
     lerobot accepts only the released Gemma variants (`get_gemma_config`) and sets the SigLIP MLP
     width and projector output inside `PaliGemmaWithExpertModel`, so this resizes the finished
     PaliGemma config just before the VLM is instantiated from it. `widths` maps each Gemma variant
-    and "vision" to its sizes (`DEMO_WIDTHS`).
+    and "vision" to its sizes (`DEMO_WIDTHS`), and optionally "vocab_size" to the vocabulary of a
+    small tokenizer shipped with the checkpoint: lerobot hard-codes PaliGemma's 257,152 entries for
+    the VLM's embedding and the expert's (never called) vocabulary head, which alone would outweigh
+    a small trained policy many times over.
     """
     real_vlm_cls = modeling.PaliGemmaForConditionalGenerationWithPiGemma
+    real_expert_cls = modeling.PiGemmaForCausalLM
+    vocab_size = widths.get("vocab_size")
 
     def demo_vlm(config):
         for key, value in widths["vision"].items():
             setattr(config.vision_config, key, value)
         config.vision_config.projection_dim = config.text_config.hidden_size
+        if vocab_size is not None:  # as lerobot sets its own: image token just past the vocabulary
+            config._vocab_size = config.text_config.vocab_size = config.image_token_index = vocab_size
         return real_vlm_cls(config=config)
+
+    def demo_expert(config):
+        if vocab_size is not None:
+            config.vocab_size = vocab_size
+        return real_expert_cls(config=config)
 
     def demo_gemma_config(variant: str):
         return modeling.GemmaConfig(**widths[variant])
 
     with (
         mock.patch.object(modeling, "PaliGemmaForConditionalGenerationWithPiGemma", demo_vlm),
+        mock.patch.object(modeling, "PiGemmaForCausalLM", demo_expert),
         mock.patch.object(modeling, "get_gemma_config", demo_gemma_config),
     ):
         yield

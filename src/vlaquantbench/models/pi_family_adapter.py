@@ -1,11 +1,14 @@
-"""What the pi0 and pi0.5 adapters share: lerobot 0.6.1 policies driven like lerobot's LIBERO
-evaluation (two cameras, 8-D state, instruction), with the flow noise drawn per episode.
+"""What the pi0 and pi0.5 adapters share: lerobot 0.6.1 policies driven like lerobot's evaluation
+(camera images, state, instruction), with the flow noise drawn per episode.
 
-Observation -> lerobot batch (`observation.images.image` = agentview, `.image2` = wrist, both
-already rotated 180 degrees by the environment; `observation.state`; `task`) -> the policy's
-preprocessor pipeline (normalization, tokenization) -> images resized with padding to the model's
-resolution and mapped to [-1, 1] -> `sample_actions` with noise from each episode's generator ->
-the first 7 action dimensions -> the postprocessor (unnormalization).
+Observation -> lerobot batch (each camera view under the feature name lerobot's datasets of its
+benchmark give it, `CAMERA_FEATURES`: LIBERO's agentview and wrist views, already rotated 180
+degrees by the environment, Meta-World's one `corner2` image; `observation.state`; `task`) -> the
+policy's preprocessor pipeline (normalization, tokenization) -> images resized with padding to the
+model's resolution and mapped to [-1, 1] -> `sample_actions` with noise from each episode's
+generator -> the checkpoint's action dimensions (its config's `action` feature) -> the
+postprocessor (unnormalization). The cameras and the state size are those the checkpoint's config
+declares; an observation lacking them is refused naming the features.
 
 Full variant: `PI0xPolicy.from_pretrained` and the checkpoint's own processor files (the real
 PaliGemma tokenizer). Demo variant: the reduced-width random-weight model of the model spec, and
@@ -30,11 +33,16 @@ from torch import nn
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterBase, BatchInvariantLinears, wait_for_device
-from vlaquantbench.models.paligemma_family import REDUCED_WIDTHS_FILE, checkpoint_widths
+from vlaquantbench.models.paligemma_family import REDUCED_WIDTHS_FILE, TRAINING_FILE, checkpoint_widths
 from vlaquantbench.models.registry import get_model_spec
 
-CAMERA_KEYS = {"agentview": "observation.images.image", "wrist": "observation.images.image2"}
+# Environment camera view -> the lerobot feature it feeds: the names lerobot's LIBERO datasets
+# (`image`, `image2`) and Meta-World datasets (`observation.image`) give those views.
+CAMERA_FEATURES = {"agentview": "observation.images.image", "wrist": "observation.images.image2",
+                   "image": "observation.image"}
+LIBERO_CAMERAS = ("agentview", "wrist")
 STATE_KEY = "observation.state"
+# The demo and random variants' features: LIBERO's (the released LIBERO finetunes').
 ACTION_DIM = 7
 STATE_DIM = 8
 
@@ -107,6 +115,8 @@ class PiFamilyAdapter(AdapterBase):
         self._invariance = BatchInvariantLinears(self.model) if eager_cpu else None
         self.predicted_chunk = int(self.policy_config.chunk_size)
         self.image_keys = list(self.policy_config.image_features)
+        self.state_dim = int(self.policy_config.input_features[STATE_KEY].shape[0])
+        self.action_dim = int(self.policy_config.output_features["action"].shape[0])
         self._check_chunk()
 
     def _load_checkpoint(self) -> None:
@@ -146,8 +156,22 @@ class PiFamilyAdapter(AdapterBase):
         self.checkpoint_provenance = {
             "tokenizer": tokenizers[0] if len(tokenizers) == 1 else tokenizers,
             "normalization": normalization,
-            "widths": "reduced (offline hub fixture)" if (Path(folder) / REDUCED_WIDTHS_FILE).exists() else "released",
+            **self._widths_provenance(Path(folder)),
         }
+
+    @staticmethod
+    def _widths_provenance(folder: Path) -> dict:
+        """The header's `widths` and, for a policy trained here, its `training` record (what it was
+        trained on and how long; the whole record's sha256)."""
+        if (folder / TRAINING_FILE).exists():
+            from vlaquantbench.hub.checks import load_json, sha256
+
+            record = load_json(folder / TRAINING_FILE, "training provenance")
+            return {"widths": "reduced (trained here)",
+                    "training": {"file": TRAINING_FILE, "sha256": sha256(folder / TRAINING_FILE),
+                                 "dataset_manifest_sha256": record["dataset"]["manifest_sha256"],
+                                 "steps": record["steps"], "batch_size": record["batch_size"]}}
+        return {"widths": "reduced (offline hub fixture)" if (folder / REDUCED_WIDTHS_FILE).exists() else "released"}
 
     @staticmethod
     def _loaded_keys(policy, shapes: dict[str, tuple]) -> dict[str, tuple]:
@@ -176,8 +200,7 @@ class PiFamilyAdapter(AdapterBase):
             device=self.config.device,
             dtype=dtype,
             input_features={
-                CAMERA_KEYS["agentview"]: image,
-                CAMERA_KEYS["wrist"]: image,
+                **{CAMERA_FEATURES[view]: image for view in LIBERO_CAMERAS},
                 STATE_KEY: PolicyFeature(type=FeatureType.STATE, shape=(STATE_DIM,)),
             },
             output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,))},
@@ -214,34 +237,42 @@ class PiFamilyAdapter(AdapterBase):
         shape = (self.predicted_chunk, int(self.policy_config.max_action_dim))
         # Drawn on the CPU from each episode's own stream, then moved: identical on every device.
         noise = torch.stack([torch.randn(shape, generator=g) for g in generators]).to(self._device)
-        actions = self._sample(batch, images, image_masks, noise)[:, :, :ACTION_DIM]
+        actions = self._sample(batch, images, image_masks, noise)[:, :, :self.action_dim]
         wait_for_device(self._device)
         actions = self.postprocessor(actions.float())
         return actions.float().cpu().numpy()
 
     def _lerobot_batch(self, observations: Sequence[dict[str, Any]]) -> dict[str, Any]:
         batch: dict[str, Any] = {}
-        for view, key in CAMERA_KEYS.items():
+        views = [view for view, key in CAMERA_FEATURES.items() if key in self.image_keys and view in observations[0]]
+        if not views:
+            raise UserError(f"{self.name}: the observation's views {sorted(observations[0])} feed none of the "
+                            f"checkpoint's cameras {self.image_keys} ({CAMERA_FEATURES})")
+        for view in views:
             pixels = np.stack([obs[view] for obs in observations])  # n x H x W x 3, uint8
             # The uint8 pixels travel (a quarter of float32's bytes) and are widened where the policy
             # runs: on a GPU the closed-loop runner's main process, which shares the CPU with the
             # simulator workers, does no per-pixel work (division is exact-rounded on both devices).
             pixels = torch.from_numpy(pixels).to(self._device)
-            batch[key] = pixels.permute(0, 3, 1, 2).float().div(255.0)
-        batch[STATE_KEY] = torch.from_numpy(np.stack([obs["state"] for obs in observations]).astype(np.float32))
+            batch[CAMERA_FEATURES[view]] = pixels.permute(0, 3, 1, 2).float().div(255.0)
+        state = np.stack([obs["state"] for obs in observations]).astype(np.float32)
+        if state.shape[1] != self.state_dim:
+            raise UserError(f"{self.name}: the observation's state has {state.shape[1]} dimensions; the checkpoint's "
+                            f"{STATE_KEY} has {self.state_dim}")
+        batch[STATE_KEY] = torch.from_numpy(state)
         batch["task"] = [obs["instruction"] for obs in observations]
         return batch
 
     def _images(self, batch: dict[str, Any]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """Like lerobot's `_preprocess_images`: resize with padding, [0, 1] -> [-1, 1]; cameras the
-        checkpoint expects but LIBERO lacks become masked constant images."""
+        checkpoint expects but the environment lacks become masked constant images."""
         from lerobot.policies.common.vla_utils import resize_with_pad_torch
 
         height, width = self.policy_config.image_resolution
         images, masks = [], []
         present = [k for k in self.image_keys if k in batch]
         if not present:
-            raise UserError(f"{self.name}: none of the checkpoint's cameras {self.image_keys} is delivered by LIBERO")
+            raise UserError(f"{self.name}: none of the checkpoint's cameras {self.image_keys} is delivered by the environment")
         n = batch[present[0]].shape[0]
         for key in self.image_keys:
             if key in batch:

@@ -106,8 +106,11 @@ def run_episodes(
     *,
     overlap: bool = True,
     min_batch: int = 1,
+    on_actions: Callable[[EpisodeSpec, dict, np.ndarray], None] | None = None,
 ) -> None:
-    """Run `specs` to completion; `on_finished(records)` gets the episodes that finish together."""
+    """Run `specs` to completion; `on_finished(records)` gets the episodes that finish together, and
+    `on_actions(spec, observation, actions)` every observation of an episode with the actions it
+    executes from it (what a demonstration recorder stores), as they are sent."""
     if min_batch < 1:
         raise ValueError(f"min_batch must be at least 1, got {min_batch}")
     pending = deque(specs)
@@ -171,7 +174,7 @@ def run_episodes(
             began = time.perf_counter()
             chunks = adapter.act(observations, [episodes[i].generator for i in slots])
             latency = time.perf_counter() - began
-            for slot, chunk in zip(slots, chunks):
+            for slot, observation, chunk in zip(slots, observations, chunks):
                 episode = episodes[slot]
                 episode.latencies.append(latency)
                 # float64, as MuJoCo receives them: the digest hashes exactly what is executed.
@@ -181,5 +184,7 @@ def run_episodes(
                 if finite:
                     episode.sent = actions[:finite]
                     env.submit_chunk(slot, episode.sent)
+                    if on_actions is not None:
+                        on_actions(episode.spec, observation, episode.sent)
                 else:  # the chunk's first action is already non-finite
                     finish([(slot, record(slot, False))])

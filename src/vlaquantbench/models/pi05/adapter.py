@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from vlaquantbench.models.adapter import episode_generator, fast_path_probe, ulp_moved
-from vlaquantbench.models.pi_family_adapter import CAMERA_KEYS, STATE_DIM, PiFamilyAdapter
+from vlaquantbench.models.pi_family_adapter import CAMERA_FEATURES, PiFamilyAdapter
 
 
 class Pi05Adapter(PiFamilyAdapter):
@@ -54,8 +54,9 @@ class Pi05Adapter(PiFamilyAdapter):
         if self.config.sampler != "captured":
             return None
         rng = np.random.default_rng(0)
-        observation = {view: rng.integers(0, 256, (224, 224, 3), dtype=np.uint8) for view in CAMERA_KEYS}
-        observation |= {"state": rng.uniform(-0.05, 0.05, STATE_DIM).astype(np.float32),
+        observation = {view: rng.integers(0, 256, (224, 224, 3), dtype=np.uint8)
+                       for view, key in CAMERA_FEATURES.items() if key in self.image_keys}
+        observation |= {"state": rng.uniform(-0.05, 0.05, self.state_dim).astype(np.float32),
                         "instruction": "pick up the black bowl and place it on the plate"}
         batch = self.preprocessor(self._lerobot_batch([observation]))
         images, image_masks = self._images(batch)

@@ -1,0 +1,32 @@
+# Scripted-expert Meta-World demonstrations as a LeRobotDataset (issue 30): what the trained policy learns
+# from. Only with a `demonstrations` section (config/trained_study.yaml):
+#   snakemake --cores 16 results/demonstrations/metaworld/manifest.tsv --configfile config/trained_study.yaml
+# One worker process per core the job gets. A study whose Meta-World cells would evaluate a variation the
+# demonstrations may record is refused here, while the DAG is built.
+from vlaquantbench.demonstrations import (  # noqa: E402
+    DATASET_DIR,
+    MANIFEST_FILE,
+    SUMMARY_FILE,
+    DemonstrationConfig,
+    check_disjoint_from_evaluation,
+)
+
+DEMONSTRATIONS = DemonstrationConfig.from_dict(config["demonstrations"]) if "demonstrations" in config else None
+
+if DEMONSTRATIONS is not None:
+    check_disjoint_from_evaluation(DEMONSTRATIONS, CELLS.values())
+
+    rule demonstrations:
+        output:
+            dataset=directory(f"{DEMONSTRATIONS.dir}/{DATASET_DIR}"),
+            summary=f"{DEMONSTRATIONS.dir}/{SUMMARY_FILE}",
+            manifest=f"{DEMONSTRATIONS.dir}/{MANIFEST_FILE}",
+        log:
+            f"logs/demonstrations/{Path(DEMONSTRATIONS.dir).name}.log",
+        benchmark:
+            f"logs/demonstrations/{Path(DEMONSTRATIONS.dir).name}.benchmark.tsv"
+        threads: workflow.cores
+        params:
+            config=DEMONSTRATIONS,
+        script:
+            "../workflow/scripts/demonstrations.py"

@@ -1,0 +1,23 @@
+# A policy trained from scratch on the demonstrations (issue 30), on a GPU:
+#   snakemake --cores 16 checkpoints/pi05_metaworld/training.json --configfile config/trained_study.yaml
+# regenerates the committed checkpoint (rule demonstrations first, if its dataset is missing).
+if "training" in config and DEMONSTRATIONS is not None:
+    TRAINING = config["training"]
+
+    rule train_policy:
+        input:
+            dataset=rules.demonstrations.output.dataset,
+            manifest=rules.demonstrations.output.manifest,
+        output:
+            hub=directory(TRAINING["output"] + "/hub"),
+            provenance=TRAINING["output"] + "/training.json",
+        params:
+            training=TRAINING,
+            dataset_repo_id=DEMONSTRATIONS.repo_id,
+        log:
+            "logs/train_policy.log",
+        threads: max(1, TRAINING["num_workers"])
+        resources:
+            gpu=int(TRAINING["device"].startswith("cuda")),
+        script:
+            "../workflow/scripts/train_policy.py"

@@ -1,0 +1,183 @@
+"""Rule demonstrations (issue 30): a real `snakemake` run of Meta-World's scripted experts on two tasks at
+32 pixels writes a LeRobotDataset that lerobot reads back, keeps only successful episodes, counts every
+attempt, and lists every file in a SHA-256 manifest; the demonstrations' task variations are never
+ones that closed-loop evaluation starts from.
+
+The failed episode is real: the step limit is set to 45, so reach-v3's expert fails on variation 500
+(it needs 51 steps there, measured with metaworld 3.0.0) and succeeds on 501 (44 steps), while
+handle-press-v3 succeeds on 500 (32 steps)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from paths import ROOT
+from vlaquantbench.demonstrations import (
+    DATASET_DIR,
+    MANIFEST_FILE,
+    SUMMARY_FILE,
+    DemonstrationConfig,
+    check_disjoint_from_evaluation,
+    write_demonstrations,
+)
+from vlaquantbench.envs import make_env, make_suite
+from vlaquantbench.envs.metaworld import lerobot_metaworld_config
+from vlaquantbench.errors import UserError
+from vlaquantbench.manifest import read_manifest, verify_file_manifest
+
+pytestmark = pytest.mark.slow
+
+TASKS = ["reach-v3", "handle-press-v3"]
+SECTION = {"dir": "results/demos", "tasks": TASKS, "episodes_per_task": 1, "max_steps": 45, "image_size": 32,
+           "image_writer_threads": 1}
+EVALUATION_EPISODES = 50  # lerobot-eval's n_episodes per task, the most a Meta-World study here evaluates
+
+
+@pytest.fixture(scope="module")
+def demos(tmp_path_factory):
+    """The rule's outputs from `snakemake --cores 2 results/demos/manifest.tsv` in a fresh working folder."""
+    workdir = tmp_path_factory.mktemp("demos")
+    (workdir / "demos.yaml").write_text(yaml.safe_dump({"demonstrations": SECTION}))
+    command = [sys.executable, "-m", "snakemake", "results/demos/manifest.tsv", "--cores", "2",
+               "--snakefile", str(ROOT / "Snakefile"), "--directory", str(workdir),
+               # the Snakefile's own config file is found relative to the working folder: named here
+               "--configfile", str(ROOT / "config" / "config.yaml"), str(workdir / "demos.yaml")]
+    run = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    out = workdir / "results" / "demos"
+    return {"out": out,
+            "summary": json.loads((out / SUMMARY_FILE).read_text())}
+
+
+def test_only_successful_expert_episodes_are_kept_and_every_attempt_is_counted(demos):
+    tasks = {t["task"]: t for t in demos["summary"]["tasks"]}
+    assert [(t["task"], t["tried"], t["kept"]) for t in demos["summary"]["tasks"]] == [
+        ("reach-v3", 2, 1), ("handle-press-v3", 1, 1)]
+    failed, solved = tasks["reach-v3"]["episodes"]
+    assert (failed["variation"], failed["success"], failed["steps"], failed["dataset_episode"]) == (500, False, 45, None)
+    assert (solved["variation"], solved["success"], solved["dataset_episode"]) == (501, True, 1)
+    # Round 1 tried variation 500 of both tasks; round 2 replaced reach-v3's failure with variation 501.
+    assert tasks["handle-press-v3"]["episodes"][0]["dataset_episode"] == 0
+    # Seeds recorded: each variation's seed is the one Meta-World drew its placement from.
+    task_ids = lerobot_metaworld_config()["TASK_NAME_TO_ID"]
+    assert solved["variation_seed"] == 1009 * task_ids["reach-v3"] + 501
+
+
+def test_lerobot_reads_the_dataset_back_as_the_env_rendered_it(demos):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    summary = demos["summary"]
+    dataset = LeRobotDataset(summary["dataset"]["repo_id"], root=demos["out"] / DATASET_DIR)
+    kept = sorted((e for t in summary["tasks"] for e in t["episodes"] if e["dataset_episode"] is not None),
+                  key=lambda e: e["dataset_episode"])
+    assert dataset.num_episodes == 2
+    assert dataset.meta.fps == 80  # lerobot's MetaworldEnv
+    assert dataset.num_frames == sum(e["steps"] for e in kept) == 32 + 44
+    descriptions = lerobot_metaworld_config()["TASK_DESCRIPTIONS"]
+    first = {}
+    for index in range(dataset.num_frames):
+        frame = dataset[index]
+        assert frame["observation.image"].shape == (3, 32, 32)
+        assert frame["observation.state"].shape == frame["action"].shape == (4,)
+        assert frame["action"].abs().max() <= 1
+        first.setdefault(int(frame["episode_index"]), frame)
+    assert [first[i]["task"] for i in (0, 1)] == [descriptions["handle-press-v3"], descriptions["reach-v3"]]
+
+    # Frame 0 of each episode is what the closed loop's env shows at the reset of that variation.
+    suite = make_suite("metaworld", "metaworld_mt50")
+    specs = [suite.episode_spec(suite.task_id(task), e["variation"]) for task, e in
+             (("handle-press-v3", kept[0]), ("reach-v3", kept[1]))]
+    with make_env("metaworld", suite, 2, camera_size=32) as env:
+        observations = env.reset(specs)
+    for episode, observation in enumerate(observations):
+        image = (first[episode]["observation.image"] * 255).round().byte().permute(1, 2, 0).numpy()
+        assert np.array_equal(image, observation["image"])
+        np.testing.assert_allclose(first[episode]["observation.state"].numpy(), observation["state"], rtol=1e-6)
+
+
+def test_the_manifest_lists_every_file_and_catches_a_change(demos):
+    out = demos["out"]
+    rows = verify_file_manifest(out / MANIFEST_FILE, out)
+    assert {r.path for r in rows} >= {SUMMARY_FILE, f"{DATASET_DIR}/meta/info.json",
+                                      f"{DATASET_DIR}/data/chunk-000/file-000.parquet"}
+    # Every file but the manifest and Snakemake's timestamp of the directory output.
+    assert set(read_manifest(out / MANIFEST_FILE)) == {p.relative_to(out).as_posix() for p in out.rglob("*")
+                                                       if p.is_file() and p.name not in (MANIFEST_FILE, ".snakemake_timestamp")}
+
+
+def test_a_changed_dataset_file_fails_verification(demos, tmp_path):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(demos["out"], copy)
+    info = copy / DATASET_DIR / "meta" / "info.json"
+    info.write_text(info.read_text().replace('"fps": 80', '"fps": 81'))
+    with pytest.raises(UserError, match=r"meta/info.json does not match manifest .*SHA-256 differs"):
+        verify_file_manifest(copy / MANIFEST_FILE, copy)
+
+
+def test_demonstration_variations_are_never_evaluated(demos):
+    """Every attempted demonstration drew a placement that no evaluation episode 0..49 of its task draws."""
+    suite = make_suite("metaworld", "metaworld_mt50")
+    task_ids = [suite.task_id(t) for t in TASKS]
+    with make_env("metaworld", suite, 2, camera_size=None) as env:
+        evaluated = []
+        specs = suite.episodes(EVALUATION_EPISODES, task_ids=task_ids)
+        for start in range(0, len(specs), env.num_envs):
+            batch = specs[start : start + env.num_envs]
+            evaluated += [(s.task_id, o["task_variation"]) for s, o in zip(batch, env.reset(batch))]
+    for task in demos["summary"]["tasks"]:
+        for episode in task["episodes"]:
+            assert episode["variation"] >= EVALUATION_EPISODES
+            placements = [v for t, v in evaluated if suite.task(t).name == task["task"]]
+            assert len(placements) == EVALUATION_EPISODES
+            assert not any(np.allclose(episode["task_variation"], v) for v in placements)
+
+
+def test_a_study_evaluating_a_demonstration_variation_is_refused():
+    config = DemonstrationConfig.from_dict({"tasks": TASKS, "first_variation": 20})
+    cell = {"ref": "metaworld/metaworld_mt50/pi05/rtn-BASELINE-e2e", "benchmark": "metaworld", "episodes_per_task": 20}
+    check_disjoint_from_evaluation(config, [cell])  # variations 0..19
+    with pytest.raises(UserError, match=r"demonstrations.first_variation 20: cell metaworld/metaworld_mt50/pi05/"
+                                        r"rtn-BASELINE-e2e uses task variations up to 20 \(episodes_per_task\)"):
+        check_disjoint_from_evaluation(config, [{**cell, "episodes_per_task": 21}])
+    calibrated = {**cell, "calibration": {"init_states": [20, 21]}}
+    with pytest.raises(UserError, match=r"up to 21 \(calibration init states\)"):
+        check_disjoint_from_evaluation(config, [calibrated])
+
+
+@pytest.mark.parametrize(("section", "message"), [
+    ({"tasks": TASKS, "image_size": 8}, r"demonstrations.image_size: 8 is less than the minimum of 16"),
+    ({"tasks": TASKS, "episodes": 3}, r"workflow config: demonstrations: unknown key 'episodes'; allowed keys: dir, episodes_per_task"),
+    ({"tasks": []}, r"demonstrations.tasks: \[\] should be non-empty"),
+])
+def test_a_bad_section_is_refused_naming_the_field(section, message):
+    with pytest.raises(UserError, match=message):
+        DemonstrationConfig.from_dict(section)
+
+
+@pytest.mark.parametrize(("section", "message"), [
+    ({"tasks": ["reach-v2"]}, r"unknown task 'reach-v2' in Meta-World suite metaworld_mt50"),
+    ({"tasks": TASKS, "first_variation": 950}, r"first_variation 950 \+ max_attempts_per_task 100 reaches "
+                                               r"variation 1049; a task has variations 0..1008"),
+])
+def test_a_bad_task_or_variation_range_is_refused_before_any_worker(section, message, tmp_path):
+    with pytest.raises(UserError, match=message):
+        write_demonstrations(DemonstrationConfig.from_dict(section), tmp_path / "out", num_envs=2)
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_schema_allows_exactly_the_dataclass_fields():
+    import dataclasses
+
+    from vlaquantbench.config import schema
+
+    section = schema("config")["properties"]["demonstrations"]
+    assert set(section["properties"]) == {f.name for f in dataclasses.fields(DemonstrationConfig)}

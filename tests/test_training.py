@@ -1,0 +1,170 @@
+"""Training the pi0.5 policy from scratch (`vlaquantbench.training`) on a tiny LeRobotDataset written
+with lerobot's own writer, then loading the result through the rollout path's checkpoint loader."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vlaquantbench.models.paligemma_family import REDUCED_WIDTHS_FILE
+
+TASKS = ("Close a drawer", "Press a button from the top")
+IMAGE = 28  # two 14-pixel patches a side: the 27-layer vision tower stays cheap on a CPU
+STEPS = 40
+TINY_POLICY = {
+    "chunk_size": 4, "n_action_steps": 2, "tokenizer_max_length": 24,
+    "normalization": {"VISUAL": "IDENTITY", "STATE": "MIN_MAX", "ACTION": "MEAN_STD"},
+    "lr": 1e-3, "warmup_steps": 5, "decay_steps": STEPS, "decay_lr": 1e-4,
+    "widths": {"vision": {"hidden_size": 16, "intermediate_size": 32, "num_attention_heads": 2},
+               "gemma_2b": {"width": 32, "mlp_dim": 64, "head_dim": 4},
+               "gemma_300m": {"width": 16, "mlp_dim": 32}},
+}
+
+
+def write_tiny_dataset(root: Path, episodes_per_task: int = 2, frames: int = 6) -> Path:
+    """A LeRobotDataset shaped like the Meta-World demonstrations: one camera, 4-D state and action."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    features = {
+        "observation.image": {"dtype": "image", "shape": (IMAGE, IMAGE, 3), "names": ["height", "width", "channel"]},
+        "observation.state": {"dtype": "float32", "shape": (4,), "names": None},
+        "action": {"dtype": "float32", "shape": (4,), "names": None},
+    }
+    dataset = LeRobotDataset.create("vlaquantbench/tiny-demos", fps=80, features=features, root=root, use_videos=False)
+    rng = np.random.default_rng(0)
+    for task, action in zip(TASKS, ([0.5, -0.5, 0.2, 1.0], [-0.3, 0.4, -0.6, -1.0])):
+        for _ in range(episodes_per_task):
+            for _ in range(frames):
+                dataset.add_frame({
+                    "observation.image": rng.integers(0, 256, (IMAGE, IMAGE, 3), dtype=np.uint8),
+                    "observation.state": rng.uniform(-0.5, 0.5, 4).astype(np.float32),
+                    # Each task's expert: one action, a little noise: something to learn.
+                    "action": (np.array(action) + rng.normal(0, 0.05, 4)).astype(np.float32),
+                    "task": task,
+                })
+            dataset.save_episode()
+    dataset.finalize()
+    return root
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    from vlaquantbench.training import train_policy
+
+    tmp = tmp_path_factory.mktemp("training")
+    root = write_tiny_dataset(tmp / "dataset")
+    manifest = tmp / "manifest.tsv"
+    manifest.write_text("path\tsha256\n")
+    config = {"model": "pi05", "device": "cpu", "seed": 0, "steps": STEPS, "batch_size": 8, "num_workers": 0,
+              "log_every": 1,
+              "checkpoint_repo": "vlaquantbench/pi05-tiny", "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer",
+              "policy": TINY_POLICY}
+    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, tmp / "hf", tmp / "training.json", config)
+    return {"home": tmp / "hf", "record": record, "provenance": tmp / "training.json"}
+
+
+def test_provenance_records_the_run(trained):
+    record = json.loads(trained["provenance"].read_text())
+    assert record == trained["record"]
+    assert record["steps"] == record["planned_steps"] == STEPS and record["batch_size"] == 8 and record["seed"] == 0
+    curve = record["loss_curve"]["mean_loss"]
+    assert len(curve) == STEPS and all(np.isfinite(curve))
+    # lerobot's flow-matching loss falls as the policy learns each task's action.
+    assert np.mean(curve[-10:]) < 0.6 * np.mean(curve[:5])
+    assert record["dataset"]["episodes"] == 4 and record["dataset"]["tasks"] == sorted(TASKS)
+    assert len(record["dataset"]["manifest_sha256"]) == 64
+
+
+def test_checkpoint_is_in_hub_layout_at_its_weights_hash(trained):
+    from vlaquantbench.training import weights_revision
+
+    record = trained["record"]
+    repo = trained["home"] / "hub" / "models--vlaquantbench--pi05-tiny"
+    snapshot = repo / "snapshots" / record["revision"]
+    assert (repo / "refs" / "main").read_text() == record["revision"]
+    assert weights_revision(snapshot / "model.safetensors") == record["revision"]
+    widths = json.loads((snapshot / REDUCED_WIDTHS_FILE).read_text())
+    assert widths["vision"]["num_hidden_layers"] == 27 and widths["gemma_2b"]["depth"] == 18
+    assert widths["gemma_300m"]["depth"] == 18 and widths["vocab_size"] % 64 == 0
+    steps = json.loads((snapshot / "policy_preprocessor.json").read_text())["steps"]
+    assert [s["config"]["tokenizer_name"] for s in steps if "tokenizer_name" in s.get("config", {})] == [
+        "vlaquantbench/pi05-tiny-tokenizer"]
+
+
+def _load(trained, device="cpu"):
+    from vlaquantbench.hub.cache import offline_cache
+    from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+
+    record = trained["record"]
+    snapshot = trained["home"] / "hub" / "models--vlaquantbench--pi05-tiny" / "snapshots" / record["revision"]
+    adapter = make_adapter(AdapterConfig(model="pi05", variant="full", checkpoint=record["checkpoint"],
+                                         revision=record["revision"], checkpoint_dir=str(snapshot), executed_chunk=2))
+    with offline_cache(trained["home"]):
+        adapter.load()
+    return adapter
+
+
+def test_the_rollout_path_loads_it_as_a_released_checkpoint_and_acts_on_the_envs_observation(trained):
+    import torch
+
+    adapter = _load(trained)
+    provenance = adapter.checkpoint_provenance
+    assert provenance["tokenizer"]["repo"] == "vlaquantbench/pi05-tiny-tokenizer"
+    assert provenance["tokenizer"]["revision"] == trained["record"]["tokenizer"]["revision"]
+    assert provenance["widths"] == "reduced (trained here)" and provenance["training"]["steps"] == STEPS
+    assert provenance["normalization"]["policy_preprocessor"]["norm_map"]["STATE"] == "MIN_MAX"
+    # A Meta-World observation: one `image`, 4-D state, the task description.
+    rng = np.random.default_rng(1)
+    observations = [{"image": rng.integers(0, 256, (IMAGE, IMAGE, 3), dtype=np.uint8),
+                     "state": rng.uniform(-0.5, 0.5, 4), "instruction": task} for task in TASKS]
+    actions = adapter.act(observations, [adapter.reset(0), adapter.reset(1)])
+    assert actions.shape == (2, 4, 4) and np.isfinite(actions).all()
+    # The prompt is tokenized with no unknown word.
+    tokens = adapter.preprocessor(adapter._lerobot_batch(observations))["observation.language.tokens"]
+    unknown = adapter.preprocessor.steps[-2].input_tokenizer.unk_token_id
+    assert not bool((tokens == unknown).any()) and tokens.dtype == torch.long
+
+
+def test_an_observation_without_the_checkpoints_camera_or_state_size_is_refused(trained):
+    from vlaquantbench.errors import UserError
+
+    adapter = _load(trained)
+    wrist_only = {"wrist": np.zeros((IMAGE, IMAGE, 3), np.uint8), "state": np.zeros(4), "instruction": TASKS[0]}
+    with pytest.raises(UserError, match=r"feed none of the checkpoint's cameras \['observation.image'\]"):
+        adapter.act([wrist_only], [adapter.reset(0)])
+    libero_state = {"image": np.zeros((IMAGE, IMAGE, 3), np.uint8), "state": np.zeros(8), "instruction": TASKS[0]}
+    with pytest.raises(UserError, match="state has 8 dimensions; the checkpoint's observation.state has 4"):
+        adapter.act([libero_state], [adapter.reset(0)])
+
+
+@pytest.mark.slow
+def test_the_rule_trains_on_the_demonstrations_rules_dataset(tmp_path):
+    """`snakemake <output>/training.json`: rule demonstrations (one task, two episodes at 28 px), then
+    rule train_policy on its dataset, the provenance naming the dataset's manifest."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    from paths import ROOT
+    from vlaquantbench.hub.checks import sha256
+
+    demonstrations = {"dir": "results/demos", "tasks": ["handle-press-v3"], "episodes_per_task": 2, "image_size": IMAGE,
+                      "image_writer_threads": 1}
+    training = {"model": "pi05", "output": "checkpoints/tiny", "checkpoint_repo": "vlaquantbench/pi05-tiny",
+                "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer", "device": "cpu", "seed": 0, "steps": 2,
+                "batch_size": 4, "num_workers": 0, "log_every": 1, "policy": TINY_POLICY}
+    (tmp_path / "study.yaml").write_text(yaml.safe_dump({"demonstrations": demonstrations, "training": training}))
+    command = [sys.executable, "-m", "snakemake", "checkpoints/tiny/training.json", "--cores", "2",
+               "--snakefile", str(ROOT / "Snakefile"), "--directory", str(tmp_path),
+               "--configfile", str(ROOT / "config" / "config.yaml"), str(tmp_path / "study.yaml")]
+    run = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    record = json.loads((tmp_path / "checkpoints" / "tiny" / "training.json").read_text())
+    assert record["dataset"]["manifest_sha256"] == sha256(tmp_path / "results" / "demos" / "manifest.tsv")
+    assert record["dataset"]["episodes"] == 2 and record["dataset"]["tasks"] == ["Press a handle down"]
+    snapshot = tmp_path / "checkpoints" / "tiny" / "hub" / "models--vlaquantbench--pi05-tiny" / "snapshots" / record["revision"]
+    assert (snapshot / "model.safetensors").is_file() and (tmp_path / "logs" / "train_policy.log").is_file()

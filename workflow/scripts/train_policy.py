@@ -1,0 +1,11 @@
+"""Rule train_policy: a policy trained from scratch on the LeRobotDataset of demonstrations."""
+# snakemake is injected by Snakemake's script directive.
+# ruff: noqa: F821
+
+from vlaquantbench.rule_log import job_log
+from vlaquantbench.training import train_policy
+
+with job_log(snakemake):
+    training = snakemake.params.training
+    train_policy(snakemake.input.dataset, snakemake.params.dataset_repo_id, snakemake.input.manifest,
+                 training["output"], snakemake.output.provenance, training)
