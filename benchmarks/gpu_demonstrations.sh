@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
 # Rule demonstrations on the GPU machine, through Snakemake, on the carried Meta-World stack
 # (benchmarks/simstack.py pack --benchmark metaworld). Run from the project copy's root:
-#   bash benchmarks/gpu_demonstrations.sh STACK EPISODES_PER_TASK OUT
+#   bash benchmarks/gpu_demonstrations.sh STACK EPISODES_PER_TASK OUT [LIMIT_S]
+# (LIMIT_S, default 540: Snakemake's time limit, within a device call's 600 s. The run of 2026-12-04 used
+# 150 s and was stopped one second after its 100th episode: benchmarks/results/gpu_demonstrations_h200/.)
 # Writes to OUT: the Snakemake log, the rule's log and benchmark, demonstrations.json, manifest.tsv,
 # what renders EGL (GL_RENDERER), the GPU's load sampled every 2 s, and the timings.
 set -uo pipefail
-stack=$1 episodes=$2 out=$3
+stack=$1 episodes=$2 out=$3 limit=${4:-540}
 now() { python3 -c "import time; print(time.time())"; }
 started=$(now)
 target=${SIM_TARGET:-/tmp/sim}
@@ -27,7 +29,7 @@ PY
 nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv -l 2 > "$out/gpu_load.csv" 2>&1 &
 sampler=$!
 (sleep 30; nvidia-smi > "$out/nvidia-smi-during.txt" 2>&1) &
-timeout 180 python3 -m snakemake results/demonstrations/metaworld/manifest.tsv --cores "$(nproc)" --scheduler greedy \
+timeout "$limit" python3 -m snakemake results/demonstrations/metaworld/manifest.tsv --cores "$(nproc)" --scheduler greedy \
   --configfile config/trained_study.yaml /tmp/reduced.yaml > "$out/snakemake.log" 2>&1
 status=$?
 finished=$(now)
