@@ -1,6 +1,7 @@
 """Carry the LIBERO simulator stack of one suite to a machine that can download nothing.
 
     python benchmarks/simstack.py pack --suite libero_spatial --out .simstack
+    python benchmarks/simstack.py pack --benchmark metaworld --config config/trained_study.yaml --out .gpuwork/demos-stack
     python3 benchmarks/simstack.py unpack --from .simstack --target /tmp/sim   # on the GPU machine
     . /tmp/sim/env.sh && python3 benchmarks/simstack.py check --target /tmp/sim
 
@@ -19,6 +20,9 @@ compiled MJCF (meshes and textures MuJoCo reads in C). It then writes xz tarball
     (libEGL_nvidia.so.0 and its glvnd vendor file) without the loaders that dispatch to them.
 Tarballs are split so that none exceeds the part limit and packed into `part1/`, `part2/`, ... folders
 of at most 58 MiB, each small enough to travel as one carried path of one device call.
+
+`pack --benchmark metaworld` (`pack_metaworld`) packs instead what rule demonstrations and the training
+rule use, probed from a real Snakemake run of the demonstrations rule on the config's tasks.
 
 `unpack` extracts every part into `TARGET/site` (PYTHONPATH), `TARGET/assets` (VQB_LIBERO_ASSETS) and
 `TARGET/lib` (LD_LIBRARY_PATH), and writes `TARGET/env.sh` with the export lines. `check` (run with
