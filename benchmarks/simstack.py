@@ -1,6 +1,7 @@
 """Carry the LIBERO simulator stack of one suite to a machine that can download nothing.
 
     python benchmarks/simstack.py pack --suite libero_spatial --out .simstack
+    python benchmarks/simstack.py pack --benchmark metaworld --config config/trained_study.yaml --out .gpuwork/demos-stack
     python3 benchmarks/simstack.py unpack --from .simstack --target /tmp/sim   # on the GPU machine
     . /tmp/sim/env.sh && python3 benchmarks/simstack.py check --target /tmp/sim
 
@@ -19,6 +20,9 @@ compiled MJCF (meshes and textures MuJoCo reads in C). It then writes xz tarball
     (libEGL_nvidia.so.0 and its glvnd vendor file) without the loaders that dispatch to them.
 Tarballs are split so that none exceeds the part limit and packed into `part1/`, `part2/`, ... folders
 of at most 58 MiB, each small enough to travel as one carried path of one device call.
+
+`pack --benchmark metaworld` (`pack_metaworld`) packs instead what rule demonstrations and the training
+rule use, probed from a real Snakemake run of the demonstrations rule on the config's tasks.
 
 `unpack` extracts every part into `TARGET/site` (PYTHONPATH), `TARGET/assets` (VQB_LIBERO_ASSETS) and
 `TARGET/lib` (LD_LIBRARY_PATH), and writes `TARGET/env.sh` with the export lines. `check` (run with
@@ -64,15 +68,19 @@ OPTIONAL = ("datasets", "av", "opentelemetry")
 # /proc/self/maps names the files (libEGL.so.1.1.0); the soname keeps the major version (libEGL.so.1).
 GL_LOADERS = re.compile(r"(lib(?:EGL|OpenGL|GL|GLX|GLdispatch|GLESv2)\.so\.\d+)(?:\.\d+)*$")
 
-_PROBE = r"""
-import json, os, re, sys
-for hidden in sys.argv[4].split(","):
+# The start of every probe interpreter: the modules named in VQB_SIMSTACK_HIDDEN cannot be imported, and
+# every file Python opens is collected in `opened`.
+_AUDIT_HEADER = r"""
+import atexit, json, os, re, sys
+for hidden in os.environ["VQB_SIMSTACK_HIDDEN"].split(","):
     sys.modules[hidden] = None  # import fails, find_spec says "not installed"
 opened = set()
 def audit(event, args):
     if event == "open" and isinstance(args[0], (str, bytes)):
         opened.add(os.path.abspath(os.fsdecode(args[0])))
 sys.addaudithook(audit)
+"""
+_PROBE = _AUDIT_HEADER + r"""
 import numpy as np
 from vlaquantbench.envs.libero import LiberoSuite, EpisodeSpec
 from vlaquantbench.envs.libero.worker import EpisodeStart, SlotSimulator
@@ -106,7 +114,8 @@ def _site_packages() -> Path:
 def probe(suite: str, camera_size: int) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "probe.json"
-        subprocess.run([sys.executable, "-c", _PROBE, suite, str(camera_size), str(out), ",".join(OPTIONAL)], check=True)
+        subprocess.run([sys.executable, "-c", _PROBE, suite, str(camera_size), str(out)], check=True,
+                       env={**os.environ, "VQB_SIMSTACK_HIDDEN": ",".join(OPTIONAL)})
         return json.loads(out.read_text())
 
 
@@ -115,16 +124,18 @@ def gl_loaders(mapped: list[str]) -> dict[str, Path]:
     return {m.group(1): Path(p) for p in mapped if (m := GL_LOADERS.match(Path(p).name))}
 
 
-def _needed_dists(modules: dict[str, str]) -> dict[str, str]:
-    """Distribution name -> version for the imported modules the GPU machine lacks."""
+def _needed_dists(modules: dict[str, str], trees: tuple[str, ...] = TREES,
+                  left_out: tuple[str, ...] = ("hf-libero", "robosuite")) -> dict[str, str]:
+    """Distribution name -> version for the imported modules the GPU machine lacks, but the modules
+    packed pruned (`trees`) and the distributions `left_out`."""
     site = str(_site_packages())
     by_module = importlib.metadata.packages_distributions()
     dists = {}
     for top, file in sorted(modules.items()):
-        if not file.startswith(site) or top in TREES or (top in PRESENT and top not in CARRY_ALWAYS):
+        if not file.startswith(site) or top in trees or (top in PRESENT and top not in CARRY_ALWAYS):
             continue
         for dist in by_module.get(top, ()):
-            if dist.lower().replace("_", "-") in ("hf-libero", "robosuite"):
+            if dist.lower().replace("_", "-") in left_out:
                 continue
             dists[dist] = importlib.metadata.version(dist)
     return dists
@@ -193,6 +204,12 @@ def pack(suite: str, out: Path, camera_size: int) -> list[Path]:
                          "pack with MUJOCO_GL=egl)")
     groups["gl"] = [(path.resolve(), f"lib/{soname}") for soname, path in sorted(loaders.items())]
 
+    return _write_parts(groups, out, {"suite": suite, "dists": dists})
+
+
+def _write_parts(groups: dict[str, list[tuple[Path, str]]], out: Path, manifest: dict) -> list[Path]:
+    """xz tarballs of `groups` (name -> (file, name in the archive)), packed into `out/part<N>/` folders
+    of at most PART_LIMIT, with `manifest` (and the parts' contents) in part1/manifest.json."""
     out.mkdir(parents=True, exist_ok=True)
     for old in out.glob("part*/*.tar.xz"):  # a previous pack
         old.unlink()
@@ -229,15 +246,120 @@ def pack(suite: str, out: Path, camera_size: int) -> list[Path]:
     for stale in out.glob("part*"):  # emptied folders of a previous, larger pack
         if stale not in folders and not any(stale.iterdir()):
             stale.rmdir()
-    manifest = {"suite": suite, "dists": dists, "parts": {f.name: sorted(p.name for p in f.iterdir()) for f in folders}}
+    manifest = {**manifest, "parts": {f.name: sorted(p.name for p in f.iterdir()) for f in folders}}
     (out / "part1" / "manifest.json").write_text(json.dumps(manifest, indent=1, sort_keys=True))
     for folder in folders:
         size = sum(p.stat().st_size for p in folder.iterdir())
         print(f"{folder}: {size / MiB:.1f} MiB ({', '.join(sorted(p.name for p in folder.iterdir()))})")
         if size > PART_LIMIT:
             raise SystemExit(f"{folder} exceeds {PART_LIMIT / MiB:.0f} MiB")
-    print("carried distributions:", ", ".join(f"{k}=={v}" for k, v in sorted(dists.items())))
+    print("carried distributions:", ", ".join(f"{k}=={v}" for k, v in sorted(manifest["dists"].items())))
     return folders
+
+
+# Every interpreter of a probe run (Snakemake, its job scripts, the simulator workers) records, when it
+# exits, the top-level modules it imported, the files Python opened and the shared objects it mapped.
+# Hidden from it (so neither they nor their dependencies are carried): OPTIONAL's tracing, torchcodec
+# (lerobot's video decoder; it falls back to PyAV when torchcodec is absent, and no video is stored),
+# and PuLP (36 MB of solver binaries for Snakemake's ILP scheduler: the runs pass `--scheduler greedy`).
+METAWORLD_HIDDEN = ("opentelemetry", "torchcodec", "pulp")
+_PROBE_SITECUSTOMIZE = _AUDIT_HEADER + r"""
+@atexit.register
+def _record():
+    modules = {name.split(".")[0]: m.__file__ for name, m in list(sys.modules.items()) if getattr(m, "__file__", None)}
+    mapped = sorted({line.split()[-1] for line in open("/proc/self/maps") if ".so" in line})
+    with open(os.path.join(os.environ["VQB_SIMSTACK_PROBE"], f"{os.getpid()}.json"), "w") as handle:
+        json.dump({"argv": sys.argv, "modules": modules, "opened": sorted(opened), "mapped": mapped}, handle)
+"""
+def metaworld_tasks(config: Path) -> list[str]:
+    """The tasks of a workflow config's `demonstrations` section."""
+    import yaml
+
+    from vlaquantbench.demonstrations import DemonstrationConfig
+
+    return list(DemonstrationConfig.from_dict(yaml.safe_load(config.read_text())["demonstrations"]).tasks)
+
+
+def probe_metaworld(config: Path) -> dict:
+    """Run rule demonstrations on every task of `config` (one 32-pixel episode each) through Snakemake,
+    and load the pi05 demo adapter and lerobot's training script (what the training rule runs), each
+    interpreter recording what it used (`_PROBE_SITECUSTOMIZE`); returns the union."""
+    import yaml
+
+    root = Path(__file__).resolve().parents[1]
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        (tmp / "site").mkdir()
+        (tmp / "site" / "sitecustomize.py").write_text(_PROBE_SITECUSTOMIZE)
+        (tmp / "records").mkdir()
+        (tmp / "probe.yaml").write_text(yaml.safe_dump({"demonstrations": {
+            "dir": "results/probe", "tasks": metaworld_tasks(config), "episodes_per_task": 1,
+            "image_size": 32, "image_writer_threads": 1}}))
+        env = {**os.environ, "VQB_SIMSTACK_PROBE": str(tmp / "records"), "MUJOCO_GL": "egl",
+               "VQB_SIMSTACK_HIDDEN": ",".join(METAWORLD_HIDDEN),
+               "PYTHONPATH": os.pathsep.join([str(tmp / "site"), str(root / "src"), os.environ.get("PYTHONPATH", "")])}
+        subprocess.run([sys.executable, "-m", "snakemake", "results/probe/manifest.tsv", "--cores", "2", "--scheduler", "greedy",
+                        "--snakefile", str(root / "Snakefile"), "--directory", str(tmp / "work"),
+                        "--configfile", str(root / "config" / "config.yaml"), str(tmp / "probe.yaml")],
+                       check=True, env=env)
+        subprocess.run([sys.executable, "-c", "from vlaquantbench.models.adapter import AdapterConfig, make_adapter; "
+                        "make_adapter(AdapterConfig(model='pi05', variant='demo')).load(); "
+                        "import lerobot.scripts.lerobot_train"], check=True, env=env)
+        modules: dict[str, str] = {}
+        opened: set[str] = set()
+        mapped: set[str] = set()
+        for record in (tmp / "records").glob("*.json"):
+            data = json.loads(record.read_text())
+            modules.update(data["modules"])
+            opened |= set(data["opened"])
+            mapped |= set(data["mapped"])
+    return {"modules": modules, "opened": sorted(opened), "mapped": sorted(mapped)}
+
+
+def metaworld_model_files(tasks: list[str]) -> set[Path]:
+    """The meshes and textures the tasks' MJCF models load (MuJoCo reads them in C, where no audit hook
+    sees them): every `file` of the models' meshes and textures, includes resolved (`mujoco.MjSpec`)."""
+    import mujoco
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+    files = set()
+    for task in tasks:
+        env = ALL_V3_ENVIRONMENTS[task]()
+        spec = mujoco.MjSpec.from_file(env.model_name)
+        env.close()
+        base = Path(spec.modelfiledir)
+        for directory, assets in ((spec.meshdir, spec.meshes), (spec.texturedir, spec.textures)):
+            for asset in assets:
+                for name in [asset.file, *getattr(asset, "cubefiles", ())]:
+                    if name:
+                        files.add(Path(os.path.normpath(base / directory / name)))
+    return files
+
+
+def pack_metaworld(config: Path, out: Path) -> list[Path]:
+    """The Meta-World pack: the distributions the demonstrations and training rules import (Snakemake,
+    lerobot with its dataset stack, MuJoCo, transformers, ...), Meta-World pruned to its code, its MJCF
+    files and the meshes and textures of the config's tasks, and the GL loaders. PyAV (27.6 MiB of the
+    pack: its codec libraries) goes along although no video is stored: lerobot's dataset writer looks
+    for its AV1 encoder when it starts."""
+    site = _site_packages()
+    tasks = metaworld_tasks(config)
+    found = probe_metaworld(config)
+    dists = _needed_dists(found["modules"], trees=("metaworld",), left_out=("metaworld",))
+    groups: dict[str, list[tuple[Path, str]]] = {
+        "dists": [(f, f"site/{f.relative_to(site)}") for d in dists for f in _dist_files(d)]}
+    model_files = {str(p) for p in metaworld_model_files(tasks)}
+    missing = sorted(p for p in model_files if not Path(p).is_file())
+    if missing:
+        raise SystemExit(f"the tasks' models name files that do not exist: {missing[:5]}")
+    files = _tree_files(site / "metaworld", model_files | set(found["opened"]), always=("*.xml",))
+    files += [f for f in _dist_files("metaworld") if any(part.endswith(".dist-info") for part in f.parts)]
+    groups["metaworld"] = sorted({(f, f"site/{f.relative_to(site)}") for f in files})
+    loaders = gl_loaders(found["mapped"])
+    if "libEGL.so.1" not in loaders:
+        raise SystemExit("the probe's workers did not map libEGL.so.1 (MUJOCO_GL=egl)")
+    groups["gl"] = [(path.resolve(), f"lib/{soname}") for soname, path in sorted(loaders.items())]
+    return _write_parts(groups, out, {"benchmark": "metaworld", "tasks": tasks, "dists": dists})
 
 
 def unpack(source: Path, target: Path) -> Path:
@@ -335,7 +457,10 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("pack")
-    p.add_argument("--suite", default="libero_spatial")
+    p.add_argument("--benchmark", choices=("libero", "metaworld"), default="libero")
+    p.add_argument("--suite", default="libero_spatial", help="the LIBERO suite")
+    p.add_argument("--config", type=Path, default=Path("config/trained_study.yaml"),
+                   help="Meta-World: the workflow config whose demonstrations section names the tasks")
     p.add_argument("--out", type=Path, default=Path(".simstack"))
     p.add_argument("--camera-size", type=int, default=64, help="render size of the probe run (files do not depend on it)")
     u = sub.add_parser("unpack")
@@ -347,7 +472,9 @@ def main(argv: list[str] | None = None) -> None:
     c.add_argument("--steps", type=int, default=5)
     c.add_argument("--camera-size", type=int, default=256)
     args = parser.parse_args(argv)
-    if args.command == "pack":
+    if args.command == "pack" and args.benchmark == "metaworld":
+        pack_metaworld(args.config, args.out)
+    elif args.command == "pack":
         pack(args.suite, args.out, args.camera_size)
     elif args.command == "unpack":
         unpack(args.source, args.target)

@@ -132,15 +132,54 @@ class _Attempt:
     record: dict | None = None
 
 
-class _Recorder:
-    """Collects each episode's frames as the runner sends its actions, and writes the kept episodes
-    to the dataset in the round's episode order as soon as every earlier one has resolved."""
+class _EpisodeWriter:
+    """Saves episodes to the LeRobotDataset in one thread of its own, in the order they are submitted.
 
-    def __init__(self, dataset, suite, specs: list[EpisodeSpec]):
+    lerobot's `save_episode` encodes the PNGs and computes the image statistics (1-2 s a 224-px episode,
+    benchmarks/results/gpu_demonstrations_h200/): done in the run loop, it held every worker idle, so
+    it overlaps the simulation instead. One thread keeps lerobot's writer single-threaded and the
+    episodes in order; a failed save is raised at the next submit or at `close`."""
+
+    def __init__(self, dataset):
+        from concurrent.futures import ThreadPoolExecutor
         from lerobot.utils.constants import ACTION, OBS_IMAGE, OBS_STATE
 
         self.keys = OBS_IMAGE, OBS_STATE, ACTION
         self.dataset = dataset
+        self.submitted = 0
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="save_episode")
+        self._saves: list = []
+
+    def submit(self, frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]], instruction: str) -> int:
+        """Queue an episode; its index in the dataset."""
+        self._raise_failed()
+        self._saves.append(self._executor.submit(self._save, frames, instruction))
+        self.submitted += 1
+        return self.submitted - 1
+
+    def _save(self, frames, instruction: str) -> None:
+        for image, state, action in frames:
+            self.dataset.add_frame(dict(zip(self.keys, (image, state, action)), task=instruction))
+        self.dataset.save_episode()
+
+    def _raise_failed(self) -> None:
+        for save in self._saves:
+            if save.done() and save.exception() is not None:
+                raise save.exception()
+        self._saves = [save for save in self._saves if not save.done()]
+
+    def close(self) -> None:
+        """Wait for every queued episode; raise the first failed save."""
+        self._executor.shutdown(wait=True)
+        self._raise_failed()
+
+
+class _Recorder:
+    """Collects each episode's frames as the runner sends its actions, and queues the kept episodes
+    for the dataset in the round's episode order as soon as every earlier one has resolved."""
+
+    def __init__(self, writer: _EpisodeWriter, suite, specs: list[EpisodeSpec]):
+        self.writer = writer
         self.suite = suite
         self.attempts = {(s.task_id, s.init_state_id): _Attempt(s) for s in specs}
         self.order = [(s.task_id, s.init_state_id) for s in specs]
@@ -175,10 +214,7 @@ class _Recorder:
             raise RuntimeError(f"{attempt.record['task_name']} variation {attempt.spec.init_state_id}: "
                                f"{len(frames)} frames recorded for {attempt.record['steps']} steps")
         instruction = self.suite.task(attempt.spec.task_id).instruction
-        for image, state, action in frames:
-            self.dataset.add_frame(dict(zip(self.keys, (image, state, action)), task=instruction))
-        self.dataset.save_episode()
-        self.kept[(attempt.spec.task_id, attempt.spec.init_state_id)] = self.dataset.meta.total_episodes - 1
+        self.kept[(attempt.spec.task_id, attempt.spec.init_state_id)] = self.writer.submit(frames, instruction)
 
 
 def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, num_envs: int) -> dict[str, Any]:
@@ -214,6 +250,7 @@ def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, num_e
 
     attempts: dict[int, list[dict]] = {t: [] for t in task_ids}
     kept: dict[tuple[int, int], int] = {}
+    writer = _EpisodeWriter(dataset)
     started = time.perf_counter()
     with make_env("metaworld", suite, num_envs, camera_size=config.image_size) as env:
         while True:
@@ -226,15 +263,16 @@ def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, num_e
                           for i in range(min(missing, config.max_attempts_per_task - tried))]
             if not specs:
                 break
-            recorder = _Recorder(dataset, suite, specs)
+            recorder = _Recorder(writer, suite, specs)
             run_episodes(expert, env, specs, max_steps, recorder.on_finished, on_actions=recorder.on_actions)
             kept.update(recorder.kept)
             for (task_id, variation), attempt in recorder.attempts.items():
                 attempts[task_id].append(attempt.record)
             done = sum(map(len, attempts.values()))
-            minutes = (time.perf_counter() - started) / 60
             log.info("%d episodes tried, %d kept, %.1f episodes/minute with %d workers",
-                     done, len(kept), done / minutes, env.num_envs)
+                     done, len(kept), done / _minutes_since(started), env.num_envs)
+    writer.close()
+    log.info("%d episodes saved, %.1f episodes/minute", writer.submitted, writer.submitted / _minutes_since(started))
     dataset.finalize()
 
     summary = {
@@ -255,6 +293,10 @@ def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, num_e
         raise UserError(f"the experts kept fewer than demonstrations.episodes_per_task {config.episodes_per_task} "
                         f"episodes within max_attempts_per_task {config.max_attempts_per_task}: {', '.join(short)}")
     return summary
+
+
+def _minutes_since(started: float) -> float:
+    return (time.perf_counter() - started) / 60
 
 
 def _task_summary(suite, task_id: int, records: list[dict], kept: dict[tuple[int, int], int]) -> dict[str, Any]:
