@@ -87,3 +87,7 @@ def test_model_specific_study_cell_runs_and_counts_the_papers_layers(tmp_path, r
     # The demo's episode count and step limit differ from the released client's: recorded, not silent.
     assert set(header["overrides"]) == {"episodes_per_task", "max_steps"}
     assert header["versions"]["mujoco"] == header["client"]["mujoco"]  # X-VLA 3.1.6, OFT 3.3.2
+    # Random demo weights ran, not the release the study entry names for the architecture (issue 30).
+    model = ref.split("/")[2]
+    assert (header["checkpoint"], header["revision"]) == (f"random weights (demo variant of {model}, seed 0)", None)
+    assert header["config"]["checkpoint"] == STUDY["models"][model]["checkpoint"]

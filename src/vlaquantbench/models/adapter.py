@@ -60,6 +60,15 @@ class AdapterConfig:
     # and diagnostics probes wrap lerobot's `sample_actions`/`denoise_step`, which only eager calls.
     sampler: str = "eager"
 
+    @property
+    def weights_ran(self) -> tuple[str, str | None]:
+        """The checkpoint and revision that really run: the pinned release, or, for the demo and random
+        variants, seeded random weights (their study entry's checkpoint names only the architecture they
+        imitate, so records and summary rows must not name it as what ran)."""
+        if self.variant == "full":
+            return self.checkpoint, self.revision
+        return f"random weights ({self.variant} variant of {self.model}, seed {self.seed})", None
+
     @classmethod
     def from_cell(cls, cfg: PolicyRun, checkpoint_dir: str | None, policy_class: type) -> "AdapterConfig":
         """The adapter config of a typed cell (or calibration) config; `policy_class` is the model's adapter class."""

@@ -238,6 +238,8 @@ class CellRun:
             **{k: config[k] for k in ("model", "checkpoint", "revision", "benchmark", "suite", "preset", "scope")},
             **{k: config[k] for k in ("only", "exclude", "method", "seed", "episodes_per_task", "calibration")},
             "variant": cfg.variant,
+            # What really ran (the config's checkpoint of a random-weight variant names only its architecture).
+            **dict(zip(("checkpoint", "revision"), self.adapter.config.weights_ran)),
             # The model's released client conventions and every value this cell sets differently.
             "client": cfg.client,
             "overrides": cfg.overrides,
