@@ -66,10 +66,11 @@ from vlaquantbench.cells import cell_config
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import read_cell
 from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE, JOURNAL_FILE
+from vlaquantbench.runner.journal import TIMING_FIELDS
 
 RUN_CELL = ("import json, sys; from vlaquantbench.runner.cell import run_cell; "
             "run_cell(json.loads(sys.argv[1]), sys.argv[2], num_envs=int(sys.argv[3]), progress=False)")
-TIMING = ["wall_time_s", "policy_batch_latency_mean_s"]
+TIMING = list(TIMING_FIELDS)  # measured, not outcomes: they differ between any two runs
 KEY = ("task_id", "episode", "seed")
 ANCHORS = ("startup", "running", "append")
 WRITES = (f".{HEADER_FILE}.", f".{EPISODES_FILE}.")  # the atomic writer's temporary files: `.<name>.<...>.tmp`
@@ -268,8 +269,8 @@ def main() -> None:
         counts = Counter(episode_key(r) for r in lines)
         uninterrupted = read_cell(reference)
         resumed = read_cell(killed) if final_error is None else None
-        records_equal = resumed is not None and resumed.episodes.drop(columns=TIMING).equals(
-            uninterrupted.episodes.drop(columns=TIMING))
+        records_equal = resumed is not None and resumed.episodes.drop(columns=TIMING, errors="ignore").equals(
+            uninterrupted.episodes.drop(columns=TIMING, errors="ignore"))
         recorded = set(resumed.episodes[list(KEY)].itertuples(index=False, name=None)) if resumed is not None else set()
         result = {
             "cell": args.ref,
