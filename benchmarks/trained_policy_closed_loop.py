@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/trained_policy_closed_loop.py [--home checkpoints/pi05_metaworld]
         [--tasks drawer-close-v3 ...] [--episodes 5] [--first-variation 0] [--workers 2] [--device cpu]
+        [--max-steps 500] [--preset W2 --scope e2e]
 
 Loads the checkpoint from the HF_HOME folder `--home` through the rollout path (the pi0.5 adapter's
 released-checkpoint loader, offline, at the revision training.json names), and runs `--episodes`
@@ -9,7 +10,10 @@ episodes of each task through `runner.loop.run_episodes` with Meta-World's batch
 `corner2` camera at the checkpoint's input size. Episode e starts from task variation
 `--first-variation + e`: variations below the demonstrations' `first_variation` (500) are ones the
 demonstrations never used. The policy executes the `n_action_steps` it was trained with of each
-predicted chunk. Writes `--out` (JSON: success per task, wall time, the checkpoint's revision).
+predicted chunk. `--max-steps` (default: the suite's limit, 500) ends an episode sooner as a failure:
+the scripted experts finish these tasks in 32-93 steps, and a CPU run cannot afford 500 steps of a
+failing policy. `--preset` quantizes the policy first (round-to-nearest, no calibration, over the
+component scope `--scope`), as a study cell's `rtn-<preset>-<scope>` does. Writes `--out` (JSON: success per task, wall time, the checkpoint's revision).
 """
 
 from __future__ import annotations
@@ -19,16 +23,25 @@ import json
 import time
 from pathlib import Path
 
+import torch
+
 from vlaquantbench.envs import make_env, make_suite
 from vlaquantbench.hub.cache import offline_cache, repo_folder
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+from vlaquantbench.quant import QuantConfig, quantize_
 from vlaquantbench.runner.loop import run_episodes
 
 RESULTS = Path(__file__).resolve().parent / "results" / "trained_policy_closed_loop.json"
 
 
 def evaluate(home: Path, suite_name: str, tasks: list[str], episodes: int, first_variation: int, workers: int,
-             device: str, flow_steps: int) -> dict:
+             device: str, flow_steps: int, max_steps: int | None = None, preset: str | None = None,
+             scope: str = "e2e") -> dict:
+    if device == "cpu":
+        # One intra-op thread: this policy's ops are tiny (10 x 32 matmuls), and on a loaded 2-core machine
+        # each op's second OpenMP thread waits for a core, ~2 ms an op: 4.5 s a chunk against 0.25 s with
+        # one thread (benchmarks/results/trained_cpu/README.md). The simulator runs in its own processes.
+        torch.set_num_threads(1)
     training = json.loads((home / "training.json").read_text())
     snapshot = repo_folder(home / "hub", training["checkpoint"]) / "snapshots" / training["revision"]
     adapter = make_adapter(AdapterConfig(model="pi05", variant="full", checkpoint=training["checkpoint"],
@@ -36,13 +49,21 @@ def evaluate(home: Path, suite_name: str, tasks: list[str], episodes: int, first
                                          executed_chunk=training["policy"]["n_action_steps"], flow_steps=flow_steps))
     with offline_cache(home):
         adapter.load()
+    quantized = None
+    if preset is not None:
+        quant = QuantConfig.from_preset(preset, scope=scope)
+        report = quantize_(adapter.model, quant, quant.select(adapter.model, adapter.components))
+        adapter.prepare_inference(report)
+        quantized = {"preset": preset, "scope": scope, "method": "rtn", "selected_layers": report.to_header()["selected_layers"],
+                     "quant_report": report.to_header()["quant_report"]}
     suite = make_suite("metaworld", suite_name)
     task_ids = [suite.task_id(name) for name in tasks]
     specs = [suite.episode_spec(t, first_variation + e) for t in task_ids for e in range(episodes)]
+    max_steps = suite.step_limit if max_steps is None else max_steps
     records: list[dict] = []
     started = time.perf_counter()
     with make_env("metaworld", suite, workers, camera_size=adapter.policy_config.image_resolution[0]) as env:
-        run_episodes(adapter, env, specs, suite.step_limit, records.extend)
+        run_episodes(adapter, env, specs, max_steps, records.extend)
     per_task: dict[str, dict] = {}
     for record in records:
         outcome = per_task.setdefault(record["task_name"], {"episodes": 0, "successes": 0})
@@ -50,8 +71,9 @@ def evaluate(home: Path, suite_name: str, tasks: list[str], episodes: int, first
         outcome["successes"] += record["success"]
     return {
         "checkpoint": training["checkpoint"], "revision": training["revision"], "device": device,
+        "quantized": quantized,
         "suite": suite_name, "variations": [first_variation, first_variation + episodes - 1],
-        "executed_chunk": adapter.executed_chunk, "flow_steps": flow_steps,
+        "executed_chunk": adapter.executed_chunk, "flow_steps": flow_steps, "max_steps": max_steps,
         "episodes": len(records), "success_rate": round(sum(r["success"] for r in records) / len(records), 3),
         "per_task": per_task, "wall_s": round(time.perf_counter() - started, 1),
     }
@@ -67,10 +89,13 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--flow-steps", type=int, default=10)
+    parser.add_argument("--max-steps", type=int, default=None)
+    parser.add_argument("--preset", default=None, help="e.g. W2, W4A4 (default: full precision)")
+    parser.add_argument("--scope", default="e2e", help="component scope of --preset: e2e, ve, llm or ah")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     result = evaluate(args.home, args.suite, args.tasks, args.episodes, args.first_variation, args.workers,
-                      args.device, args.flow_steps)
+                      args.device, args.flow_steps, args.max_steps, args.preset, args.scope)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))
