@@ -79,7 +79,10 @@ def test_demo_dag_builds_the_table_reruns_nothing_then_only_the_changed_cell(tmp
         cells[header["ref"]] = header_path.parent
         assert header_path.parent.name == header["config_hash"]
         assert header["chunk"] == {"predicted": 50, "executed": 10}
-        assert header["versions"]["mujoco"] == "3.3.2" and header["revision"]
+        assert header["versions"]["mujoco"] == "3.3.2"
+        # Random demo weights ran: no revision of the release the study entry names (its config keeps it).
+        assert header["revision"] is None and header["config"]["revision"]
+        assert header["checkpoint"] == "random weights (demo variant of pi05, seed 0)"
         assert header["hooks"]["fired"] == header["hooks"]["selected"]
     assert set(cells) == {BASELINE, ATTENTION}
     assert read_cell(cells[ATTENTION]).header["hooks"]["selected"] == 72
