@@ -7,6 +7,7 @@ import copy
 
 import pytest
 import torch
+from gptq_errors import gptq_against_rtn, output_error
 from pi_chunks import pi_chunk
 
 from vlaquantbench.errors import UserError
@@ -74,11 +75,6 @@ def reference_gptq(weight, hessian, bits, group, damp, act_order):
     return q
 
 
-def _output_error(weight, quantized, hessian):
-    delta = weight.detach().double() - quantized.double()
-    return float(torch.einsum("oi,ij,oj->", delta, hessian.double(), delta))
-
-
 @pytest.mark.parametrize("act_order", [False, True])
 def test_agrees_with_a_column_by_column_reference(calibrated, act_order):
     _, model, stats = calibrated["pi05"]
@@ -88,7 +84,7 @@ def test_agrees_with_a_column_by_column_reference(calibrated, act_order):
     ours = gptq_weight(weight, hessian, grid, damp=0.01, act_order=act_order, block_size=32)
     reference = reference_gptq(weight, hessian, 4, 96, 0.01, act_order)
     same = (ours.weight.double() == reference).float().mean().item()
-    errors = _output_error(weight, ours.weight, hessian), _output_error(weight, reference, hessian)
+    errors = output_error(weight, ours.weight, hessian), output_error(weight, reference, hessian)
     print(f"{name} act_order={act_order}: {same:.5f} of weights identical; output error {errors[0]:.4g} vs "
           f"reference {errors[1]:.4g}, RTN {ours.rtn_error:.4g}")
     assert weight.shape[1] == 256 and same >= 0.999
@@ -108,17 +104,7 @@ def test_identity_hessian_gives_rtn_weights_exactly(calibrated):
 def test_gptq_error_at_most_rtn_on_every_layer(calibrated, model_name):
     """On the calibration inputs (all observed rows, through X^T X), every e2e layer's output error."""
     spec, model, stats = calibrated[model_name]
-    worse, ratios = [], []
-    for preset in ("W4", "W3G0"):
-        grid = parse_preset(preset).weight
-        for name, layer in select_layers(model, spec.components, "e2e").flat().items():
-            hessian = stats.layers[name].hessian
-            done = gptq_weight(layer.weight, hessian, grid, damp=0.01)
-            gptq_error = _output_error(layer.weight, done.weight, hessian)
-            rtn_error = _output_error(layer.weight, grid.quantize_weight(layer.weight.detach().float()), hessian)
-            ratios.append(gptq_error / rtn_error if rtn_error else 1.0)
-            if gptq_error > rtn_error * (1 + 1e-9):
-                worse.append((preset, name, gptq_error / rtn_error))
+    ratios, worse = gptq_against_rtn(select_layers(model, spec.components, "e2e").flat(), stats, ("W4", "W3G0"))
     print(f"{model_name}: {len(ratios)} layer grids, GPTQ/RTN error mean {sum(ratios) / len(ratios):.3f}, "
           f"max {max(ratios):.3f}")
     assert worse == [] and sum(ratios) / len(ratios) < 0.9
