@@ -1,9 +1,13 @@
 """Session fixtures shared by test modules: expensive built artefacts, built once per run."""
 
+import json
+
 import pytest
 import yaml
 
 from paths import ROOT
+
+TRAINED_HOME = ROOT / "checkpoints" / "pi05_metaworld_cpu"  # HF_HOME layout, committed (README, "Trained on the CPU")
 
 
 @pytest.fixture(scope="session")
@@ -15,3 +19,24 @@ def hub_fixture(tmp_path_factory):
     study = yaml.safe_load((ROOT / "config" / "paper_smoke.yaml").read_text())["study"]
     home = tmp_path_factory.mktemp("hf_home")
     return {"home": home, "repos": build_hub_fixture(home, full_variant_models(study)), "study": study}
+
+
+@pytest.fixture(scope="session")
+def trained_policy(tmp_path_factory):
+    """The pi0.5 trained here on the CPU, loaded as a study loads a released checkpoint: the checkpoint rule's
+    stamp (`download_checkpoint`, offline from TRAINED_HOME at the revision its training.json names) and the
+    pi0.5 adapter on the CPU in float32, executing the chunk it was trained with.
+    {"home", "training": training.json, "stamp": the stamp file, "adapter": loaded}; quantize a deep copy."""
+    from vlaquantbench.hub.cache import offline_cache
+    from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+    from vlaquantbench.runner.checkpoint import download_checkpoint
+
+    training = json.loads((TRAINED_HOME / "training.json").read_text())
+    stamp = tmp_path_factory.mktemp("trained_policy") / "checkpoint.json"
+    with offline_cache(TRAINED_HOME):
+        snapshot = download_checkpoint("pi05", "full", training["checkpoint"], training["revision"], stamp)["path"]
+        adapter = make_adapter(AdapterConfig(model="pi05", variant="full", checkpoint=training["checkpoint"],
+                                             revision=training["revision"], checkpoint_dir=snapshot, device="cpu",
+                                             dtype="float32", executed_chunk=training["policy"]["n_action_steps"]))
+        adapter.load()
+    return {"home": TRAINED_HOME, "training": training, "stamp": stamp, "adapter": adapter}
