@@ -1,8 +1,9 @@
 """Issue 31's checks on the pi0.5 trained here (conftest `trained_policy`), on the real Meta-World simulator
 and a task the policy was trained on: the block-Hadamard rotation without quantization keeps its actions,
 and on every e2e layer GPTQ's output error on the calibration inputs, collected by the rollout calibration
-of a GPTQ cell, is at most RTN's at the same grid. tests/test_quant_hadamard.py and tests/test_quant_gptq.py
-make the same checks on the demo (random-weight) policies."""
+of a GPTQ cell, is at most RTN's at the same grid; the rotated GPTQ W4A8 policy fires every hook on the
+real observations. tests/test_quant_hadamard.py and tests/test_quant_gptq.py make the same checks on the
+demo (random-weight) policies."""
 
 import copy
 
@@ -93,3 +94,19 @@ def test_gptq_error_at_most_rtn_on_every_layer_of_the_trained_policy(trained_rol
     print(f"trained pi0.5: {len(ratios)} layer grids, {min(rows)}-{max(rows)} calibration rows a layer, "
           f"GPTQ/RTN error mean {sum(ratios) / len(ratios):.3f}, max {max(ratios):.3f}")
     assert worse == [] and sum(ratios) / len(ratios) < 0.9
+
+
+def test_hadamard_gptq_w4a8_on_the_trained_policy_fires_every_hook_on_real_observations(trained_rollouts):
+    """The rotated GPTQ cell's quantization with the rollout statistics (Hessians mapped to R H R^T)."""
+    adapter, observations, stats = trained_rollouts
+    policy = copy.deepcopy(adapter)
+    config = QuantConfig.from_preset("W4A8", scope="e2e", method="hadamard_gptq", stats=stats)
+    report = quantize_(policy.model, config, config.select(policy.model, policy.components))
+    actions = policy.act(observations, [policy.reset(seed) for seed in range(len(observations))])
+    header = report.to_header()
+    print(f"trained pi0.5 hadamard_gptq W4A8 e2e: GPTQ/RTN error max {header['quant_report']['gptq']['error_vs_rtn_max']:.3f}, "
+          f"mean_rel_mse " + ", ".join(f"{c} {header['quant_report'][c]['mean_rel_mse']:.3g}" for c in ("ve", "mp", "llm", "ah")))
+    assert header["hooks"] == {"selected": 456, "fired": 456, "unfired": []}
+    assert header["quant_report"]["gptq"]["error_vs_rtn_max"] <= 1.0
+    assert all(0 < header["quant_report"][c]["mean_rel_mse"] < 1 for c in ("ve", "mp", "llm", "ah"))
+    assert np.isfinite(actions).all()
