@@ -131,6 +131,7 @@ class CellCalibration:
     seed: int
     sample_rows: int | None = None  # AWQ's and GPTQ's sampled input rows per layer; absent from the canonical form when None
     hessian: bool | None = None  # GPTQ's X^T X per layer; absent from the canonical form when None
+    step_scales: bool | None = None  # max |x| per flow step per layer (step_static); absent when None
 
     @classmethod
     def from_dict(cls, calibration: dict[str, Any]) -> CellCalibration:
@@ -224,7 +225,7 @@ class CellConfig(PolicyRunConfig):
 
     def to_dict(self) -> dict[str, Any]:
         cfg = asdict(self)
-        for optional in ("sample_rows", "hessian"):  # the canonical forms (and hashes) of older cells stay
+        for optional in ("sample_rows", "hessian", "step_scales"):  # the canonical forms (and hashes) of older cells stay
             if cfg["calibration"] is not None and cfg["calibration"][optional] is None:
                 del cfg["calibration"][optional]
         if cfg["sequential"] is None:
