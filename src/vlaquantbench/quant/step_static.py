@@ -9,7 +9,8 @@ the policy is computing, which its flow-step clock says (`quant.steps`); every o
 pass, the vision tower, a model without a flow loop) on the grid of its per-layer max |x|. Scales are
 per tensor (one number per layer and step): what a static integer product can apply.
 
-    s = max(max|x| of the step (or layer), 1e-8) / (2^(b-1) - 1),   x_hat = s * clip(round(x / s), -2^(b-1), 2^(b-1) - 1)
+    s = max(max|x| of the step (or layer), 1e-8) / (2^(b-1) - 1)
+    x_hat = s * clip(round(x / s), -2^(b-1), 2^(b-1) - 1)
 
 Values beyond the calibrated range saturate. A step the calibration never saw (a cell running more
 flow steps than its calibration; they share a calibration only with equal `runner.flow_steps`) is
