@@ -52,3 +52,22 @@ def test_gptq_cell_takes_hessians_from_the_rollout_calibration(tmp_path):
     assert report["gptq"]["error_vs_rtn_max"] <= 1.0 and report["ah"]["calibrated_layers"] == 72
     assert 0 < report["ah"]["mean_rel_mse"] < 1
     assert cell.header["hooks"] == {"selected": 72, "fired": 72, "unfired": []}
+
+
+def test_step_static_cell_takes_per_step_scales_from_the_rollout_calibration(tmp_path):
+    cfg = cell_config("libero/libero_spatial/pi05/step_static-W4A8-ah-onlyself_attn", STUDY)
+    stats_path = calibrate(calibration_config(cfg), tmp_path / "stats.pt", num_envs=1)
+    stats = load_stats(stats_path)
+    assert stats.keyed_fields["step_scales"] is True and "hessian" not in stats.keyed_fields
+    q_proj = stats.layers["paligemma_with_expert.gemma_expert.model.layers.0.self_attn.q_proj"]
+    flow_steps = cfg["runner"]["flow_steps"]
+    assert q_proj.calls == flow_steps and q_proj.step_absmax.shape == (flow_steps,)  # 1 chunk x 2 flow steps
+    assert q_proj.step_absmax.max() == q_proj.absmax.max() and q_proj.step_absmax.min() < q_proj.step_absmax.max()
+
+    cell = read_cell(run_cell(cfg, tmp_path / "cell", calibration_stats=stats_path, num_envs=1, progress=False))
+    assert cell.header["quant_format"].startswith("RTN weights 4-bit asymmetric, group 128; activations 8-bit symmetric, "
+                                                  "static per-tensor scales per flow step")
+    assert cell.header["quant_report"]["step_static"] == {"per_step_layers": 72, "per_layer_layers": 0,
+                                                          "flow_steps": flow_steps}
+    assert cell.header["inference"]["sampler"] == "eager"
+    assert cell.header["hooks"] == {"selected": 72, "fired": 72, "unfired": []}

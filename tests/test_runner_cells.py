@@ -231,13 +231,27 @@ def test_gptq_cells_calibrate_hessians_and_rows_for_every_model_and_scope():
 
 
 def test_a_method_needing_statistics_no_calibration_collects_is_refused_naming_it():
-    from vlaquantbench.quant.methods import METHODS, STEP_SCALES, register_method
+    from vlaquantbench.quant.methods import METHODS, register_method
 
-    register_method("stepscaled", lambda model, selection, config: None, statistics=[STEP_SCALES])
+    # a plugin's own kind: nothing in the rollout calibration collects it
+    register_method("fisherscaled", lambda model, selection, config: None, statistics=["fisher"])
     try:
-        with pytest.raises(UserError, match=r"cell 'libero/libero_spatial/pi05/stepscaled-W4A8-ah': method "
-                                            r"'stepscaled' needs calibration statistics step_scales, which the rollout "
-                                            r"calibration does not collect"):
-            cell_config(ref("stepscaled-W4A8-ah"), STUDY)
+        with pytest.raises(UserError, match=r"cell 'libero/libero_spatial/pi05/fisherscaled-W4A8-ah': method "
+                                            r"'fisherscaled' needs calibration statistics fisher, which the rollout "
+                                            r"calibration does not collect \(it collects absmax, rows, hessian, step_scales\)"):
+            cell_config(ref("fisherscaled-W4A8-ah"), STUDY)
     finally:
-        del METHODS["stepscaled"]
+        del METHODS["fisherscaled"]
+
+
+def test_step_static_cells_calibrate_step_scales_and_quantize_activations():
+    cfg = cell_config(ref("step_static-W4A4-ah"), STUDY)
+    assert cfg["calibration"]["step_scales"] is True and cfg["calibration"]["components"] == ["ah"]
+    assert cfg["calibration"]["alpha"] is None and cfg["calibration"]["quantile"] is None
+    # its own cache: per-step scales are not in the GPTQ or RTN-smoothing statistics
+    assert calibration_config(cfg) != calibration_config(cell_config(ref("gptq-W4A4-ah"), STUDY))
+    assert "step_scales" not in cell_config(ref("gptq-W4A4-ah"), STUDY)["calibration"]
+    assert calibration_config(cfg) == calibration_config(cell_config(ref("step_static-W8A8-ah"), STUDY))
+    with pytest.raises(UserError, match=r"/step_static-W4-ah': method 'step_static' quantizes activations with "
+                                        r"static scales: it implements W<b>\[G<g>\]A<a>; preset 'W4'"):
+        cell_config(ref("step_static-W4-ah"), STUDY)

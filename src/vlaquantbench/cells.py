@@ -15,8 +15,8 @@ A cell reference is `<benchmark>/<suite>/<model>/<cell>`; the cell name follows 
 `seed<N>` offsets every episode seed by N; `steps<N>` sets the number of flow-matching
 integration steps. `calib_set<k>` collects calibration statistics on init states
 `first + 2k, first + 2k + 1` (the paper's disjoint calibration sets). Methods that need statistics
-(`MethodConfig.statistics`: AWQ's sampled input rows, GPTQ's Hessians, FP8 static scales, SmoothQuant's
-migration; `MethodConfig.calibration_fields` says what the cell's calibration records) collect
+(`MethodConfig.statistics`: AWQ's sampled input rows, GPTQ's Hessians, FP8 static scales, per-flow-step
+scales, SmoothQuant's migration; `MethodConfig.calibration_fields` says what the cell's calibration records) collect
 them in the same calibration episodes of every component of the scope, without clipping, and
 without rollout smoothing unless the method's statistics name its alpha (`smoothquant`: 0.85, the
 paper's LLM deployment setting, from the input absmax of these episodes: the paper's 512 text
@@ -131,6 +131,7 @@ class CellCalibration:
     seed: int
     sample_rows: int | None = None  # AWQ's and GPTQ's sampled input rows per layer; absent from the canonical form when None
     hessian: bool | None = None  # GPTQ's X^T X per layer; absent from the canonical form when None
+    step_scales: bool | None = None  # max |x| per flow step per layer (step_static); absent when None
 
     @classmethod
     def from_dict(cls, calibration: dict[str, Any]) -> CellCalibration:
@@ -224,7 +225,7 @@ class CellConfig(PolicyRunConfig):
 
     def to_dict(self) -> dict[str, Any]:
         cfg = asdict(self)
-        for optional in ("sample_rows", "hessian"):  # the canonical forms (and hashes) of older cells stay
+        for optional in ("sample_rows", "hessian", "step_scales"):  # the canonical forms (and hashes) of older cells stay
             if cfg["calibration"] is not None and cfg["calibration"][optional] is None:
                 del cfg["calibration"][optional]
         if cfg["sequential"] is None:

@@ -35,6 +35,7 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterBase, BatchInvariantLinears, wait_for_device
 from vlaquantbench.models.paligemma_family import REDUCED_WIDTHS_FILE, TRAINING_FILE, checkpoint_widths
 from vlaquantbench.models.registry import get_model_spec
+from vlaquantbench.quant.steps import attach_flow_clock
 
 # Environment camera view -> the lerobot feature it feeds: the names lerobot's LIBERO datasets
 # (`image`, `image2`) and Meta-World datasets (`observation.image`) give those views.
@@ -110,6 +111,10 @@ class PiFamilyAdapter(AdapterBase):
         else:
             self._load_checkpoint()
         self.model.eval()
+        # Per-step calibration statistics and scales (`quant.steps`): a chunk per `sample_actions`
+        # call, a flow step per `denoise_step` call (the captured sampler calls neither, and runs no
+        # method that reads the clock: `MethodConfig.uncapturable`).
+        attach_flow_clock(self.model, "sample_actions", "denoise_step")
         # Eager CPU float32 runs promise bit-identical actions at any batch size (see BatchInvariantLinears).
         eager_cpu = self._device.type == "cpu" and self.config.sampler == "eager"
         self._invariance = BatchInvariantLinears(self.model) if eager_cpu else None

@@ -30,6 +30,13 @@ in the stream of all observed rows is a multiple of a stride that doubles whenev
 overflow, so the sample is deterministic and evenly spread over every call.
 With `hessian` (GPTQ statistics, `vlaquantbench.quant.gptq`) it also keeps X^T X over every observed
 row in float32 (`hessian`), on the layer's device while observing.
+With `step_scales` (per-denoising-step scales, `vlaquantbench.quant.step_static`) and the policy's
+flow-step clock (`quant.steps`), it also keeps, for the calls made inside a flow step, the
+per-tensor max |x| of each step (`step_absmax[k]`, over every token, channel and batch row of step
+k of every chunk): per tensor because a static activation scale of an integer product is one number
+per layer (a per-channel one would not factor out of the sum over channels); a max, so batching
+rows together does not change it. Layers that never run inside a step (the prefix pass, the vision
+tower) keep none.
 Which of these a calibration collects is what its cell's method declares (`quant.methods`
 statistics kinds; `CalibrationSettings.for_cell`).
 At quantization, with a_j and w_j = max_i |W_ij| floored at 1e-5,
@@ -53,6 +60,7 @@ from torch import nn
 
 from vlaquantbench.atomic import atomic_write
 from vlaquantbench.errors import UserError
+from vlaquantbench.quant.steps import FlowStepClock
 
 FLOOR = 1e-5
 QUANTILE_MAX_ELEMENTS = 2**24  # torch.quantile's input limit
@@ -68,6 +76,7 @@ class CalibrationSettings:
     components: tuple[str, ...] = ("ah",)
     sample_rows: int = 0  # > 0: also keep mean |a_j| and this many input rows per layer (AWQ, GPTQ)
     hessian: bool = False  # also keep X^T X per layer (GPTQ)
+    step_scales: bool = False  # also keep max |x| per flow step, for layers that run inside steps
 
     @classmethod
     def for_cell(cls, calibration: Any, calibrated_components: Sequence[str]) -> CalibrationSettings:
@@ -77,14 +86,17 @@ class CalibrationSettings:
         uncalibrated, paper app:calib); a method's input rows or Hessians cover every component of the
         scope, as the method quantizes them all."""
         sample_rows, hessian = calibration.sample_rows or 0, bool(calibration.hessian)
-        every = sample_rows or hessian
+        step_scales = bool(calibration.step_scales)
+        every = sample_rows or hessian or step_scales
         components = tuple(c for c in calibration.components if every or c in calibrated_components)
         return cls(alpha=calibration.alpha, quantile=calibration.quantile, components=components,
-                   sample_rows=sample_rows, hessian=hessian)
+                   sample_rows=sample_rows, hessian=hessian, step_scales=step_scales)
 
-    def observe(self, layers: Mapping[str, nn.Linear]) -> contextlib.AbstractContextManager[ActivationObserver]:
-        """`observe` collecting exactly what these settings use."""
-        return observe(layers, quantile=self.quantile, sample_rows=self.sample_rows, hessian=self.hessian)
+    def observe(self, layers: Mapping[str, nn.Linear],
+                clock: FlowStepClock | None = None) -> contextlib.AbstractContextManager[ActivationObserver]:
+        """`observe` collecting exactly what these settings use (per-step scales: on `clock`'s steps)."""
+        return observe(layers, quantile=self.quantile, sample_rows=self.sample_rows, hessian=self.hessian,
+                       clock=clock if self.step_scales else None)
 
 
 @dataclass
@@ -97,6 +109,7 @@ class ChannelStats:
     samples: torch.Tensor | None = None  # [<= sample_rows, in_features], rows at `sample_stride`
     sample_stride: int = 1
     hessian: torch.Tensor | None = None  # [in_features, in_features] float32, X^T X over every row (hessian)
+    step_absmax: torch.Tensor | None = None  # [flow steps] float32, max |x| of each step's calls (step_scales)
 
     @property
     def absmean(self) -> torch.Tensor | None:
@@ -155,6 +168,7 @@ def keyed_fields(model, checkpoint, revision, init_states, tasks, seed, settings
         # only when requested, so the keys of existing smoothing-only caches stay what they were
         **({"sample_rows": int(settings.sample_rows)} if settings.sample_rows else {}),
         **({"hessian": True} if settings.hessian else {}),
+        **({"step_scales": True} if settings.step_scales else {}),
     }
 
 
@@ -189,10 +203,11 @@ class ActivationObserver:
     """Forward pre-hooks collecting `ChannelStats` on linear inputs; use through `observe`."""
 
     def __init__(self, layers: Mapping[str, nn.Linear], quantile: float | None, sample_rows: int = 0,
-                 hessian: bool = False):
+                 hessian: bool = False, clock: FlowStepClock | None = None):
         self.quantile = quantile
         self.sample_rows = sample_rows
         self.hessian = hessian
+        self.clock = clock
         self.layers: dict[str, ChannelStats] = {}
         self._handles = [layer.register_forward_pre_hook(self._hook_for(name)) for name, layer in layers.items()]
 
@@ -215,8 +230,18 @@ class ActivationObserver:
                 rows = x.detach().float().reshape(-1, x.shape[-1])
                 stats = self.layers[name]
                 stats.hessian = rows.t() @ rows if stats.hessian is None else stats.hessian.addmm_(rows.t(), rows)
+            if self.clock is not None and self.clock.step is not None:
+                self._track_step(self.layers[name], self.clock.step, absmax.max().cpu())
 
         return hook
+
+    @staticmethod
+    def _track_step(stats: ChannelStats, step: int, absmax: torch.Tensor) -> None:
+        seen = stats.step_absmax if stats.step_absmax is not None else torch.zeros(0)
+        if step >= seen.numel():  # a step this layer has not run in before
+            seen = torch.cat([seen, torch.zeros(step + 1 - seen.numel())])
+        seen[step] = torch.maximum(seen[step], absmax)
+        stats.step_absmax = seen
 
     def _track_rows(self, stats: ChannelStats, rows: torch.Tensor) -> None:
         abs_sum = rows.abs().sum(dim=0, dtype=torch.float64).cpu()
@@ -239,12 +264,13 @@ class ActivationObserver:
 
 @contextlib.contextmanager
 def observe(
-    layers: Mapping[str, nn.Linear], quantile: float | None = 0.999, sample_rows: int = 0, hessian: bool = False
+    layers: Mapping[str, nn.Linear], quantile: float | None = 0.999, sample_rows: int = 0, hessian: bool = False,
+    clock: FlowStepClock | None = None,
 ) -> Iterator[ActivationObserver]:
     """Observe the inputs of `layers` (qualified name -> linear) while the block runs; with
     `sample_rows` > 0 also keep mean |x| and a strided sample of input rows (AWQ, GPTQ), with
-    `hessian` also X^T X (GPTQ)."""
-    observer = ActivationObserver(layers, quantile, sample_rows, hessian)
+    `hessian` also X^T X (GPTQ), with a flow-step `clock` also max |x| per flow step."""
+    observer = ActivationObserver(layers, quantile, sample_rows, hessian, clock)
     try:
         yield observer
     finally:
@@ -278,6 +304,8 @@ def _layer_payload(stats: ChannelStats) -> dict:
         payload.update(abs_sum=stats.abs_sum, rows=stats.rows, samples=stats.samples, sample_stride=stats.sample_stride)
     if stats.hessian is not None:
         payload["hessian"] = stats.hessian
+    if stats.step_absmax is not None:
+        payload["step_absmax"] = stats.step_absmax
     return payload
 
 

@@ -17,8 +17,10 @@ Statistics kinds (what the rollout calibration observes on a layer's input, `qua
     rows         per-channel mean |x| and a strided sample of input rows (AWQ's search; every
                  method's `mean_rel_mse` report)
     hessian      X^T X over every observed row (GPTQ)
-    step_scales  per-denoising-step activation scales (declared; not collected yet, so a method
-                 needing them is refused when its cell's config is built)
+    step_scales  per-tensor max |x| per denoising (flow) step, on the layers that run inside the
+                 steps the policy's flow-step clock marks (`quant.steps`; static per-step scales)
+A method declaring a kind the calibration does not collect (a plugin's own) is refused when its
+cell's config is built, naming it.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from vlaquantbench.quant.presets import Preset, WeightGrid
 
 ABSMAX, ROWS, HESSIAN, STEP_SCALES = "absmax", "rows", "hessian", "step_scales"
 # What the rollout calibration (`quant.calibration.ActivationObserver`) can collect.
-COLLECTED_STATISTICS = (ABSMAX, ROWS, HESSIAN)
+COLLECTED_STATISTICS = (ABSMAX, ROWS, HESSIAN, STEP_SCALES)
 # Presets a method implements: (weight bits, activation bits or None) of an integer preset,
 # WEIGHT_ONLY (any integer weight grid, activations unquantized), INTEGER_WEIGHTS (any integer weight
 # grid, activations unquantized or per-token integer), or None (every preset).
@@ -83,7 +85,8 @@ class MethodConfig:
         if not self.statistics:
             return None
         return {**({"sample_rows": SAMPLE_ROWS} if ROWS in self.statistics else {}),
-                **({"hessian": True} if HESSIAN in self.statistics else {})}
+                **({"hessian": True} if HESSIAN in self.statistics else {}),
+                **({"step_scales": True} if STEP_SCALES in self.statistics else {})}
 
     def resolve(self) -> Callable:
         return _resolve(self.implementation)
@@ -119,6 +122,19 @@ class GPTQ(MethodConfig):
     block_size: int = 128  # columns per lazy batch update (a grouped grid uses its group size)
 
 
+@dataclass(frozen=True)
+class StepStatic(MethodConfig):
+    """RTN weights with static activation scales (`quant.step_static`): per flow step for the layers
+    that ran inside flow steps during calibration, per layer otherwise. Its presets are integer
+    weights with integer activations (static scales quantize activations; W<b> alone would be RTN)."""
+
+    def check_preset(self, name: str, preset: Preset) -> None:
+        super().check_preset(name, preset)
+        if preset.act_bits is None:
+            raise UserError(f"method {name!r} quantizes activations with static scales: it implements "
+                            f"W<b>[G<g>]A<a>; preset {preset.name!r} does not match")
+
+
 # Pre-quantization transforms a method entry may name ("module:class", built without arguments).
 TRANSFORMS = {"hadamard": "vlaquantbench.quant.transforms:Hadamard"}
 _KERNELS = "vlaquantbench.quant.kernels"
@@ -141,6 +157,10 @@ METHODS: dict[str, MethodConfig] = {
     "hadamard": MethodConfig("hadamard", "vlaquantbench.quant.apply:rtn", composes=True, transforms=("hadamard",)),
     "hadamard_gptq": GPTQ("hadamard_gptq", _GPTQ, frozenset({HESSIAN, ROWS}), INTEGER_WEIGHTS, composes=True,
                           transforms=("hadamard",)),
+    "step_static": StepStatic("step_static", "vlaquantbench.quant.step_static:step_static",
+                              frozenset({ABSMAX, STEP_SCALES}), INTEGER_WEIGHTS,
+                              uncapturable="its scales follow the flow-step clock, which the eager denoise "
+                                           "step advances; a captured graph replays one step's scale"),
 }
 
 

@@ -37,6 +37,8 @@ class PolicyProbe:
 
     def __enter__(self) -> "PolicyProbe":
         sample, denoise = self.model.sample_actions, self.model.denoise_step
+        # what the instance itself held (the adapter's flow-step clock wrappers, `quant.steps`), restored on exit
+        self._own = {name: vars(self.model)[name] for name in ("sample_actions", "denoise_step") if name in vars(self.model)}
 
         def sample_actions(*args, **kwargs):
             out = sample(*args, **kwargs)
@@ -55,6 +57,7 @@ class PolicyProbe:
 
     def __exit__(self, *exc) -> None:
         del self.model.sample_actions, self.model.denoise_step  # back to the class methods
+        vars(self.model).update(self._own)  # or to the instance's own wrappers
         for handle in self._handles:
             handle.remove()
         self._handles.clear()

@@ -32,6 +32,7 @@ def calibrate(
     and save them to `output`."""
     from vlaquantbench.quant import select_layers
     from vlaquantbench.quant.calibration import calibration_key, keyed_fields, save_stats
+    from vlaquantbench.quant.steps import flow_clock
 
     if torch_threads:
         torch.set_num_threads(torch_threads)
@@ -62,7 +63,8 @@ def calibrate(
         code_revision=code_revision(),
     )
     max_steps = calib.runner.max_steps  # resolved with the cell when the DAG was built
-    with settings.observe(layers) as observer:  # exactly the statistics the cell's method declares
+    # exactly the statistics the cell's method declares; per-step ones on the flow steps the adapter clocks
+    with settings.observe(layers, flow_clock(adapter.model)) as observer:
         with make_env(calib.benchmark, suite, workers, **env_settings(calib.benchmark, calib.runner, adapter.reads_images)) as env:
             with tqdm(total=len(specs), desc=f"calibrate {calib.model} {calib.suite}", unit="ep",
                       disable=not progress) as bar:

@@ -30,6 +30,7 @@ import torch
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterBase, BatchInvariantLinears
 from vlaquantbench.models.registry import get_model_spec
+from vlaquantbench.quant.steps import attach_flow_clock, flow_clock
 
 TOKENS = 64  # lerobot's `tokenizer_max_length` for X-VLA
 LIBERO_DOMAIN = 3  # X-VLA's domain id of LIBERO (its client's `domain_id`)
@@ -85,6 +86,7 @@ class XVLAAdapter(AdapterBase):
         else:
             raise UserError(f"xvla has no variant {self.config.variant!r}; choose full, demo or random")
         self.model.eval()
+        attach_flow_clock(self.model)  # advanced by `act`'s flow loop (`quant.steps`)
         eager_cpu = self._device.type == "cpu" and self.config.sampler == "eager"
         self._invariance = BatchInvariantLinears(self.model) if eager_cpu else None
         self.predicted_chunk = int(self.model.chunk_size)
@@ -140,11 +142,14 @@ class XVLAAdapter(AdapterBase):
         noise = torch.stack([torch.randn(shape, generator=g) for g in generators]).to(self._device, dtype)
         action = torch.zeros_like(noise)
         steps = max(1, int(self.config.flow_steps))
-        for i in range(steps, 0, -1):
-            t = torch.full((n,), i / steps, device=self._device, dtype=dtype)
-            x_t = noise * t.view(-1, 1, 1) + action * (1 - t).view(-1, 1, 1)
-            proprio_m, x_t_m = model.action_space.preprocess(proprio, x_t)
-            action = model.transformer(domain_id=domain, action_with_noise=x_t_m, proprio=proprio_m, t=t, **enc)
+        clock = flow_clock(model)
+        with clock.chunk():
+            for i in range(steps, 0, -1):
+                t = torch.full((n,), i / steps, device=self._device, dtype=dtype)
+                x_t = noise * t.view(-1, 1, 1) + action * (1 - t).view(-1, 1, 1)
+                proprio_m, x_t_m = model.action_space.preprocess(proprio, x_t)
+                with clock.flow_step():
+                    action = model.transformer(domain_id=domain, action_with_noise=x_t_m, proprio=proprio_m, t=t, **enc)
         return self._environment_actions(model.action_space.postprocess(action).float().cpu().numpy())
 
     def _view(self, observations, view: str) -> torch.Tensor:
