@@ -9,7 +9,8 @@ import fnmatch
 import pytest
 import scipy.linalg
 import torch
-from pi_chunks import OpaqueTransform, captured_inputs, pi_chunk
+from pi_chunks import pi_chunk
+from test_pi05_fast import _inputs, _Wrapped
 
 from vlaquantbench.models import get_model_spec
 from vlaquantbench.models.registry import adapter_class
@@ -211,7 +212,7 @@ def test_captured_sampler_fuses_the_rotation_and_matches_the_eager_cell(demos):
     policy = copy.deepcopy(demo)
     config = QuantConfig.from_preset("W4A4", scope="e2e", method="hadamard")
     report = quantize_(policy, config, config.select(policy, spec.components))
-    images, img_masks, tokens, masks, noise = captured_inputs(batch=2, seed=1)
+    images, img_masks, tokens, masks, noise = _inputs(batch=2, seed=1)
     with torch.no_grad():
         eager = policy.sample_actions(images, img_masks, tokens, masks, noise=noise.clone(), num_steps=2)
         report.reset_hook_calls()
@@ -226,7 +227,7 @@ def test_captured_sampler_fuses_the_rotation_and_matches_the_eager_cell(demos):
         assert report.unfired() == []
 
         for hook in report.result.hooks.values():
-            hook.transform = OpaqueTransform(hook.transform)
+            hook.transform = _Wrapped(hook.transform)
         report.reset_hook_calls()
         sampler.reset()
         per_module = sampler(images, img_masks, tokens, masks, noise)

@@ -73,7 +73,11 @@ class Hadamard:
     exactly as QuaRot's offline rotation would rotate it (an orthonormal R), so the layers compute on
     the same kind of rotated inputs and weights, but at the cost of one transform per layer; it
     needs no norm to be foldable (pi0.5's action expert's adaptive RMSNorm, which scales channels by a
-    per-sample vector, is not), so it applies to every model, LayerNorm ones included."""
+    per-sample vector, is not), so it applies to every model, LayerNorm ones included. It rotates
+    what selection selects, `nn.Linear` layers: fused ones (X-VLA's qkv) like any other, never a
+    convolution (patch embeddings, DaViT's depthwise position convolutions stay as they are). An odd
+    input width has block 1, R = I: such a layer is quantized unrotated (the demo OpenVLA-OFT's
+    119-wide SigLIP fc2; no released width of pi0, pi0.5, X-VLA or OFT is odd)."""
 
     description = "inputs rotated by block-Hadamard transforms folded into the weights (QuaRot online form)"
 
