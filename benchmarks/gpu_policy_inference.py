@@ -39,14 +39,15 @@ def chunk_inputs(batch: int, device, seed: int = 0, cameras: int = 3):
 
 
 def time_chunks(fn, warmup: int, repeats: int) -> list[float]:
+    sync = torch.cuda.synchronize if torch.cuda.is_initialized() else lambda: None  # CPU smoke runs: nothing to wait for
     for _ in range(warmup):
         fn()
-    torch.cuda.synchronize()
+    sync()
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
         fn()
-        torch.cuda.synchronize()
+        sync()
         times.append(time.perf_counter() - start)
     return times
 

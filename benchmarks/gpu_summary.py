@@ -2,7 +2,8 @@
 
 Reads (each written on the GPU machine by its script) `gpu_preset_ab_cameras{2,3}.json` and
 `gpu_policy_inference_cameras2.json` (`gpu_policy_inference.py`), `gpu_real_kernels.json` and
-`closed_loop_gpu*.json` and `gpu_fp8_real*.json` (FP8, INT8 and INT4), and copies out the keys issues 6, 15 and 33 ask for, each with the machine it
+`closed_loop_gpu*.json`, `gpu_fp8_real*.json` (FP8, INT8 and INT4) and `gpu_hadamard_captured*.json`
+(W4A4 + Hadamard), and copies out the keys issues 6, 15, 31 and 33 ask for, each with the machine it
 was measured on. The policy's headline numbers are at LIBERO's two cameras, the input of every
 closed-loop run; the three-camera input of pi0.5's base configuration stands beside them.
 
@@ -165,6 +166,30 @@ def _int_real() -> dict:
     return out
 
 
+def _hadamard_captured() -> dict:
+    """Issue 31's keys from `gpu_hadamard_captured*.json` (`gpu_hadamard_captured.py`, one file per
+    device call): W4A4 + Hadamard (rotations inside the captured chunk) over BASELINE, the cells
+    taking turns in one process, with plain W4A4 of the same run beside it. Each value is the median
+    over the runs (the typical run), every run beside it."""
+    runs = [run for run in (json.loads(p.read_text()) for p in sorted(RESULTS.glob("gpu_hadamard_captured*.json")))
+            if "chunk_ms" in run]
+    if not runs:
+        return {}
+    where = "; ".join(_machine(run) for run in runs)
+    form = (f"captured, {runs[0]['cameras']} cameras, BASELINE / rtn-W4A4-e2e / hadamard-W4A4-e2e taking turns "
+            f"({runs[0]['rounds']} rounds x {runs[0]['repeats_per_round']} chunks each, median), {len(runs)} runs")
+    out = {}
+    for b in (1, 8, 32):
+        ratios = [run["vs_baseline"]["w4a4_hadamard"][str(b)] for run in runs]
+        out[f"fakequant_w4a4_hadamard_e2e_overhead_b{b}"] = {
+            "value": statistics.median(ratios), "by_run": ratios,
+            "plain_w4a4_value": statistics.median(run["vs_baseline"]["w4a4"][str(b)] for run in runs),
+            "hadamard_ms": [run["chunk_ms"]["w4a4_hadamard"][str(b)] for run in runs],
+            "baseline_ms": [run["chunk_ms"]["baseline"][str(b)] for run in runs],
+            "form": form, "goal": "<= 1.10", "machine": where}
+    return out
+
+
 def _machine(result: dict) -> str:
     return f"{result['machine']['gpu']}, torch {result['machine']['torch']}, {result['machine']['date_utc']}"
 
@@ -216,6 +241,7 @@ def main() -> None:
         **_closed_loop(),
         **_fp8_real(),
         **_int_real(),
+        **_hadamard_captured(),
     }
     (RESULTS / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     print(json.dumps(summary, indent=1))

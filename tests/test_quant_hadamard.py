@@ -1,16 +1,22 @@
-"""The Hadamard transform (vlaquantbench.quant.transforms.Hadamard) on the demo pi0.5 and pi0 (real lerobot
-architectures, random weights, float32): function preserving without quantization, on the declared grids
-with every hook fired when composed with RTN, and composed with GPTQ through rotated Hessians."""
+"""The Hadamard transform (vlaquantbench.quant.transforms.Hadamard) on the demo pi0.5, pi0, X-VLA and
+OpenVLA-OFT (real lerobot / timm / transformers architectures, random weights, float32): function
+preserving without quantization, on the declared grids with every hook fired when composed with RTN,
+and composed with GPTQ through rotated Hessians."""
 
 import copy
+import fnmatch
 
 import pytest
+import scipy.linalg
 import torch
 from pi_chunks import pi_chunk
+from test_pi05_fast import _inputs, _Wrapped
 
 from vlaquantbench.models import get_model_spec
+from vlaquantbench.models.registry import adapter_class
 from vlaquantbench.quant import QuantConfig, quantize_, select_layers
 from vlaquantbench.quant import calibration as calib
+from vlaquantbench.quant.hooks import InputTransform
 from vlaquantbench.quant.transforms import BlockHadamard
 
 MODELS = ("pi05", "pi0")
@@ -25,9 +31,13 @@ def demos():
 
 
 def test_block_hadamard_is_orthonormal_for_any_width():
-    for width, block in ((256, 256), (96, 32), (1152, 128), (4304, 16)):
+    for width, block in ((256, 256), (96, 32), (1152, 128), (4304, 16), (1536, 512)):
         rotation = BlockHadamard(width)
         assert rotation.block == block
+        # blocks past 128 channels are Kronecker products of small factors, equal to the dense matrix
+        dense = torch.block_diag(*[torch.tensor(scipy.linalg.hadamard(block), dtype=torch.float64)] * (width // block))
+        eye = torch.eye(width, dtype=torch.float64)
+        assert torch.allclose(rotation.rotate(eye, torch.float64), dense / block ** 0.5, atol=1e-12)
         x = torch.randn(3, width, dtype=torch.float64)
         rotated = rotation.rotate(x, torch.float64)
         assert torch.allclose(rotated.norm(dim=1), x.norm(dim=1)) and not torch.allclose(rotated, x)
@@ -68,7 +78,9 @@ def test_hadamard_w4a4_keeps_weights_and_inputs_on_the_grid(demos):
     x = torch.randn(5, policy.get_submodule("action_out_proj").in_features)
     quantized = hook.transform(x)
     assert all(len(torch.unique(row)) <= 16 for row in quantized)  # 4-bit per token, after the rotation
-    assert not torch.allclose(quantized, hook.transform.steps[-1](x))  # the rotation ran before quantizing
+    rotation = hook.transform.rotation
+    assert torch.equal(quantized, InputTransform(act_bits=4)(rotation(x)))  # rotated, then quantized
+    assert not torch.allclose(quantized, InputTransform(act_bits=4)(x))
 
 
 def test_hadamard_gptq_rounds_in_the_rotated_space(demos):
@@ -94,3 +106,155 @@ def test_hadamard_gptq_rounds_in_the_rotated_space(demos):
     assert header["hooks"] == {"selected": 131, "fired": 131, "unfired": []}
     assert header["quant_report"]["gptq"]["error_vs_rtn_max"] <= 1.0  # against RTN of the rotated weights
     assert 0 < header["quant_report"]["ah"]["mean_rel_mse"] < 1
+
+
+def xvla_chunk(model, seed: int, steps: int = 2) -> torch.Tensor:
+    """One X-VLA action chunk (the adapter's `act`: the Florence encoder once, then `steps` flow steps
+    of the soft-prompted head) on seeded random inputs: two 224 px views, 64 prompt tokens, LIBERO's domain."""
+    from vlaquantbench.models.xvla.components import PROPRIO_DIM
+
+    g = torch.Generator().manual_seed(seed)
+    images = torch.randn(1, 2, 3, 224, 224, generator=g)
+    enc = model.forward_vlm(torch.randint(0, 1000, (1, 64), generator=g), images, torch.ones(1, 2, dtype=torch.bool))
+    proprio = torch.randn(1, PROPRIO_DIM, generator=g)
+    action = noise = torch.randn(1, model.chunk_size, model.dim_action, generator=g)
+    for i in range(steps, 0, -1):
+        t = torch.full((1,), i / steps)
+        x_t = noise * t + action * (1 - t)
+        proprio_m, x_t_m = model.action_space.preprocess(proprio, x_t)
+        action = model.transformer(domain_id=torch.full((1,), 3), action_with_noise=x_t_m, proprio=proprio_m, t=t, **enc)
+    return action
+
+
+def oft_chunk(model, seed: int) -> torch.Tensor:
+    """One OpenVLA-OFT forward (parallel decoding of its 8 x 7 actions) on seeded random inputs."""
+    g = torch.Generator().manual_seed(seed)
+    views = torch.randn(2, 3, 224, 224, generator=g)
+    ids = torch.randint(3, model.language_model.config.vocab_size, (1, 12), generator=g)
+    embeds = model.language_model.get_input_embeddings()(ids)
+    return model(views, views.flip(-1), torch.rand(1, 8, generator=g) * 2 - 1, embeds)
+
+
+CHUNKS = {"xvla": xvla_chunk, "openvla_oft": oft_chunk}
+
+
+@pytest.fixture(scope="module")
+def vla_demos():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield {name: (get_model_spec(name), get_model_spec(name).build("demo", device="cpu", seed=0).eval())
+           for name in CHUNKS}
+    torch.set_num_threads(threads)
+
+
+@pytest.mark.parametrize("model_name", sorted(CHUNKS))
+def test_rotated_xvla_and_oft_produce_the_same_actions(vla_demos, model_name):
+    """Every selected linear of X-VLA (DaViT, BART encoder, the soft-prompted head, fused qkv included)
+    and OFT (DINOv2 + SigLIP, projector, LLaMA, proprio projector, action MLP) takes the rotation;
+    their convolutions (patch embeddings, DaViT's depthwise position convolutions) are not linears,
+    never selected, and stay as they are."""
+    spec, demo = vla_demos[model_name]
+    rotated = copy.deepcopy(demo)
+    chunk = CHUNKS[model_name]
+    with torch.no_grad():
+        reference = chunk(demo, 3)
+        config = QuantConfig.from_preset("BASELINE", scope="e2e", method="hadamard")
+        report = quantize_(rotated, config, config.select(rotated, spec.components))
+        actions = chunk(rotated, 3)
+    rel_l2 = ((actions - reference).norm() / reference.norm()).item()
+    layers = report.selection.flat()
+    changed = {name for name, layer in layers.items() if not torch.equal(layer.weight, demo.get_submodule(name).weight)}
+    # a width with no even factor has the order-1 block: R = I, a weight left exactly as it was
+    unrotatable = {name for name, layer in layers.items() if layer.in_features % 2}
+    print(f"{model_name}: {len(changed)} of {len(layers)} e2e weights rotated ({len(unrotatable)} odd-width inputs), "
+          f"action rel L2 {rel_l2:.2e}")
+    assert changed == set(layers) - unrotatable and len(changed) > 0.9 * len(layers)
+    assert report.unfired() == idle_layers(model_name, layers)
+    assert rel_l2 <= 1e-4
+
+
+def idle_layers(model_name: str, layers) -> list[str]:
+    """The selected layers the model never runs (OFT's SigLIP attention-pooling head: its adapter's
+    `idle_layers`), in selection order."""
+    idle = getattr(adapter_class(model_name), "idle_layers", ())
+    return [name for name in layers if any(fnmatch.fnmatch(name, pattern) for pattern in idle)]
+
+
+@pytest.mark.parametrize("model_name", sorted(CHUNKS))
+def test_xvla_and_oft_hadamard_w4a4_on_the_grid(vla_demos, model_name):
+    spec, demo = vla_demos[model_name]
+    policy = copy.deepcopy(demo)
+    config = QuantConfig.from_preset("W4A4", scope="e2e", method="hadamard")
+    report = quantize_(policy, config, config.select(policy, spec.components))
+    with torch.no_grad():
+        CHUNKS[model_name](policy, 3)
+    hooks = report.to_header()["hooks"]
+    idle = idle_layers(model_name, report.selection.flat())
+    print(model_name, hooks)
+    assert hooks["fired"] == hooks["selected"] - len(idle) and hooks["unfired"] == idle
+    for name, layer in report.selection.flat().items():
+        for group in layer.weight.split(128, dim=1):  # groups of 128 input columns, a shorter last one
+            assert max(len(torch.unique(row)) for row in group) <= 16, name
+        hook = report.result.hooks[name]
+        x = torch.randn(3, layer.in_features)
+        assert all(len(torch.unique(row)) <= 16 for row in hook.transform(x)), name
+
+
+def test_captured_sampler_fuses_the_rotation_and_matches_the_eager_cell(demos):
+    """pi0.5's captured sampler (its static code, run eagerly on the CPU) under W4A4 + Hadamard:
+    every SigLIP and Gemma linear group is fused, its input rotated and quantized inside the op that
+    produces it, once per group (q/k/v, gate/up), bit-identical to every linear called as a module
+    through its own hook, with the same hook counts, and close to lerobot's eager chunk."""
+    from vlaquantbench.models.pi05.fast import CapturedSampler
+    from vlaquantbench.quant.hooks import Rotated
+
+    spec, demo = demos["pi05"]
+    policy = copy.deepcopy(demo)
+    config = QuantConfig.from_preset("W4A4", scope="e2e", method="hadamard")
+    report = quantize_(policy, config, config.select(policy, spec.components))
+    images, img_masks, tokens, masks, noise = _inputs(batch=2, seed=1)
+    with torch.no_grad():
+        eager = policy.sample_actions(images, img_masks, tokens, masks, noise=noise.clone(), num_steps=2)
+        report.reset_hook_calls()
+        sampler = CapturedSampler(policy, num_steps=2)
+        captured = sampler(images, img_masks, tokens, masks, noise)
+        groups = sampler._groups
+        layer_groups = [g for layer in groups.vision + groups.prefix + groups.expert
+                        for g in (layer.qkv, layer.out, layer.mlp_in, layer.mlp_out)]
+        assert all(g.fused and isinstance(g.input_quantization, Rotated) for g in layer_groups)
+        assert {g.input_quantization.quantization for g in layer_groups} == {4}
+        fused_calls = report.hook_calls()
+        assert report.unfired() == []
+
+        for hook in report.result.hooks.values():
+            hook.transform = _Wrapped(hook.transform)
+        report.reset_hook_calls()
+        sampler.reset()
+        per_module = sampler(images, img_masks, tokens, masks, noise)
+    assert not any(g.fused for layer in sampler._groups.expert for g in (layer.qkv, layer.mlp_in))
+    assert torch.equal(captured, per_module) and report.hook_calls() == fused_calls
+    rel_l2 = ((captured - eager).norm() / eager.norm()).item()
+    print(f"captured vs eager W4A4 hadamard: rel L2 {rel_l2:.2e}")
+    assert rel_l2 < 1e-3
+
+
+def test_a_shared_input_is_rotated_once():
+    """q/k/v-like members reading one input: one rotation product and one quantization for all three."""
+    from torch import nn
+
+    from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
+    from vlaquantbench.quant.hooks import CountingHook
+
+    torch.manual_seed(0)
+    layers = [nn.Linear(64, 8, bias=False) for _ in range(3)]
+    hooks = [CountingHook(layer, InputTransform(rotation=BlockHadamard(64), act_bits=4)) for layer in layers]
+    group = LinearGroup(layers)
+    assert group.fused and group.input_quantization.rotation == BlockHadamard(64)
+    x = torch.randn(5, 64)
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as profile:
+        got = group(group.input_from(torch.clone, (x,)))
+    # one rotation and one product of the three members (through their hooks: three of each)
+    assert [e.name for e in profile.events()].count("aten::matmul") == 2
+    assert [h.calls for h in hooks] == [1, 1, 1]
+    expected = [layer(x) for layer in layers]  # through the hooks: each rotates and quantizes
+    assert all(torch.allclose(a, b, rtol=1e-6, atol=1e-6) for a, b in zip(got, expected))  # one product vs three

@@ -9,7 +9,8 @@ floor and dtype round trips; bit-identical on CUDA, where the benchmark checks i
 
 `fuse_activation_hooks(report)` replaces the transform of every counting hook of a quantization
 report by `FusedInputTransform`, which also computes once the quantized input that several
-layers read (q/k/v projections, gate/up projections share one input). Hook call counting is
+layers read (q/k/v projections, gate/up projections share one input), rotated first where the
+transform rotates (`InputTransform.rotation`). Hook call counting is
 untouched. On a device other than CUDA it falls back to the reference transform.
 """
 
@@ -134,11 +135,13 @@ class FusedInputTransform:
         ref = self.reference
         if not supports(x) or ref.act_bits is None:
             return ref(x)
-        # Smoothing vectors are per layer, so only plain quantization can be shared between layers.
-        key = ref.act_bits if ref.smooth is None and ref.clip is None else None
+        # Smoothing vectors are per layer, so only plain quantization (after a rotation, which is
+        # one per width) can be shared between layers.
+        key = (ref.rotation, ref.act_bits) if ref.smooth is None and ref.clip is None else None
         if key is not None and (hit := self.shared.lookup(x, key)) is not None:
             return hit
-        y = fused_fake_quant(x, ref.act_bits, ref.smooth, ref.clip)
+        rotated = x if ref.rotation is None else ref.rotation(x)
+        y = fused_fake_quant(rotated, ref.act_bits, ref.smooth, ref.clip)
         if key is not None:
             self.shared.store(x, key, y)
         return y

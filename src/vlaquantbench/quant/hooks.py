@@ -24,7 +24,8 @@ from vlaquantbench.quant.presets import FloatFormat
 
 @dataclass(frozen=True)
 class InputTransform:
-    """What a hook does to a linear input, in the paper's order: divide by the smoothing vector,
+    """What a hook does to a linear input, in the paper's order: rotate (an orthonormal rotation
+    folded into the weight, `quant.transforms.BlockHadamard`), divide by the smoothing vector,
     clip at the per-channel threshold, then quantize: per token on an integer grid (`act_bits`) or
     in a floating-point format (`act_format`, per block / token / sample). Every step is optional."""
 
@@ -32,8 +33,12 @@ class InputTransform:
     clip: torch.Tensor | None = None  # post-smoothing threshold, shape [in_features]
     act_bits: int | None = None
     act_format: FloatFormat | None = None
+    # x -> R x, equal (and hashed) by what it computes, so layers sharing an input share it
+    rotation: Callable[[torch.Tensor], torch.Tensor] | None = None
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        if self.rotation is not None:
+            x = self.rotation(x)
         if self.smooth is not None:
             x = (x.float() / self.smooth).to(x.dtype)
         if self.clip is not None:
@@ -46,7 +51,22 @@ class InputTransform:
 
     @property
     def is_identity(self) -> bool:
-        return self.smooth is None and self.clip is None and self.act_bits is None and self.act_format is None
+        return (self.smooth is None and self.clip is None and self.act_bits is None and self.act_format is None
+                and self.rotation is None)
+
+
+@dataclass(frozen=True)
+class Rotated:
+    """The quantization of a rotated input (`plain_quantization` of a transform with a rotation):
+    `rotation(x)`, then `quantization` (per-token bits, a float format, or None: none)."""
+
+    rotation: Callable[[torch.Tensor], torch.Tensor]
+    quantization: int | FloatFormat | None
+
+    @property
+    def name(self) -> str:
+        inner = self.quantization
+        return f"{self.rotation.name}_" + (f"int{inner}" if isinstance(inner, int) else getattr(inner, "name", "none"))
 
 
 class ActivationQuantizer:
@@ -64,15 +84,18 @@ class ActivationQuantizer:
         self.calls = 0
 
     @property
-    def plain_quantization(self) -> int | FloatFormat | None:
-        """What a transform that only quantizes does: the bit width of per-token integer quantization,
-        or the float format (None: a transform that changes nothing). `fused` needs such a transform;
-        ValueError for any other (smoothing or clipping vectors, a wrapped transform). The Triton form
-        (`quant.fused_kernel`) exposes the transform it computes as `reference`."""
+    def plain_quantization(self) -> int | FloatFormat | Rotated | None:
+        """What a transform that only quantizes, possibly after a rotation shared by every layer of
+        its width, does: the bit width of per-token integer quantization, or the float format, or
+        `Rotated` (None: a transform that changes nothing). `fused` needs such a transform;
+        ValueError for any other (smoothing or clipping vectors, which are per layer, a wrapped
+        transform). The Triton form (`quant.fused_kernel`) exposes the transform it computes as
+        `reference`."""
         transform = getattr(self.transform, "reference", self.transform)
         if not isinstance(transform, InputTransform) or transform.smooth is not None or transform.clip is not None:
             raise ValueError(f"{type(self.transform).__name__} is not plain per-token or float-format quantization")
-        return transform.act_format if transform.act_format is not None else transform.act_bits
+        quantization = transform.act_format if transform.act_format is not None else transform.act_bits
+        return quantization if transform.rotation is None else Rotated(transform.rotation, quantization)
 
     @property
     def is_plain(self) -> bool:
@@ -130,10 +153,11 @@ _LAST_FUSED = _LastFused()
 
 
 @functools.cache
-def quantizing_op(op: Callable, quantization: int | FloatFormat | PerTokenCast | None,
+def quantizing_op(op: Callable, quantization: int | FloatFormat | PerTokenCast | Rotated | None,
                   compiler: Callable | None = None) -> Callable:
     """`op` followed by the quantization of its (last) output -- per-token with `quantization` bits,
-    in a float format, or cast to a real kernel's low-bit input (`PerTokenCast`: that output comes
+    in a float format, rotated first (`Rotated`: the rotation's products then run inside the same
+    compiled function), or cast to a real kernel's low-bit input (`PerTokenCast`: that output comes
     back as `CastRows`) -- as one function (None: `op` alone), compiled once by `compiler` when given.
 
     An op may name a hand-written kernel for itself followed by per-token quantization,
@@ -163,7 +187,7 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | PerTokenCast |
     if isinstance(quantization, PerTokenCast):
         return _as_cast_rows(compiled)
     supports = getattr(op, "per_token_kernel_supports", None)
-    if supports is None or isinstance(quantization, FloatFormat):
+    if supports is None or not isinstance(quantization, int):  # the kernels quantize unrotated integer rows
         return compiled
     kernel = getattr(op, "per_token_kernel", None)
     if kernel is None:
@@ -192,10 +216,14 @@ def _as_cast_rows(fn: Callable) -> Callable:
     return with_cast_rows
 
 
-def _quantized(x: torch.Tensor, quantization: int | FloatFormat | PerTokenCast, quotient: Callable = torch.div):
+def _quantized(x: torch.Tensor, quantization: int | FloatFormat | PerTokenCast | Rotated,
+               quotient: Callable = torch.div):
     """What the hook's `InputTransform` does to `x` (or, for a `PerTokenCast`, what a real kernel
     does to its input: (values, scales)), written so that a compiler fusing it into the op that
     made `x` still quantizes the rounded `x` a hook would see."""
+    if isinstance(quantization, Rotated):  # the rotation's own float32 arithmetic, rounded to x's dtype
+        x = quantization.rotation(x)
+        return x if quantization.quantization is None else _quantized(x, quantization.quantization, quotient)
     if isinstance(quantization, PerTokenCast):
         return tuple(quantization(_as_float32(x), quotient))
     if isinstance(quantization, FloatFormat):

@@ -73,7 +73,11 @@ class Hadamard:
     exactly as QuaRot's offline rotation would rotate it (an orthonormal R), so the layers compute on
     the same kind of rotated inputs and weights, but at the cost of one transform per layer; it
     needs no norm to be foldable (pi0.5's action expert's adaptive RMSNorm, which scales channels by a
-    per-sample vector, is not), so it applies to every model, LayerNorm ones included."""
+    per-sample vector, is not), so it applies to every model, LayerNorm ones included. It rotates
+    what selection selects, `nn.Linear` layers: fused ones (X-VLA's qkv) like any other, never a
+    convolution (patch embeddings, DaViT's depthwise position convolutions stay as they are). An odd
+    input width has block 1, R = I: such a layer is quantized unrotated (the demo OpenVLA-OFT's
+    119-wide SigLIP fc2; no released width of pi0, pi0.5, X-VLA or OFT is odd)."""
 
     description = "inputs rotated by block-Hadamard transforms folded into the weights (QuaRot online form)"
 
@@ -87,18 +91,41 @@ class Hadamard:
         return steps
 
 
+# The largest Hadamard factor a rotation multiplies by (`BlockHadamard`): blocks beyond it are
+# Kronecker products of factors of at most this order, so R x costs two small products, not one b x b.
+FACTOR_ORDER = 128
+
+
 class BlockHadamard:
-    """x -> R x for inputs of `width` channels (rows of x as vectors: x R^T), computed in float32."""
+    """x -> R x for inputs of `width` channels (rows of x as vectors: x R^T), computed in float32.
+
+    Sylvester's construction makes H_(pq) = H_p (x) H_q (Kronecker product) for powers of two p, q,
+    so a block of b = p q channels, read as a p x q matrix X (row-major), rotates to H_p X H_q: two
+    products with factors of order at most `FACTOR_ORDER`, O(b (p + q)) per block instead of O(b^2)
+    (pi0.5's VLM down_proj input, 16,384 wide, is one block: 128 + 128 instead of 16,384 multiply-adds
+    per value, and no 1 GiB matrix). Equal to the dense blockdiag(H_b / sqrt(b)) up to rounding.
+
+    Equal (and hashed) by block and device: layers of one width share one rotation, so the fast
+    path rotates an input that several layers read (q/k/v, gate/up) once (`quant.hooks.Rotated`)."""
 
     def __init__(self, width: int, device: torch.device | str = "cpu"):
         self.block = width & -width  # the largest power of two dividing the width
-        self.matrix = torch.tensor(scipy.linalg.hadamard(self.block), dtype=torch.float32, device=device)
-        self.matrix /= math.sqrt(self.block)
+        self.inner_order = min(self.block, FACTOR_ORDER)
+        self.outer_order = self.block // self.inner_order
+        self.inner = _orthonormal_hadamard(self.inner_order, device)
+        self.outer = _orthonormal_hadamard(self.outer_order, device) if self.outer_order > 1 else None
+
+    @property
+    def name(self) -> str:
+        return f"hadamard{self.block}"
 
     def rotate(self, x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         """Every row of x (last dimension) times R^T, computed in `dtype`; also folds R^T into a weight."""
-        blocks = x.to(dtype).reshape(*x.shape[:-1], -1, self.block)
-        return (blocks @ self.matrix.to(dtype).t()).reshape(x.shape)
+        blocks = x.to(dtype).reshape(*x.shape[:-1], -1, self.outer_order, self.inner_order)
+        rotated = blocks @ self.inner.to(dtype)  # X H_q (the factors are symmetric)
+        if self.outer is not None:
+            rotated = self.outer.to(dtype) @ rotated  # H_p (X H_q)
+        return rotated.reshape(x.shape)
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         return self.rotate(x, torch.float32).to(x.dtype)
@@ -111,14 +138,29 @@ class BlockHadamard:
     def is_identity(self) -> bool:
         return False
 
+    def __eq__(self, other) -> bool:
+        return (isinstance(other, BlockHadamard) and other.block == self.block
+                and other.inner.device == self.inner.device)
+
+    def __hash__(self) -> int:
+        return hash((BlockHadamard, self.block, str(self.inner.device)))
+
+
+def _orthonormal_hadamard(order: int, device: torch.device | str) -> torch.Tensor:
+    """Sylvester's Hadamard matrix of `order` (a power of two) scaled by 1/sqrt(order), float32."""
+    return torch.tensor(scipy.linalg.hadamard(order), dtype=torch.float32, device=device) / math.sqrt(order)
+
 
 def input_steps(steps: Sequence[Callable], preset: Preset) -> Callable:
     """One layer's input transform: the transforms' steps in order, then the preset's activation
-    quantization. A single smoothing step folds into one `InputTransform` (the form the fast paths
-    and the paper's order know: divide, clip, quantize)."""
+    quantization. A single smoothing step or a single rotation folds into one `InputTransform` (the
+    form the fast paths know: rotate, divide, clip, quantize; pi0.5's captured sampler computes a
+    rotation and quantization once per input that several layers read)."""
     quantize = InputTransform(act_bits=preset.act_bits, act_format=preset.act_format)
     if not steps:
         return quantize
+    if len(steps) == 1 and isinstance(steps[0], BlockHadamard):  # the form the captured fast path fuses
+        return InputTransform(rotation=steps[0], act_bits=preset.act_bits, act_format=preset.act_format)
     if len(steps) == 1 and isinstance(steps[0], InputTransform) and steps[0].act_bits is None:
         return InputTransform(smooth=steps[0].smooth, clip=steps[0].clip, act_bits=preset.act_bits,
                               act_format=preset.act_format)
