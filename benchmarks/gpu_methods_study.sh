@@ -24,8 +24,11 @@ study:
   execution: {num_envs: 3, torch_threads: 1, progress: false}
 EOF
 start=$(date +%s)
-python3 -m snakemake tables/methods_2026.tex --cores "$cores" --scheduler greedy --keep-going \
-  --configfile config/trained_cpu.yaml "$out/run_cells.yaml"
+# Snakemake stops (SIGTERM: running cells keep their journals) before the device call's limit, so the
+# finished cells are always tarred; mem_mb unbounded: the memory model's LIBERO worker footprint is not
+# Meta-World's, and the machine holds 8 cells easily.
+timeout --signal=TERM "${SNAKEMAKE_LIMIT_S:-470}" python3 -m snakemake tables/methods_2026.tex --cores "$cores" \
+  --scheduler greedy --keep-going --resources mem_mb=100000000 --configfile config/trained_cpu.yaml "$out/run_cells.yaml"
 status=$?
 echo "snakemake exit $status after $(( $(date +%s) - start )) s"
 stage=$(mktemp -d)  # outside OUT_DIR: only its tar files are meant to come back
