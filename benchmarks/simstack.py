@@ -2,6 +2,7 @@
 
     python benchmarks/simstack.py pack --suite libero_spatial --out .simstack
     python benchmarks/simstack.py pack --benchmark metaworld --config config/trained_study.yaml --out .gpuwork/demos-stack
+    python benchmarks/simstack.py pack --benchmark metaworld --closed-loop --config config/trained_cpu.yaml --out .gpuwork/closed-loop-stack
     python3 benchmarks/simstack.py unpack --from .simstack --target /tmp/sim   # on the GPU machine
     . /tmp/sim/env.sh && python3 benchmarks/simstack.py check --target /tmp/sim
 
@@ -280,10 +281,12 @@ def metaworld_tasks(config: Path) -> list[str]:
     return list(DemonstrationConfig.from_dict(yaml.safe_load(config.read_text())["demonstrations"]).tasks)
 
 
-def probe_metaworld(config: Path) -> dict:
-    """Run rule demonstrations on every task of `config` (one 32-pixel episode each) through Snakemake,
-    and load the pi05 demo adapter and lerobot's training script (what the training rule runs), each
-    interpreter recording what it used (`_PROBE_SITECUSTOMIZE`); returns the union."""
+def probe_metaworld(config: Path, closed_loop: bool = False) -> dict:
+    """Run through Snakemake, each interpreter recording what it used (`_PROBE_SITECUSTOMIZE`), and return the
+    union: rule demonstrations on every task of `config` (one 32-pixel episode each), then the pi05 demo adapter
+    and lerobot's training script (what the training rule runs); or, `closed_loop`, the study of `config`
+    (its trained checkpoint) reduced to one table row, a GPTQ cell over the action head on the study's first
+    task: the checkpoint, calibration (Hessians), rollout and table rules, one 10-step episode."""
     import yaml
 
     root = Path(__file__).resolve().parents[1]
@@ -292,19 +295,24 @@ def probe_metaworld(config: Path) -> dict:
         (tmp / "site").mkdir()
         (tmp / "site" / "sitecustomize.py").write_text(_PROBE_SITECUSTOMIZE)
         (tmp / "records").mkdir()
-        (tmp / "probe.yaml").write_text(yaml.safe_dump({"demonstrations": {
-            "dir": "results/probe", "tasks": metaworld_tasks(config), "episodes_per_task": 1,
-            "image_size": 32, "image_writer_threads": 1}}))
         env = {**os.environ, "VQB_SIMSTACK_PROBE": str(tmp / "records"), "MUJOCO_GL": "egl",
-               "VQB_SIMSTACK_HIDDEN": ",".join(METAWORLD_HIDDEN),
+               # The closed loop writes no dataset: lerobot's dataset stack (datasets, PyAV) is hidden as in
+               # the LIBERO pack, proving the DAG runs without it.
+               "VQB_SIMSTACK_HIDDEN": ",".join(METAWORLD_HIDDEN + (OPTIONAL if closed_loop else ())),
                "PYTHONPATH": os.pathsep.join([str(tmp / "site"), str(root / "src"), os.environ.get("PYTHONPATH", "")])}
-        subprocess.run([sys.executable, "-m", "snakemake", "results/probe/manifest.tsv", "--cores", "2", "--scheduler", "greedy",
-                        "--snakefile", str(root / "Snakefile"), "--directory", str(tmp / "work"),
-                        "--configfile", str(root / "config" / "config.yaml"), str(tmp / "probe.yaml")],
-                       check=True, env=env)
-        subprocess.run([sys.executable, "-c", "from vlaquantbench.models.adapter import AdapterConfig, make_adapter; "
-                        "make_adapter(AdapterConfig(model='pi05', variant='demo')).load(); "
-                        "import lerobot.scripts.lerobot_train"], check=True, env=env)
+        snakemake = [sys.executable, "-m", "snakemake", "--cores", "2", "--scheduler", "greedy", "--snakefile",
+                     str(root / "Snakefile"), "--directory", str(tmp / "work"), "--configfile", str(root / "config" / "config.yaml")]
+        if closed_loop:
+            _closed_loop_probe(config, root, tmp, snakemake, env)
+        else:
+            (tmp / "probe.yaml").write_text(yaml.safe_dump({"demonstrations": {
+                "dir": "results/probe", "tasks": metaworld_tasks(config), "episodes_per_task": 1,
+                "image_size": 32, "image_writer_threads": 1}}))
+            subprocess.run([*snakemake[:3], "results/probe/manifest.tsv", *snakemake[3:], str(tmp / "probe.yaml")],
+                           check=True, env=env)
+            subprocess.run([sys.executable, "-c", "from vlaquantbench.models.adapter import AdapterConfig, make_adapter; "
+                            "make_adapter(AdapterConfig(model='pi05', variant='demo')).load(); "
+                            "import lerobot.scripts.lerobot_train"], check=True, env=env)
         modules: dict[str, str] = {}
         opened: set[str] = set()
         mapped: set[str] = set()
@@ -314,6 +322,27 @@ def probe_metaworld(config: Path) -> dict:
             opened |= set(data["opened"])
             mapped |= set(data["mapped"])
     return {"modules": modules, "opened": sorted(opened), "mapped": sorted(mapped)}
+
+
+def _closed_loop_probe(config: Path, root: Path, tmp: Path, snakemake: list[str], env: dict[str, str]) -> None:
+    """One table row of `config`'s study (its first table's GPTQ action-head row) run by the DAG in `tmp/work`,
+    the checkpoints folder linked in (the study names its trained checkpoint relative to the project)."""
+    import yaml
+
+    raw = yaml.safe_load(config.read_text())
+    table = yaml.safe_load((root / raw["tables_dir"] / f"{raw['tables'][0]}.yaml").read_text())
+    table["rows"] = [row for row in table["rows"] if str(row.get("cell", "")).endswith("/gptq-W4A4-ah")]
+    (tmp / "tables").mkdir()
+    (tmp / "tables" / f"{raw['tables'][0]}.yaml").write_text(yaml.safe_dump(table))
+    first_task = raw["study"]["tasks"][0] if isinstance(raw["study"]["tasks"], list) else 0
+    (tmp / "probe.yaml").write_text(yaml.safe_dump({
+        "records_dir": None, "manifest": None, "tables_dir": str(tmp / "tables"),
+        "study": {"tasks": [first_task], "episodes_per_task": 1, "runner": {"max_steps": 10},
+                  "calibration": {"tasks": [first_task], "episodes": 1}}}))
+    (tmp / "work").mkdir()
+    (tmp / "work" / "checkpoints").symlink_to(root / "checkpoints")
+    subprocess.run([*snakemake[:3], f"tables/{raw['tables'][0]}.tex", *snakemake[3:], str(config.absolute()),
+                    str(tmp / "probe.yaml")], check=True, env=env)
 
 
 def metaworld_model_files(tasks: list[str]) -> set[Path]:
@@ -336,15 +365,16 @@ def metaworld_model_files(tasks: list[str]) -> set[Path]:
     return files
 
 
-def pack_metaworld(config: Path, out: Path) -> list[Path]:
+def pack_metaworld(config: Path, out: Path, closed_loop: bool = False) -> list[Path]:
     """The Meta-World pack: the distributions the demonstrations and training rules import (Snakemake,
     lerobot with its dataset stack, MuJoCo, transformers, ...), Meta-World pruned to its code, its MJCF
     files and the meshes and textures of the config's tasks, and the GL loaders. PyAV (27.6 MiB of the
     pack: its codec libraries) goes along although no video is stored: lerobot's dataset writer looks
-    for its AV1 encoder when it starts."""
+    for its AV1 encoder when it starts. `closed_loop`: only what the config's study DAG imports (its
+    checkpoint, calibration, rollout and table rules; no dataset writer, no training)."""
     site = _site_packages()
     tasks = metaworld_tasks(config)
-    found = probe_metaworld(config)
+    found = probe_metaworld(config, closed_loop)
     dists = _needed_dists(found["modules"], trees=("metaworld",), left_out=("metaworld",))
     groups: dict[str, list[tuple[Path, str]]] = {
         "dists": [(f, f"site/{f.relative_to(site)}") for d in dists for f in _dist_files(d)]}
@@ -463,6 +493,8 @@ def main(argv: list[str] | None = None) -> None:
                    help="Meta-World: the workflow config whose demonstrations section names the tasks")
     p.add_argument("--out", type=Path, default=Path(".simstack"))
     p.add_argument("--camera-size", type=int, default=64, help="render size of the probe run (files do not depend on it)")
+    p.add_argument("--closed-loop", action="store_true",
+                   help="Meta-World: pack what the config's study DAG (trained checkpoint, closed loop) imports, not demonstrations+training")
     u = sub.add_parser("unpack")
     u.add_argument("--from", dest="source", type=Path, default=Path(".simstack"))
     u.add_argument("--target", type=Path, required=True)
@@ -473,7 +505,7 @@ def main(argv: list[str] | None = None) -> None:
     c.add_argument("--camera-size", type=int, default=256)
     args = parser.parse_args(argv)
     if args.command == "pack" and args.benchmark == "metaworld":
-        pack_metaworld(args.config, args.out)
+        pack_metaworld(args.config, args.out, args.closed_loop)
     elif args.command == "pack":
         pack(args.suite, args.out, args.camera_size)
     elif args.command == "unpack":

@@ -44,6 +44,7 @@ from vlaquantbench.envs import BENCHMARK_SUITES, check_ids
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import client_conventions, step_limit
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
+from vlaquantbench.models.trained_home import trained_weights
 from vlaquantbench.quant.methods import METHODS, registered_methods
 from vlaquantbench.quant.patterns import scope_components
 from vlaquantbench.quant.semantics import QUANT_SEMANTICS
@@ -186,6 +187,8 @@ class CellConfig(PolicyRunConfig):
         if model not in study.models:
             raise UserError(f"cell {ref!r}: model {model!r} is not in study.models ({', '.join(study.models) or 'none'})")
         weights = study.models[model]
+        if weights.trained is not None:  # checkpoint, revision, input size and chunk from its training.json
+            weights = trained_weights(model, weights)
         client = client_conventions(model)
         try:  # the model's step limit on this suite, resolved now: hashed with the cell
             released_limit = step_limit(model, benchmark, suite)
@@ -341,8 +344,11 @@ def _check_fits_suite(ref: str, benchmark: str, suite: str, model: str, study: S
                             f"states per task (episode i starts from init state i)")
         if calibration is not None:
             protocol = study.calibration
-            if protocol.tasks > size.tasks:
-                raise UserError(f"study.calibration.tasks: {protocol.tasks} tasks, but {suite} has {size.tasks}")
+            if isinstance(protocol.tasks, int):
+                if protocol.tasks > size.tasks:
+                    raise UserError(f"study.calibration.tasks: {protocol.tasks} tasks, but {suite} has {size.tasks}")
+            else:
+                check_ids("study.calibration.tasks", protocol.tasks, size.tasks, f"{suite} has {size.tasks} tasks")
             calib_set = (fields["calibration"] or {}).get("set")
             source = (f"study.calibration.first_init_state {protocol.first_init_state}"
                       + (f" + 2 x calib_set {calib_set}" if calib_set else "") + f", study.calibration.episodes {protocol.episodes}")
@@ -434,7 +440,7 @@ def _calibration(ref: str, fields: dict[str, Any], study: StudyConfig, seed: int
         raise UserError(f"cell {ref!r}: calibrates {parsed['components']!r}, which is outside scope {fields['scope']!r}")
     return CellCalibration(
         **{**observed, "components": tuple(observed["components"])},
-        tasks=tuple(range(protocol.tasks)),
+        tasks=tuple(range(protocol.tasks)) if isinstance(protocol.tasks, int) else protocol.tasks,
         init_states=tuple(range(first, first + protocol.episodes)),
         seed=seed,
     )

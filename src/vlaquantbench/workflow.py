@@ -98,8 +98,11 @@ class WorkflowConfig:
 
     @property
     def tables_dir(self) -> Path:
-        """Table definitions: `config/tables/`, or the study's own (`study.tables_dir`) when the
-        DAG runs the cells itself (the demo study renders a few rows with a demo caption)."""
+        """Table definitions: the config's `tables_dir`; else `config/tables/`, or the study's own
+        (`study.tables_dir`) when the DAG runs the cells itself (the demo study renders a few rows with a
+        demo caption)."""
+        if self.raw.get("tables_dir"):  # the config's own tables, whichever way its records come
+            return self.basedir / self.raw["tables_dir"]
         study_dir = (self.raw.get("study") or {}).get("tables_dir")
         if self.records_dir is None and study_dir:
             return self.basedir / study_dir

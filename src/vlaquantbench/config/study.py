@@ -22,6 +22,9 @@ class ModelWeights:
     variant: str
     checkpoint: str | None = None
     revision: str | None = None  # pinned commit of the checkpoint (40 hex digits)
+    # A checkpoint trained here (rule train_policy): its HF_HOME folder, whose training.json names the
+    # checkpoint and revision (`models.trained_home`, resolved into each cell config when the DAG is built)
+    trained: str | None = None
     # This model's own settings over the study's (values that differ from its released client's
     # conventions, `models.client`, are recorded as overrides in each cell)
     episodes_per_task: int | None = None
@@ -57,7 +60,7 @@ class CalibrationProtocol:
 
     episodes: int = 2
     first_init_state: int = 20
-    tasks: int = 1
+    tasks: int | tuple[int, ...] = 1  # a count (tasks 0..N-1) or task ids (a study on some of a suite's tasks)
     alpha: float = 0.5
     quantile: float = 0.999
 
@@ -123,7 +126,7 @@ class StudyConfig:
             models={name: ModelWeights(**weights) for name, weights in raw.pop("models", {}).items()},
             tasks=tasks if isinstance(tasks, int) else tuple(sorted(set(tasks))),
             runner=RunnerConfig(**raw.pop("runner", {})),
-            calibration=CalibrationProtocol(**raw.pop("calibration", {})),
+            calibration=_calibration_protocol(raw.pop("calibration", {})),
             execution=ExecutionConfig(**raw.pop("execution", {})),
             sequential=None if sequential is None else SequentialConfig(**sequential),
             **raw,
@@ -133,3 +136,8 @@ class StudyConfig:
     def task_ids(self) -> list[int]:
         return list(range(self.tasks)) if isinstance(self.tasks, int) else list(self.tasks)
 
+
+
+def _calibration_protocol(raw: dict[str, Any]) -> CalibrationProtocol:
+    tasks = raw.get("tasks", CalibrationProtocol.tasks)
+    return CalibrationProtocol(**{**raw, "tasks": tasks if isinstance(tasks, int) else tuple(sorted(set(tasks)))})

@@ -65,7 +65,14 @@ def load_policy(cfg: CellConfig | CalibrationConfig, stamp: str | Path | None, p
     """The adapter of `policy_class` (the model's, looked up once by the caller) with the policy of `cfg`
     loaded, after checking its executed chunk length and controller mode."""
     adapter = policy_class(AdapterConfig.from_cell(cfg, checkpoint_dir(stamp), policy_class))
-    adapter.load()
+    hf_home = json.loads(Path(stamp).read_text()).get("hf_home") if stamp is not None else None
+    if hf_home is None:
+        adapter.load()
+    else:  # a checkpoint trained here: it and the tokenizer its preprocessor names load from its own folder
+        from vlaquantbench.hub.cache import offline_cache
+
+        with offline_cache(hf_home):
+            adapter.load()
     expected = cfg.runner.executed_chunk
     if adapter.executed_chunk != expected:
         raise CellFailed(

@@ -102,10 +102,22 @@ def _snapshot(what: str, repo_id: str, revision: str | None, allow_patterns: lis
         ) from None
 
 
-def download_checkpoint(model: str, variant: str, checkpoint: str | None, revision: str | None, stamp: Path) -> dict:
-    """Resolve `checkpoint` at `revision` (and its tokenizers) in the HF cache and write the stamp."""
-    stamp = Path(stamp)
-    info: dict[str, Any] = {"model": model, "variant": variant, "checkpoint": checkpoint, "revision": revision}
+def download_checkpoint(model: str, variant: str, checkpoint: str | None, revision: str | None, stamp: Path,
+                        hf_home: str | None = None) -> dict:
+    """Resolve `checkpoint` at `revision` (and its tokenizers) in the HF cache and write the stamp; with
+    `hf_home` (a checkpoint trained here), offline from that folder, which the stamp records for the jobs
+    that load the policy (`runner.cell.load_policy`)."""
+    if hf_home is not None:
+        from vlaquantbench.hub.cache import offline_cache
+
+        with offline_cache(hf_home):
+            return _resolve(model, variant, checkpoint, revision, Path(stamp), {"hf_home": str(Path(hf_home).absolute())})
+    return _resolve(model, variant, checkpoint, revision, Path(stamp), {})
+
+
+def _resolve(model: str, variant: str, checkpoint: str | None, revision: str | None, stamp: Path,
+             extra: dict[str, Any]) -> dict:
+    info: dict[str, Any] = {"model": model, "variant": variant, "checkpoint": checkpoint, "revision": revision, **extra}
     if variant in ("demo", "random") or not get_model_spec(model).components:  # random weights, or no network
         info["path"] = None
     else:

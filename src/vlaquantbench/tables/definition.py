@@ -63,10 +63,12 @@ STATS = {
     # its test used; `--` for a fixed-design cell
     "mean_ci": ("cell", "field"),  # mean over episodes of a per-episode number (jerk, action_rate) with its
     # task-clustered bootstrap interval, as "0.012 [0.010,0.015]" (`digits`, default 3)
+    "header": ("cell", "key"),  # a number at dotted `key` of the cell's run header (quant_report.ah.mean_rel_mse),
+    # in scientific notation with `digits` (default 1); `--` where the header records null or the cell is a summary row
     "text": ("cell", "key"),  # a string: dotted `key` of a .json measurement file, or a field of the cell's run
     # header or summary row (`checkpoint`); `wrap: path|texttt`
 }
-DEFAULT_DIGITS = {"median_ms": 1, "max": 2, "value": 2, "params": 1, "mean_ci": 3}
+DEFAULT_DIGITS = {"median_ms": 1, "max": 2, "value": 2, "params": 1, "mean_ci": 3, "header": 1}
 ROW_KINDS = ("label", "section", "midrule")
 
 

@@ -8,7 +8,7 @@ from collections import Counter
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
-from typing import Callable, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -92,6 +92,22 @@ def _text(cell: AnyCell, key: str, ref: str) -> str:
     return str(cell.header[key])
 
 
+def _header_number(cell: AnyCell, key: str, ref: str, digits: int) -> str:
+    """The number at dotted `key` of a cell's run header, e.g. `quant_report.ah.mean_rel_mse`: `--` where it is
+    null or its record is absent below the header's own field (a component outside the cell's scope, a method
+    without calibration rows); UserError for a header without the field at all (a misspelt key, or records
+    older than the field)."""
+    if not isinstance(cell, Cell):
+        return MISSING
+    first, *rest = key.split(".")
+    if first not in cell.header:
+        raise UserError(f"cell {ref}: its header {cell.path} has no {first} (stat header, key {key})")
+    value: Any = cell.header[first]
+    for part in rest:
+        value = value.get(part) if isinstance(value, dict) else None
+    return MISSING if value is None else f"{float(value):.{digits}e}"
+
+
 def _rate(cell: AnyCell) -> float:
     return 100.0 * cell.n_successes / cell.n_episodes
 
@@ -163,6 +179,8 @@ def _format(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell], bootstrap
     elif spec.stat == "params":
         params = _counted(ref)["params"]
         text = _si(params, spec.digits) if params else MISSING
+    elif spec.stat == "header":
+        text = _header_number(cell, spec.key, ref, spec.digits)
     elif spec.stat == "text":
         text = _text(cell, spec.key, ref)
         text = rf"\{spec.wrap}{{{text}}}" if spec.wrap else text

@@ -1,0 +1,105 @@
+"""A study cell of a checkpoint trained here (`study.models.<model>.trained`): the DAG resolves the checkpoint
+and revision from its training.json, runs the cell on Meta-World through the real rollout rule, loading the
+checkpoint and its tokenizer offline from its own HF_HOME folder, and the header names what ran. A bad entry
+is refused while the DAG is built, naming the field."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from paths import ROOT
+from vlaquantbench.cells import cell_config
+from vlaquantbench.errors import UserError
+from vlaquantbench.records import read_cell
+
+HOME = "checkpoints/pi05_metaworld_cpu"  # the committed CPU-trained pi0.5 (config/trained_cpu.yaml)
+TRAINING = json.loads((ROOT / HOME / "training.json").read_text())
+REF = "metaworld/metaworld_mt50/pi05/rtn-W4A4-ah"
+
+
+def study(**weights) -> dict:
+    return {"models": {"pi05": {"variant": "full", "trained": HOME, **weights}}, "tasks": [18], "episodes_per_task": 1,
+            "runner": {"max_steps": 10}}
+
+
+def test_the_cell_config_pins_the_trained_checkpoint_and_its_input():
+    cfg = cell_config(REF, study())
+    assert (cfg["checkpoint"], cfg["revision"]) == (TRAINING["checkpoint"], TRAINING["revision"])
+    # The executed chunk the policy was trained with and its 64-pixel input, hashed with the cell.
+    assert cfg["runner"]["executed_chunk"] == TRAINING["policy"]["n_action_steps"] == 5
+    assert cfg["runner"]["camera_size"] == 64
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"trained": "checkpoints/nowhere"}, "study.models.pi05.trained: checkpoints/nowhere: no training.json: train the checkpoint first"),
+    ({"checkpoint": "lerobot/pi05_base"}, "study.models.pi05.trained: the checkpoint and revision come from its training.json"),
+    ({"variant": "demo"}, "study.models.pi05.trained: a trained checkpoint runs as variant full, not 'demo'"),
+])
+def test_a_bad_trained_entry_is_refused_naming_the_field(change, message):
+    with pytest.raises(UserError, match=message):
+        cell_config(REF, study(**change))
+
+
+def test_a_checkpoint_of_another_model_is_refused():
+    raw = {"models": {"pi0": {"variant": "full", "trained": HOME}}, "tasks": [18], "episodes_per_task": 1}
+    with pytest.raises(UserError, match=f"study.models.pi0.trained: {HOME} holds a 'pi05' checkpoint "
+                                        rf"\({TRAINING['checkpoint']}@{TRAINING['revision']}\), not a 'pi0' one"):
+        cell_config("metaworld/metaworld_mt50/pi0/rtn-BASELINE-e2e", raw)
+
+
+@pytest.mark.slow
+def test_the_dag_runs_a_trained_checkpoint_cell_and_its_header_names_the_revision(tmp_path):
+    """`snakemake tables/<t>.tex` with one W4A4 action-head row on the trained policy: one 10-step episode of
+    drawer-close. The checkpoint is in no HF_HOME of the process: the jobs load it from the entry's folder."""
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    for item in ("Snakefile", "rules", "workflow", "config", "src", "checkpoints"):
+        (checkout / item).symlink_to(ROOT / item)
+    tables = tmp_path / "tables"
+    tables.mkdir()
+    (tables / "trained.yaml").write_text(yaml.safe_dump({
+        "caption": "trained", "align": "lrr", "header": [["Cell", "Episodes", "Jerk"]],
+        "values": [{"stat": "episodes", "cell": "cell"}, {"stat": "mean_ci", "cell": "cell", "field": "jerk"}],
+        "rows": [{"label": "W4A4 AH", "cell": REF}]}))
+    config = tmp_path / "trained.yaml"
+    config.write_text(yaml.safe_dump({
+        "tables": ["trained"], "tables_dir": str(tables),
+        "study": {**study(checkpoint=None, revision=None), "execution": {"num_envs": 1, "progress": False}}}))
+    env = {k: v for k, v in os.environ.items() if k not in ("HF_HOME", "HF_HUB_CACHE")}
+    env["HF_HOME"] = str(tmp_path / "empty_hf_home")  # nothing there: the trained folder must be used
+    result = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "tables/trained.tex",
+                             f"--configfile={config}"], cwd=checkout, capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    cell = read_cell(next((checkout / "results" / "cells").iterdir()))
+    assert (cell.header["checkpoint"], cell.header["revision"]) == (TRAINING["checkpoint"], TRAINING["revision"])
+    assert cell.header["tokenizer"]["repo"] == TRAINING["tokenizer"]["repo"]
+    assert cell.header["normalization"]["policy_postprocessor"]["norm_map"]["ACTION"] == "MEAN_STD"
+    assert len(cell.episodes) == 1 and cell.episodes["task_name"].tolist() == ["drawer-close-v3"]
+    assert "W4A4 AH & 1 & " in (checkout / "tables" / "trained.tex").read_text()
+
+
+def test_the_header_stat_prints_a_components_error_from_the_committed_records():
+    """tables/methods_2026's MSE columns on the committed records: GPTQ's action-head error, `--` for a method
+    that sampled no calibration rows (RTN) and for a component outside the scope; a header without the field
+    at all is an error naming it."""
+    from vlaquantbench.tables.definition import TableDefinition
+    from vlaquantbench.tables.latex import render_latex
+
+    base = "metaworld/metaworld_mt50/pi05/"
+    cells = {base + name: read_cell(ROOT / "results/methods_2026" / base / name) for name in ("gptq-W4A4-ah", "rtn-W4A4-ah")}
+    expected = cells[base + "gptq-W4A4-ah"].header["quant_report"]["ah"]["mean_rel_mse"]
+    raw = {"caption": "mse", "align": "lrr", "header": [["Cell", "VE", "AH"]],
+           "values": [{"stat": "header", "cell": "cell", "key": "quant_report.ve.mean_rel_mse"},
+                      {"stat": "header", "cell": "cell", "key": "quant_report.ah.mean_rel_mse"}],
+           "rows": [{"label": "gptq", "cell": base + "gptq-W4A4-ah"}, {"label": "rtn", "cell": base + "rtn-W4A4-ah"}]}
+    latex = render_latex(TableDefinition.from_dict("mse", raw), cells)
+    assert f"gptq & -- & {expected:.1e} \\\\" in latex and "rtn & -- & -- \\\\" in latex
+    raw["values"][0]["key"] = "quant_reprot.ve.mean_rel_mse"
+    with pytest.raises(UserError, match=f"cell {base}gptq-W4A4-ah: its header .* has no quant_reprot"):
+        render_latex(TableDefinition.from_dict("mse", raw), cells)
