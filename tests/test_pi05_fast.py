@@ -64,6 +64,18 @@ class _Wrapped:
         return self.transform(x)
 
 
+def run_per_module(sampler, report, inputs):
+    """The sampler's chunk again with every hook wrapped (`_Wrapped`), so no group can fuse it: each
+    layer runs its own hook, the reference the fused groups must equal."""
+    for hook in report.result.hooks.values():
+        hook.transform = _Wrapped(hook.transform)
+    report.reset_hook_calls()
+    sampler.reset()
+    per_module = sampler(*inputs)
+    assert not any(g.fused for layer in sampler._groups.expert for g in (layer.qkv, layer.mlp_in))
+    return per_module
+
+
 def test_grouped_linears_with_fused_quantization_equal_the_hooks_exactly():
     """q/k/v and gate/up as one product each, per-token W4A4 quantization done by the producing norm
     or GELU: bit-identical (float32, CPU) to every linear called as a module through its own hook,
@@ -84,12 +96,7 @@ def test_grouped_linears_with_fused_quantization_equal_the_hooks_exactly():
     assert all(g.fused and g.input_quantization == 4 for g in layer_groups)
     grouped_calls = report.hook_calls()
 
-    for hook in report.result.hooks.values():
-        hook.transform = _Wrapped(hook.transform)
-    report.reset_hook_calls()
-    sampler.reset()
-    per_module = sampler(images, img_masks, tokens, masks, noise)
-    assert not any(g.fused for layer in sampler._groups.expert for g in (layer.qkv, layer.mlp_in))
+    per_module = run_per_module(sampler, report, (images, img_masks, tokens, masks, noise))
     assert torch.equal(grouped, per_module)
     assert report.hook_calls() == grouped_calls
     assert report.unfired() == []

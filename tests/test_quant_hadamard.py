@@ -10,7 +10,7 @@ import pytest
 import scipy.linalg
 import torch
 from pi_chunks import pi_chunk
-from test_pi05_fast import _inputs, _Wrapped
+from test_pi05_fast import _inputs, run_per_module
 
 from vlaquantbench.models import get_model_spec
 from vlaquantbench.models.registry import adapter_class
@@ -226,12 +226,7 @@ def test_captured_sampler_fuses_the_rotation_and_matches_the_eager_cell(demos):
         fused_calls = report.hook_calls()
         assert report.unfired() == []
 
-        for hook in report.result.hooks.values():
-            hook.transform = _Wrapped(hook.transform)
-        report.reset_hook_calls()
-        sampler.reset()
-        per_module = sampler(images, img_masks, tokens, masks, noise)
-    assert not any(g.fused for layer in sampler._groups.expert for g in (layer.qkv, layer.mlp_in))
+        per_module = run_per_module(sampler, report, (images, img_masks, tokens, masks, noise))
     assert torch.equal(captured, per_module) and report.hook_calls() == fused_calls
     rel_l2 = ((captured - eager).norm() / eager.norm()).item()
     print(f"captured vs eager W4A4 hadamard: rel L2 {rel_l2:.2e}")
