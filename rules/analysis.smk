@@ -62,6 +62,7 @@ rule paper_table:
         headers=lambda wc: headers_of(WF.checked_refs(WF.table_record_refs(wc.table), f"tables/{wc.table}.tex")),
         summary=lambda wc: WF.table_summary(wc.table),
         sources=lambda wc: list(WF.table_sources(wc.table).values()),
+        definition=lambda wc: WF.table_file(wc.table),  # an edited definition re-renders its table
     output:
         tex="tables/{table}.tex",
         html=report("tables/{table}.html", caption="../workflow/report/table.rst", category="Tables",
@@ -103,6 +104,7 @@ rule scope_recovery_figure:
         cells=lambda wc: records_of(WF.checked_refs(WF.record_refs(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY), SCOPE_RECOVERY)),
         headers=lambda wc: headers_of(WF.checked_refs(WF.record_refs(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY), SCOPE_RECOVERY)),
         summary=lambda wc: WF.summary_input(WF.figure("scope_recovery").refs(), SCOPE_RECOVERY),
+        definition=WF.figure_file("scope_recovery"),
     output:
         report(SCOPE_RECOVERY, caption="../workflow/report/figure.rst", category="Figures"),
     log:

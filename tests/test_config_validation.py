@@ -20,7 +20,7 @@ from paths import ROOT
 PACKAGE = ROOT / "src" / "vlaquantbench"
 COMMITTED = {
     "config": sorted((ROOT / "config").glob("*.yaml")),
-    "table": sorted((ROOT / "config" / "tables").glob("*.yaml")) + sorted((ROOT / "config" / "demo" / "tables").glob("*.yaml")),
+    "table": sorted((ROOT / "config").glob("**/tables/*.yaml")),  # the paper's, the demo's and each study's
     "figure": sorted((ROOT / "config" / "figures").glob("*.yaml")),
     "scopes": [ROOT / "config" / "scopes.yaml"],
     "cohort": sorted((PACKAGE / "diagnostics" / "cohorts").glob("*.yaml")),
@@ -39,6 +39,16 @@ def test_every_committed_yaml_satisfies_its_schema(kind):
             load_workflow_config(path, ROOT / "config" / "config.yaml")
         else:
             load_yaml(path, kind)
+
+
+def test_every_committed_config_defines_the_tables_it_lists():
+    """`tables/<name>.tex` of a config's `tables` is built from `<tables_dir>/<name>.yaml`; a config
+    pointing its definitions at the wrong folder leaves snakemake with no rule for the target."""
+    for path in COMMITTED["config"]:
+        raw = load_workflow_config(path, ROOT / "config" / "config.yaml")
+        workflow = WorkflowConfig.from_snakemake(raw, ROOT)
+        missing = sorted(set(raw.get("tables", [])) - set(workflow.table_names()))
+        assert not missing, f"{path.name}: no definition of {missing} in {workflow.tables_dir}"
 
 
 BROKEN = [  # (schema, file content, the field path and problem the error must name)

@@ -46,6 +46,18 @@ def test_a_bad_trained_entry_is_refused_naming_the_field(change, message):
         cell_config(REF, study(**change))
 
 
+def test_layer_errors_give_every_quantized_cell_calibration_rows():
+    """`study.calibration.layer_errors`: an RTN cell, which needs no statistics to quantize, samples the
+    calibration's input rows (for its header's `mean_rel_mse`); BASELINE runs none; smoothing cells keep theirs."""
+    errors = {**study(), "calibration": {"layer_errors": True}}
+    assert cell_config(REF, study())["calibration"] is None
+    assert cell_config(REF, errors)["calibration"]["sample_rows"] == 128
+    assert cell_config(REF.replace("rtn-W4A4-ah", "rtn-BASELINE-e2e"), errors)["calibration"] is None
+    smoothing = cell_config(REF.replace("rtn-W4A4-ah", "calib-W4A4-ah"), errors)["calibration"]
+    assert smoothing == cell_config(REF.replace("rtn-W4A4-ah", "calib-W4A4-ah"), study())["calibration"]
+    assert "sample_rows" not in smoothing
+
+
 def test_a_checkpoint_of_another_model_is_refused():
     raw = {"models": {"pi0": {"variant": "full", "trained": HOME}}, "tasks": [18], "episodes_per_task": 1}
     with pytest.raises(UserError, match=f"study.models.pi0.trained: {HOME} holds a 'pi05' checkpoint "
@@ -68,9 +80,12 @@ def test_the_dag_runs_a_trained_checkpoint_cell_and_its_header_names_the_revisio
         "values": [{"stat": "episodes", "cell": "cell"}, {"stat": "mean_ci", "cell": "cell", "field": "jerk"}],
         "rows": [{"label": "W4A4 AH", "cell": REF}]}))
     config = tmp_path / "trained.yaml"
+    # layer_errors: the RTN cell's calibration samples input rows (one 10-step episode from variation 400).
+    calibration = {"layer_errors": True, "tasks": [18], "first_init_state": 400, "episodes": 1}
     config.write_text(yaml.safe_dump({
         "tables": ["trained"], "tables_dir": str(tables),
-        "study": {**study(checkpoint=None, revision=None), "execution": {"num_envs": 1, "progress": False}}}))
+        "study": {**study(checkpoint=None, revision=None), "calibration": calibration,
+                  "execution": {"num_envs": 1, "progress": False}}}))
     env = {k: v for k, v in os.environ.items() if k not in ("HF_HOME", "HF_HUB_CACHE")}
     env["HF_HOME"] = str(tmp_path / "empty_hf_home")  # nothing there: the trained folder must be used
     result = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "tables/trained.tex",
@@ -81,6 +96,9 @@ def test_the_dag_runs_a_trained_checkpoint_cell_and_its_header_names_the_revisio
     assert cell.header["tokenizer"]["repo"] == TRAINING["tokenizer"]["repo"]
     assert cell.header["normalization"]["policy_postprocessor"]["norm_map"]["ACTION"] == "MEAN_STD"
     assert len(cell.episodes) == 1 and cell.episodes["task_name"].tolist() == ["drawer-close-v3"]
+    # The action head's error on the sampled calibration rows, measured through the layers' input hooks.
+    assert 0 < cell.header["quant_report"]["ah"]["mean_rel_mse"] < 1
+    assert cell.header["quant_report"]["act_calib"] and "smoothing" not in cell.header["quant_format"]
     assert "W4A4 AH & 1 & " in (checkout / "tables" / "trained.tex").read_text()
 
 

@@ -45,7 +45,8 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import client_conventions, step_limit
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
 from vlaquantbench.models.trained_home import trained_weights
-from vlaquantbench.quant.methods import METHODS, registered_methods
+from vlaquantbench.quant.methods import METHODS, SAMPLE_ROWS, registered_methods
+from vlaquantbench.quant.presets import parse_preset
 from vlaquantbench.quant.patterns import scope_components
 from vlaquantbench.quant.semantics import QUANT_SEMANTICS
 
@@ -308,7 +309,6 @@ def _overrides(client, runner: RunnerConfig, episodes: int, released_limit: int)
 
 def _check_registries(ref: str, benchmark: str, suite: str, model: str, preset: str, method: str) -> None:
     from vlaquantbench.models.layer_index import linear_names
-    from vlaquantbench.quant.presets import parse_preset
 
     if benchmark not in BENCHMARK_SUITES:
         raise UserError(f"cell {ref!r}: unknown benchmark {benchmark!r}; known: {', '.join(BENCHMARK_SUITES)}")
@@ -398,7 +398,6 @@ def quantized_counts(ref: str) -> dict[str, int]:
     layer index (the architecture built on the meta device; no torch, no records). What a cell known only
     from a summary row, which has no run header, still says about its #L and Params."""
     from vlaquantbench.models.layer_index import selected_counts
-    from vlaquantbench.quant.presets import parse_preset
 
     _, _, model, name = parse_ref(ref)
     fields = parse_cell_name(name, ref)
@@ -423,9 +422,12 @@ def _calibration(ref: str, fields: dict[str, Any], study: StudyConfig, seed: int
         except UserError as err:
             raise UserError(f"cell {ref!r}: {err}") from None
     statistics = method.calibration_fields() if method is not None else None
+    protocol = study.calibration
+    if protocol.layer_errors and parsed is None and not parse_preset(fields["preset"]).is_baseline:
+        # Sampled input rows of every selected layer: what the header's per-component `mean_rel_mse` is measured on.
+        statistics = {**(statistics or {}), "sample_rows": SAMPLE_ROWS}
     if parsed is None and statistics is None:
         return None
-    protocol = study.calibration
     first = protocol.first_init_state + 2 * ((parsed or {}).get("set") or 0)
     in_scope = scope_components(fields["scope"], COMPONENT_NAMES)
     if parsed is None:  # the method's own statistics: every component of the scope, no smoothing or clipping

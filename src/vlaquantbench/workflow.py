@@ -119,19 +119,25 @@ class WorkflowConfig:
             self._definitions[path] = load(path)
         return self._definitions[path]
 
+    def table_file(self, name: str) -> str:
+        return str(self.tables_dir / f"{name}.yaml")
+
     def table(self, name: str) -> "TableDefinition":
         from vlaquantbench.tables import load_table
 
-        return self._definition(self.tables_dir / f"{name}.yaml", load_table)
+        return self._definition(Path(self.table_file(name)), load_table)
 
     def table_names(self) -> list[str]:
         """Tables defined by a `<tables_dir>/<name>.yaml` (the paper tables built from records)."""
         return sorted(path.stem for path in self.tables_dir.glob("*.yaml"))
 
+    def figure_file(self, name: str) -> str:
+        return str(self.basedir / "config" / "figures" / f"{name}.yaml")
+
     def figure(self, name: str) -> "ScopeRecoveryFigure":
         from vlaquantbench.figures import load_figure
 
-        return self._definition(self.basedir / "config" / "figures" / f"{name}.yaml", load_figure)
+        return self._definition(Path(self.figure_file(name)), load_figure)
 
     @property
     def success_summary(self) -> Path | None:

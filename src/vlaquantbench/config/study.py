@@ -63,6 +63,9 @@ class CalibrationProtocol:
     tasks: int | tuple[int, ...] = 1  # a count (tasks 0..N-1) or task ids (a study on some of a suite's tasks)
     alpha: float = 0.5
     quantile: float = 0.999
+    # Every quantized cell without a smoothing calibration also collects sampled input rows, so its header
+    # reports each component's `mean_rel_mse` (RTN and rotation cells need no statistics to quantize).
+    layer_errors: bool = False
 
 
 @dataclass(frozen=True)

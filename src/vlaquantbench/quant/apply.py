@@ -261,5 +261,6 @@ def rtn(model: nn.Module, selection: Selection, config: QuantConfig) -> MethodRe
 
 
 def _rtn_format(preset: Preset, calibration: CalibrationSettings | None) -> str:
-    calib = f"; rollout smoothing alpha={calibration.alpha}, clip q={calibration.quantile}" if calibration else ""
+    smooths = calibration is not None and calibration.alpha is not None  # else its statistics only measure errors
+    calib = f"; rollout smoothing alpha={calibration.alpha}, clip q={calibration.quantile}" if smooths else ""
     return f"RTN {preset.describe()}{calib}"
