@@ -29,6 +29,7 @@ without its graph) of the two W4A4 cells at batch 1 and 32.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import time
@@ -95,14 +96,18 @@ def rotation_kernel_check(device) -> dict:
 
 
 def rotation_kernel_us(device, repeats: int = 50) -> dict:
-    """Microseconds per call, per rotated shape (`ROTATED_SHAPES`): the rotation kernel, the
-    unrotated per-token kernel (`fused_fake_quant`, what plain W4A4 adds) and the reference
-    (`BlockHadamard` in float32, then `fused_fake_quant`)."""
+    """Microseconds per call, per rotated shape (`ROTATED_SHAPES`): the rotation kernel (with its
+    own choice of warps, and with 4, 8 and 16), the unrotated per-token kernel (`fused_fake_quant`,
+    what plain W4A4 adds) and the reference (`BlockHadamard` in float32, then `fused_fake_quant`).
+    Each form's calls are queued back to back, so for the few rows of batch 1 this is mostly the
+    launch, not the captured kernel's time."""
     out = {}
     for rows, cols, dtype in ROTATED_SHAPES:
         x = torch.randn(rows, cols, device=device).to(dtype)
         rotation = BlockHadamard(cols, device)
         forms = {"rotated_kernel": lambda: rotated_fake_quant(x, rotation, 4),
+                 **{f"rotated_kernel_{w}_warps": functools.partial(rotated_fake_quant, x, rotation, 4, num_warps=w)
+                    for w in (4, 8, 16)},
                  "unrotated_kernel": lambda: fused_fake_quant(x, 4),
                  "reference": lambda: fused_fake_quant(rotation(x), 4)}
         entry = {}

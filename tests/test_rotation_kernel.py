@@ -9,8 +9,9 @@ corrects the interpreter (not the kernels) so that it computes what the GPU comp
 - `tl.fma` rounds the product before adding: it is computed in float64 (the product of two float32
   is exact there) and rounded once;
 - a float32 -> bfloat16 cast truncates: it rounds to nearest, ties to even, as the GPU's does;
-- libdevice (the GELU's `tanh`) is not there: numpy's float32 tanh stands in, which may differ
-  from CUDA's `tanhf` in the last bit (the GELU case is compared with a tolerance for that).
+- libdevice is not there: numpy's `rint` stands in for the quantization's round-half-even (the
+  same function), numpy's float32 tanh for the GELU's, which may differ from CUDA's `tanhf` in the
+  last bit (the GELU case is compared with a tolerance for that).
 
 The reference: the CPU divides a tensor by the Python scalar q_max exactly, CUDA (which the kernel
 follows, like `quant.fused_kernel.fused_fake_quant`) multiplies by its float32 reciprocal, so a
@@ -58,8 +59,13 @@ SCRIPT = textwrap.dedent("""
     import types
     import torch.nn.functional as F
     from vlaquantbench.models.pi05.fast import gelu_quant
-    gelu_quant.libdevice = types.SimpleNamespace(tanh=lambda x: tl.core.tensor(
-        interpreter.TensorHandle(np.tanh(x.handle.data), x.handle.dtype.scalar), x.type))
+    from vlaquantbench.quant import fused_kernel
+
+    def numpy_libdevice(function):
+        return lambda x: tl.core.tensor(interpreter.TensorHandle(function(x.handle.data), x.handle.dtype.scalar), x.type)
+
+    gelu_quant.libdevice = types.SimpleNamespace(tanh=numpy_libdevice(np.tanh))
+    fused_kernel.libdevice = types.SimpleNamespace(rint=numpy_libdevice(np.rint))
 
     from vlaquantbench.quant.fused_kernel import rotated_fake_quant
     from vlaquantbench.quant.hooks import InputTransform
@@ -137,3 +143,39 @@ def test_gelu_rotated_fake_quant_equals_the_reference_transform_of_the_gelu_prod
     results = run_kernel([[16384, "bfloat16", 4, "gelu_tanh_mul"], [4096, "bfloat16", 4, "gelu_tanh_mul"]])
     for result in results:
         assert result["equal_cuda_way"] > 0.999, result
+
+
+@pytest.mark.parametrize("kernel,width,dtype", [("rotated", 16384, "bf16"), ("rotated", 1152, "fp32"),
+                                                ("gelu_rotated", 4304, "fp32"), ("gelu_rotated", 4096, "bf16")])
+def test_rotation_kernels_compile_for_hopper(kernel, width, dtype):
+    """No GPU here, but Triton's own compiler runs: the kernels compile to PTX for an H100/H200
+    (sm_90) with the launch `rotation_tile` chooses; bf16 rows multiply on the tensor cores (mma),
+    float32 rows by fused multiply-adds; the quantization keeps round-half-even (`cvt.rni`)."""
+    import triton
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    from vlaquantbench.models.pi05.fast import gelu_quant
+    from vlaquantbench.quant import fused_kernel
+    from vlaquantbench.quant.transforms import BlockHadamard
+
+    launch = fused_kernel.rotation_tile(width, BlockHadamard(width))
+    warps = launch.pop("num_warps")
+    constexprs = {name: value for name, value in launch.items() if name.isupper()}
+    scalars = {"n_cols": "i32", "n_tile_rows": "i32", "q_max": "fp32", "inv_q_max": "fp32", "scale_floor": "fp32",
+               "inner_ptr": "*fp32", "outer_ptr": "*fp32"}
+    if kernel == "rotated":
+        fn, pointers = fused_kernel._rotated_fake_quant, ("x_ptr", "y_ptr")
+    else:
+        fn, pointers = gelu_quant._gelu_rotated_fake_quant, ("gate_ptr", "up_ptr", "out_ptr")
+        scalars |= {"gate_row_stride": "i64", "up_row_stride": "i64", "k_beta": "fp32", "k_kappa": "fp32"}
+        constexprs["HAS_UP"] = True
+    signature = {name: f"*{dtype}" for name in pointers} | scalars | {name: "constexpr" for name in constexprs}
+    compiled = triton.compile(ASTSource(fn=fn, signature=signature, constexprs=constexprs),
+                              target=GPUTarget("cuda", 90, 32), options={"num_warps": warps})
+    ptx = compiled.asm["ptx"]
+    assert ".target sm_90" in ptx and "cvt.rni.f32.f32" in ptx
+    tensor_cores = "mma.sync" in ptx or "wgmma" in ptx
+    assert tensor_cores == (dtype == "bf16" or launch["OUTER"] > 1)
+    if dtype == "fp32":
+        assert "fma.rn.f32" in ptx

@@ -26,19 +26,12 @@ from vlaquantbench.quant.transforms import BlockHadamard
 try:  # Triton ships with torch's CUDA wheels; without it (or a GPU) the reference code runs.
     import triton
     import triton.language as tl
+    from triton.language.extra import libdevice
 except ImportError:  # pragma: no cover - torch CPU wheels without Triton
     triton = None
 
 
 if triton is not None:
-
-    @triton.jit
-    def round_half_even(q):
-        """`torch.round` (`rint`) of float32 values of magnitude below 2^22 (quotients x / scale are at
-        most q_max): adding 1.5 * 2^23 leaves no fraction bits, so the float32 sum rounds half to
-        even, and subtracting it back is exact. Plain additions, so it also runs under Triton's
-        interpreter (`TRITON_INTERPRET=1`, the CPU tests), which has no libdevice."""
-        return (q + 12582912.0) - 12582912.0  # 1.5 * 2^23, see above
 
     @triton.jit
     def fake_quant_scaled(x, absmax, q_max, inv_q_max, scale_floor):
@@ -52,7 +45,7 @@ if triton is not None:
         # On an H200 the VLM's GELU product with its quantization took 36 instead of 41 us.
         inv_scale = tl.div_rn(1.0, scale)
         q0 = x * inv_scale
-        q = round_half_even(tl.fma(tl.fma(-q0, scale, x), inv_scale, q0))
+        q = libdevice.rint(tl.fma(tl.fma(-q0, scale, x), inv_scale, q0))
         return tl.minimum(tl.maximum(q, -q_max - 1.0), q_max) * scale
 
     @triton.jit
@@ -197,18 +190,21 @@ def rotation_tile(n_cols: int, rotation: BlockHadamard) -> dict:
             "TILE_ROWS": tile_rows, "num_warps": min(8, max(4, tile_rows * rotation.inner_order // 1024))}
 
 
-def rotated_fake_quant(x: torch.Tensor, rotation: BlockHadamard, bits: int) -> torch.Tensor:
+def rotated_fake_quant(x: torch.Tensor, rotation: BlockHadamard, bits: int, *,
+                       num_warps: int | None = None) -> torch.Tensor:
     """`InputTransform(rotation=rotation, act_bits=bits)(x)` in one kernel (a CUDA tensor, or a CPU
     one under Triton's interpreter; `supports_rotation(rotation)`): R x, rounded to x's dtype, then
     quantized per token. Equal to the reference to float32 rounding of R x (both sum the same
     products in float32, in different orders): a value differs only where that moves R x across a
-    rounding boundary of x's dtype."""
+    rounding boundary of x's dtype. `num_warps` overrides `rotation_tile`'s choice."""
     x = x.contiguous()
     n_cols = x.shape[-1]
     y = torch.empty_like(x)
     q_max, inv_q_max, scale_floor = fake_quant_row_args(bits)
+    launch = rotation_tile(n_cols, rotation)
+    launch["num_warps"] = num_warps or launch["num_warps"]
     _rotated_fake_quant[(x.numel() // n_cols,)](x, y, n_cols=n_cols, q_max=q_max, inv_q_max=inv_q_max,
-                                                scale_floor=scale_floor, **rotation_tile(n_cols, rotation))
+                                                scale_floor=scale_floor, **launch)
     return y
 
 
