@@ -146,11 +146,13 @@ def test_gelu_rotated_fake_quant_equals_the_reference_transform_of_the_gelu_prod
 
 
 @pytest.mark.parametrize("kernel,width,dtype", [("rotated", 16384, "bf16"), ("rotated", 1152, "fp32"),
-                                                ("gelu_rotated", 4304, "fp32"), ("gelu_rotated", 4096, "bf16")])
+                                                ("rotated", 4304, "fp32"), ("gelu_rotated", 4304, "fp32"),
+                                                ("gelu_rotated", 4096, "bf16")])
 def test_rotation_kernels_compile_for_hopper(kernel, width, dtype):
     """No GPU here, but Triton's own compiler runs: the kernels compile to PTX for an H100/H200
     (sm_90) with the launch `rotation_tile` chooses; bf16 rows multiply on the tensor cores (mma),
-    float32 rows by fused multiply-adds; the quantization keeps round-half-even (`cvt.rni`)."""
+    float32 rows too (in three bf16 parts) but for blocks of at most 32 (SigLIP fc2's 16), which
+    take fused multiply-adds; the quantization keeps round-half-even (`cvt.rni`)."""
     import triton
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
@@ -176,6 +178,5 @@ def test_rotation_kernels_compile_for_hopper(kernel, width, dtype):
     ptx = compiled.asm["ptx"]
     assert ".target sm_90" in ptx and "cvt.rni.f32.f32" in ptx
     tensor_cores = "mma.sync" in ptx or "wgmma" in ptx
-    assert tensor_cores == (dtype == "bf16" or launch["OUTER"] > 1)
-    if dtype == "fp32":
-        assert "fma.rn.f32" in ptx
+    assert tensor_cores == (dtype == "bf16" or launch["OUTER"] > 1 or launch["INNER"] > 32)
+    assert "fma.rn.f32" in ptx

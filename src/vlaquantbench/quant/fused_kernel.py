@@ -86,19 +86,18 @@ if triton is not None:
         return (1.0 - 2.0 * parity.to(tl.float32)).to(tl.bfloat16)
 
     @triton.jit
-    def _signs_dot_float32(signs, a):
-        """signs @ a for a +-1 bfloat16 matrix and float32 `a`, to float32 rounding: `a` as the sum of
-        three bfloat16 parts (8 significant bits each, so exact for every float32), each product
-        exact on the bf16 tensor cores and accumulated in float32 (tf32 inputs would keep 11 bits)."""
+    def _bfloat16_parts(a):
+        """float32 `a` as the sum of three bfloat16 parts (8 significant bits each, so exact for every
+        float32): their products with +-1 matrices are exact on the bf16 tensor cores, accumulated in
+        float32, so a product to float32 rounding (tf32 inputs would keep 11 bits)."""
         high = a.to(tl.bfloat16)
         rest = a - high.to(tl.float32)
         middle = rest.to(tl.bfloat16)
-        low = (rest - middle.to(tl.float32)).to(tl.bfloat16)
-        return tl.dot(signs, high, tl.dot(signs, middle, tl.dot(signs, low)))
+        return high, middle, (rest - middle.to(tl.float32)).to(tl.bfloat16)
 
     @triton.jit
     def rotated_fake_quant_tile(x, tile_rows, inner_cols, inner_ptr, outer_ptr, q_max, inv_q_max, scale_floor,
-                                OUTER: tl.constexpr, LOG_OUTER: tl.constexpr, LOG_INNER: tl.constexpr):
+                                OUTER: tl.constexpr, LOG_OUTER: tl.constexpr, INNER: tl.constexpr, LOG_INNER: tl.constexpr):
         """One token's row `x` (bf16 or float32) laid out as a tile of rows r = block * OUTER + p and
         INNER columns (padding rows 0): X H_q per tile row, then H_p (.) per block as a product with
         blockdiag(H_p, ...), each scaled by the reference factor's entry (read at `inner_ptr`,
@@ -108,17 +107,21 @@ if triton is not None:
         inner = _sylvester_signs(inner_cols, inner_cols, LOG_INNER)
         if dtype == tl.bfloat16:  # bf16 values times +-1 are exact products: one pass suffices
             rotated = tl.dot(x, inner)
-        else:
-            # float32 rows (lerobot's SigLIP tower): fused multiply-adds, no tensor cores. On an H200
-            # a three-part bf16 split (`_signs_dot_float32`) took 283 us for the tower's 16,384 x 1,152
-            # at batch 32 (the tile's 9 blocks padded to 16 rows), against 39 us unrotated.
+        elif INNER <= 32:
+            # float32 rows (lerobot's SigLIP tower) with small blocks (fc2's 16): fused multiply-adds.
+            # With blocks of 128 the float32 factor no longer fits in registers (ptxas spills KiBs).
             rotated = tl.dot(x.to(tl.float32), inner.to(tl.float32), input_precision="ieee")
+        else:
+            high, middle, low = _bfloat16_parts(x.to(tl.float32))
+            rotated = tl.dot(high, inner, tl.dot(middle, inner, tl.dot(low, inner)))
         rotated = rotated * tl.load(inner_ptr)  # +1/sqrt(q) in float32, as the reference factor has it
         if OUTER > 1:
             # blockdiag(H_p, H_p, ...) over the tile's rows (symmetric); padding rows stay zero
             same_block = (tile_rows[:, None] // OUTER) == (tile_rows[None, :] // OUTER)
             outer = tl.where(same_block, _sylvester_signs(tile_rows % OUTER, tile_rows % OUTER, LOG_OUTER), 0.0)
-            rotated = _signs_dot_float32(outer.to(tl.bfloat16), rotated) * tl.load(outer_ptr)
+            outer = outer.to(tl.bfloat16)
+            high, middle, low = _bfloat16_parts(rotated)
+            rotated = tl.dot(outer, high, tl.dot(outer, middle, tl.dot(outer, low))) * tl.load(outer_ptr)
         rotated = rotated.to(dtype).to(tl.float32)
         absmax = tl.max(tl.max(tl.abs(rotated), axis=1), axis=0)
         return fake_quant_scaled(rotated, absmax, q_max, inv_q_max, scale_floor)
@@ -138,7 +141,7 @@ if triton is not None:
         inside = (tile_rows < n_tile_rows)[:, None]
         x = tl.load(x_ptr + token * n_cols + offsets, mask=inside, other=0.0)
         y = rotated_fake_quant_tile(x, tile_rows, inner_cols, inner_ptr, outer_ptr, q_max, inv_q_max, scale_floor,
-                                    OUTER, LOG_OUTER, LOG_INNER)
+                                    OUTER, LOG_OUTER, INNER, LOG_INNER)
         tl.store(y_ptr + token * n_cols + offsets, y.to(x.dtype), mask=inside)
 
 

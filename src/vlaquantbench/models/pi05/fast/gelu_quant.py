@@ -108,7 +108,7 @@ if triton is not None:  # Triton ships with torch's CUDA wheels; without it the 
         act = _gelu_product(gate_ptr, up_ptr, row, offsets, inside, gate_row_stride, up_row_stride, k_beta, k_kappa,
                             HAS_UP)
         quantized = rotated_fake_quant_tile(act, tile_rows, inner_cols, inner_ptr, outer_ptr, q_max, inv_q_max,
-                                            scale_floor, OUTER, LOG_OUTER, LOG_INNER)
+                                            scale_floor, OUTER, LOG_OUTER, INNER, LOG_INNER)
         tl.store(out_ptr + row * n_cols + offsets, quantized.to(act.dtype), mask=inside)
 
 
