@@ -12,6 +12,12 @@ report by `FusedInputTransform`, which also computes once the quantized input th
 layers read (q/k/v projections, gate/up projections share one input), rotated first where the
 transform rotates (`InputTransform.rotation`). Hook call counting is
 untouched. On a device other than CUDA it falls back to the reference transform.
+
+`rotated_fake_quant` rotates by a `quant.transforms.BlockHadamard` and quantizes in the same pass:
+the row read once as a tile of blocks, multiplied by the +-1 Sylvester factors with `tl.dot` on the
+tensor cores (float32 accumulation; float32 operands in three exact bf16 parts), rounded to the
+row's dtype, quantized. It equals the reference up to the float32 rounding of R x (sums in another
+order): on an H200, all but <= 7.3e-6 of the values of bf16 rows.
 """
 
 from __future__ import annotations
