@@ -81,6 +81,11 @@ def test_rotated_unquantized_trained_policy_produces_the_same_actions(trained_ro
           f"observations, action rel L2 {rel_l2:.2e}")
     assert len(observations) == len(VARIATIONS) * OBSERVED_CHUNKS and reference.shape == (len(observations), 10, 4)
     assert changed == len(layers) == 456 and report.unfired() == []
+    # the VLM's trained RMSNorm gains were folded into q/k/v and gate/up (its stream rotated offline;
+    # the last layer's MLP norm stayed at its zero initialisation: only the KV cache reaches the expert)
+    norms = [name for name, _ in adapter.model.named_parameters() if "language_model.layers" in name and "layernorm" in name]
+    trained = [n for n in norms if adapter.model.get_parameter(n).any()]
+    assert len(norms) == 36 and len(trained) >= 30 and not any(rotated.model.get_parameter(n).any() for n in norms)
     assert rel_l2 <= 1e-4
 
 
