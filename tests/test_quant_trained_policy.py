@@ -1,6 +1,6 @@
 """Issue 31's checks on the pi0.5 trained here (conftest `trained_policy`), on the real Meta-World simulator
-and a task the policy was trained on: the block-Hadamard rotation without quantization keeps its actions,
-and on every e2e layer GPTQ's output error on the calibration inputs, collected by the rollout calibration
+and a task the policy was trained on: the block-Hadamard rotation without quantization (the VLM's stream
+rotated offline, its trained norm gains folded) keeps its actions, and on every e2e layer GPTQ's output error on the calibration inputs, collected by the rollout calibration
 of a GPTQ cell, is at most RTN's at the same grid; the rotated GPTQ W4A8 policy fires every hook on the
 real observations. tests/test_quant_hadamard.py and tests/test_quant_gptq.py make the same checks on the
 demo (random-weight) policies."""
