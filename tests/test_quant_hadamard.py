@@ -188,6 +188,12 @@ def test_hadamard_gptq_rounds_in_the_rotated_space(demos):
     mapped = rotation.map_hessian(observed.hessian.double())
     assert torch.allclose(mapped, expected, rtol=1e-5, atol=1e-5 * expected.abs().max().item())
     policy = copy.deepcopy(demo)
+    smoothed = copy.deepcopy(demo)  # a folded reader's input is computed by the model: nothing can divide it first
+    config = QuantConfig.from_preset("W4A8", scope="ah", method="hadamard_gptq", stats=stats,
+                                     calibration=calib.CalibrationSettings(alpha=0.5, quantile=None))
+    with pytest.raises(UserError, match="residual stream 'expert' cannot follow rollout smoothing of its reader "
+                                        "paligemma_with_expert.gemma_expert.model.layers.0.self_attn.q_proj"):
+        quantize_(smoothed, config, config.select(smoothed, spec.components))
     # a reader of the folded expert stream: its inputs become R (x / (1 + w)), its Hessian R D^-1 H D^-1 R^T
     reader = "paligemma_with_expert.gemma_expert.model.layers.0.self_attn.k_proj"
     gain = 1 + demo.get_submodule("paligemma_with_expert.gemma_expert.model.layers.0.input_layernorm").weight.double()

@@ -87,7 +87,8 @@ class Hadamard:
                      gate/up read it); pi0's expert stream (state_proj, action_time_mlp_out write
                      it; its final norm folds into action_out_proj). pi0.5's expert norms are
                      adaptive (a per-sample scale and shift from the flow time): not foldable.
-        OFT          its Llama stream is not declared yet (its RMSNorm would fold with offset 0).
+        OFT          not declared: its LLaMA's final norm feeds the action head's LayerNorm over
+                     7 concatenated hidden states, which cannot read a rotated stream.
         LayerNorm    SigLIP, DINOv2 and every X-VLA norm subtract a mean and add a bias, which do
                      not commute with R: not declared, rotated online.
     Online, on every other selected linear (down_proj/o_proj and fc2-type layers, whose inputs
