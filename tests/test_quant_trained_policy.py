@@ -113,5 +113,6 @@ def test_hadamard_gptq_w4a8_on_the_trained_policy_fires_every_hook_on_real_obser
           f"mean_rel_mse " + ", ".join(f"{c} {header['quant_report'][c]['mean_rel_mse']:.3g}" for c in ("ve", "mp", "llm", "ah")))
     assert header["hooks"] == {"selected": 456, "fired": 456, "unfired": []}
     assert header["quant_report"]["gptq"]["error_vs_rtn_max"] <= 1.0
-    assert all(0 < header["quant_report"][c]["mean_rel_mse"] < 1 for c in ("ve", "mp", "llm", "ah"))
+    # each layer against its released self on rows mapped into its rotated input space (W4A8: small)
+    assert all(0 < header["quant_report"][c]["mean_rel_mse"] < 0.05 for c in ("ve", "mp", "llm", "ah"))
     assert np.isfinite(actions).all()

@@ -35,8 +35,8 @@ from vlaquantbench.quant.calibration import CalibrationSettings, CalibrationStat
 from vlaquantbench.quant.hooks import CountingHook, InputTransform
 from vlaquantbench.quant.methods import MethodConfig, get_method
 from vlaquantbench.quant.presets import Preset, parse_preset
-from vlaquantbench.quant.rotation import is_offline
 from vlaquantbench.quant.patterns import scope_components
+from vlaquantbench.quant.rotation import is_offline
 from vlaquantbench.quant.scope import LayerOwner, Selection, select_layers
 from vlaquantbench.quant.transforms import Smoothing, input_steps
 
