@@ -22,11 +22,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 
 from vlaquantbench.errors import UserError
+
+if TYPE_CHECKING:
+    from vlaquantbench.quant.transforms import BlockHadamard
 
 
 @dataclass(frozen=True)
@@ -68,10 +72,10 @@ def declare_stream(model: nn.Module, name: str, writers: Sequence[str],
                                 for n, readers in norms))
 
 
-def rotate_stream(stream: ResidualStream, rotation) -> None:
+def rotate_stream(stream: ResidualStream, rotation: BlockHadamard) -> None:
     """Fold every norm's gain into its readers, set the norm to unit gain, multiply every writer's
     output by `rotation` (R) and every reader's input by R^T, in float32, in place: the model
-    computes what it computed before. `rotation` is a `quant.transforms.BlockHadamard`."""
+    computes what it computed before."""
     with torch.no_grad():
         for norm in stream.norms:
             gain = norm.gain()
@@ -98,7 +102,7 @@ class FoldedInput:
     x -> R (x / g), g the norm's gain folded into the weight. Maps calibration rows and Hessians
     observed on the unrotated model into the layer's new input space."""
 
-    rotation: object  # a quant.transforms.BlockHadamard
+    rotation: BlockHadamard
     gain: torch.Tensor
     norm: str
 
@@ -128,7 +132,7 @@ class FoldedInput:
 class RotatedOutput:
     """What an offline rotation did to a stream writer: its output is R times the original's."""
 
-    rotation: object  # a quant.transforms.BlockHadamard
+    rotation: BlockHadamard
 
     offline = True
 
