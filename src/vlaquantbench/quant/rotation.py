@@ -33,6 +33,11 @@ if TYPE_CHECKING:
     from vlaquantbench.quant.transforms import BlockHadamard
 
 
+# Embedding rows rotated at once: PaliGemma's 257,152 x 2,048 table would need several float32 copies
+# of 2 GiB in one product.
+EMBEDDING_ROWS = 16384
+
+
 @dataclass(frozen=True)
 class FoldableNorm:
     """An RMSNorm x / rms(x) * (gain_offset + weight) and the linears that read its output."""
@@ -84,8 +89,9 @@ def rotate_stream(stream: ResidualStream, rotation: BlockHadamard) -> None:
                 reader.weight.copy_(folded.to(reader.weight.dtype))
             norm.norm.weight.fill_(1.0 - norm.gain_offset)
         for name, writer in stream.writers.items():
-            if isinstance(writer, nn.Embedding):  # a vector per row
-                writer.weight.copy_(rotation.rotate(writer.weight, torch.float32).to(writer.weight.dtype))
+            if isinstance(writer, nn.Embedding):  # a vector per row, rotated a slice at a time
+                for rows in writer.weight.split(EMBEDDING_ROWS):
+                    rows.copy_(rotation.rotate(rows, torch.float32).to(rows.dtype))
             elif isinstance(writer, nn.Linear):
                 rows = rotation.rotate(writer.weight.t(), torch.float32).t()  # R W
                 writer.weight.copy_(rows.to(writer.weight.dtype))
