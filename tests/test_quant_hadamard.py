@@ -12,12 +12,14 @@ import torch
 from pi_chunks import pi_chunk
 from test_pi05_fast import _inputs, run_per_module
 
+from vlaquantbench.errors import UserError
 from vlaquantbench.models import get_model_spec
 from vlaquantbench.models.registry import adapter_class
 from vlaquantbench.quant import QuantConfig, quantize_, select_layers
 from vlaquantbench.quant import calibration as calib
 from vlaquantbench.quant.hooks import InputTransform
-from vlaquantbench.quant.transforms import BlockHadamard
+from vlaquantbench.quant.rotation import FoldedInput
+from vlaquantbench.quant.transforms import BlockHadamard, Hadamard
 
 MODELS = ("pi05", "pi0")
 
@@ -44,9 +46,22 @@ def test_block_hadamard_is_orthonormal_for_any_width():
         assert torch.allclose(rotation.rotate(rotated, torch.float64), x)  # Sylvester H_b is symmetric: R R = I
 
 
+def with_norm_gains(model, seed: int = 0):
+    """A copy of `model` whose RMSNorm weights are seeded random values: a demo's are lerobot's
+    zero initialisation (gain 1 + 0), which folding a gain into the next layers would not exercise."""
+    model = copy.deepcopy(model)
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for module in model.modules():
+            if "RMSNorm" in type(module).__name__ and isinstance(getattr(module, "weight", None), torch.Tensor):
+                module.weight.copy_(torch.randn(module.weight.shape, generator=g) * 0.3)
+    return model
+
+
 @pytest.mark.parametrize("model_name", MODELS)
 def test_rotated_unquantized_model_produces_the_same_actions(demos, model_name):
     spec, demo = demos[model_name]
+    demo = with_norm_gains(demo)
     rotated = copy.deepcopy(demo)
     with torch.no_grad():
         reference = pi_chunk(model_name, demo, 3)
@@ -70,7 +85,7 @@ def test_hadamard_w4a4_keeps_weights_and_inputs_on_the_grid(demos):
         pi_chunk("pi05", policy, 3)
     header = report.to_header()
     assert header["hooks"] == {"selected": 456, "fired": 456, "unfired": []}
-    assert header["quant_format"].endswith("block-Hadamard transforms folded into the weights (QuaRot online form)")
+    assert header["quant_format"].endswith(Hadamard.description)
     for name, layer in report.selection.flat().items():
         groups = layer.weight.reshape(layer.out_features, -1, min(128, layer.in_features))
         assert max(len(torch.unique(row)) for row in groups.reshape(-1, groups.shape[-1])) <= 16, name
@@ -83,8 +98,83 @@ def test_hadamard_w4a4_keeps_weights_and_inputs_on_the_grid(demos):
     assert not torch.allclose(quantized, InputTransform(act_bits=4)(x))
 
 
+VLM = "paligemma_with_expert.paligemma.model.language_model"
+EXPERT = "paligemma_with_expert.gemma_expert.model"
+
+
+def stream_at(model, model_name: str, root: str) -> torch.Tensor:
+    """The residual stream entering layer 3 of the Gemma decoder at `root` (its input_layernorm's
+    input), on the first call of one chunk."""
+    seen = []
+    handle = model.get_submodule(f"{root}.layers.3.input_layernorm").register_forward_pre_hook(
+        lambda module, args: seen.append(args[0].clone()))
+    try:
+        pi_chunk(model_name, model, 3)
+    finally:
+        handle.remove()
+    return seen[0]
+
+
+@pytest.mark.parametrize("model_name", MODELS)
+def test_streams_whose_rmsnorms_fold_are_rotated_offline(demos, model_name):
+    """The VLM's Gemma stream (both models) and pi0's expert stream carry R h: their RMSNorms at unit
+    gain, q/k/v weights W diag(1 + w) R^T, q/k/v and gate/up inputs not rotated by any hook;
+    pi0.5's adaptive-norm expert keeps its stream and rotates every input online, as down_proj
+    does everywhere."""
+    spec, demo = demos[model_name]
+    demo = with_norm_gains(demo)
+    rotated = copy.deepcopy(demo)
+    with torch.no_grad():
+        config = QuantConfig.from_preset("BASELINE", scope="e2e", method="hadamard")
+        quantize_(rotated, config, config.select(rotated, spec.components))
+        for root, folds in ((VLM, True), (EXPERT, model_name == "pi0")):
+            stream, original = stream_at(rotated, model_name, root), stream_at(demo, model_name, root)
+            rotation = BlockHadamard(original.shape[-1])
+            expected = rotation(original) if folds else original
+            assert torch.allclose(stream, expected, atol=1e-5 * original.abs().max().item()), root
+            norm = f"{root}.layers.0.input_layernorm"
+            q_proj = f"{root}.layers.0.self_attn.q_proj"
+            if folds:
+                gain = 1 + demo.get_submodule(norm).weight
+                assert gain.std() > 0 and torch.equal(rotated.get_submodule(norm).weight, torch.zeros_like(gain))
+                folded = rotation.rotate(demo.get_submodule(q_proj).weight * gain, torch.float32)
+                assert torch.allclose(rotated.get_submodule(q_proj).weight, folded, atol=1e-6)
+        w4a4 = copy.deepcopy(demo)
+        config = QuantConfig.from_preset("W4A4", scope="e2e", method="hadamard")
+        report = quantize_(w4a4, config, config.select(w4a4, spec.components))
+        pi_chunk(model_name, w4a4, 3)
+    assert report.unfired() == []
+    for root, folds in ((VLM, True), (EXPERT, model_name == "pi0")):
+        for reader in ("self_attn.q_proj", "self_attn.v_proj", "mlp.gate_proj", "mlp.up_proj"):
+            transform = report.result.hooks[f"{root}.layers.5.{reader}"].transform
+            assert (transform.rotation is None) == folds and transform.act_bits == 4, (root, reader)
+        for online in ("self_attn.o_proj", "mlp.down_proj"):
+            assert isinstance(report.result.hooks[f"{root}.layers.5.{online}"].transform.rotation, BlockHadamard)
+    final_reader = report.result.hooks["action_out_proj"].transform.rotation  # pi0: reads the expert's final norm
+    assert (final_reader is None) == (model_name == "pi0")
+
+
+def test_a_stream_no_selected_layer_reads_is_left_as_it_is(demos):
+    """Scope `ah` of pi0 selects no reader of the VLM's stream: its weights and norms stay the
+    released ones; the expert's stream is rotated (its norms at unit gain), the actions unchanged."""
+    spec, demo = demos["pi0"]
+    demo = with_norm_gains(demo)
+    rotated = copy.deepcopy(demo)
+    with torch.no_grad():
+        config = QuantConfig.from_preset("BASELINE", scope="ah", method="hadamard")
+        quantize_(rotated, config, config.select(rotated, spec.components))
+        rel_l2 = ((pi_chunk("pi0", rotated, 3) - pi_chunk("pi0", demo, 3)).norm() / pi_chunk("pi0", demo, 3).norm()).item()
+    changed = {name for name, p in demo.named_parameters() if not torch.equal(p, rotated.get_parameter(name))}
+    vlm = [name for name, _ in demo.named_parameters() if name.startswith(VLM)]
+    expert_layers = [name for name, _ in demo.named_parameters() if name.startswith(f"{EXPERT}.layers.")]
+    assert vlm and not changed & set(vlm) and set(expert_layers) <= changed
+    assert not rotated.get_submodule(f"{EXPERT}.norm").weight.any()  # folded into action_out_proj
+    assert rel_l2 <= 1e-4
+
+
 def test_hadamard_gptq_rounds_in_the_rotated_space(demos):
     spec, demo = demos["pi0"]
+    demo = with_norm_gains(demo)
     layers = select_layers(demo, spec.components, "ah").flat()
     with torch.no_grad(), calib.observe(layers, quantile=None, sample_rows=128, hessian=True) as observer:
         pi_chunk("pi0", demo, 0)
@@ -98,6 +188,26 @@ def test_hadamard_gptq_rounds_in_the_rotated_space(demos):
     mapped = rotation.map_hessian(observed.hessian.double())
     assert torch.allclose(mapped, expected, rtol=1e-5, atol=1e-5 * expected.abs().max().item())
     policy = copy.deepcopy(demo)
+    smoothed = copy.deepcopy(demo)  # a folded reader's input is computed by the model: nothing can divide it first
+    config = QuantConfig.from_preset("W4A8", scope="ah", method="hadamard_gptq", stats=stats,
+                                     calibration=calib.CalibrationSettings(alpha=0.5, quantile=None))
+    with pytest.raises(UserError, match="residual stream 'expert' cannot follow rollout smoothing of its reader "
+                                        "paligemma_with_expert.gemma_expert.model.layers.0.self_attn.q_proj"):
+        quantize_(smoothed, config, config.select(smoothed, spec.components))
+    # a reader of the folded expert stream: its inputs become R (x / (1 + w)), its Hessian R D^-1 H D^-1 R^T
+    reader = "paligemma_with_expert.gemma_expert.model.layers.0.self_attn.k_proj"
+    gain = 1 + demo.get_submodule("paligemma_with_expert.gemma_expert.model.layers.0.input_layernorm").weight.double()
+    rotation = BlockHadamard(layers[reader].in_features)
+    observed = stats.layers[reader]
+    rows = rotation.rotate(observed.samples.double() / gain, torch.float64)
+    expected = rows.t() @ rows
+    norm = "paligemma_with_expert.gemma_expert.model.layers.0.input_layernorm"
+    folded = FoldedInput(rotation, gain.float(), norm)
+    assert torch.allclose(folded.map_hessian(observed.hessian.double()), expected, rtol=1e-5,
+                          atol=1e-5 * expected.abs().max().item())
+    assert torch.allclose(folded.map_rows(observed.samples), rows.float(), atol=1e-5 * rows.abs().max().item())
+    with pytest.raises(UserError, match=f"norm {norm} has gain 0 at channel 3"):
+        FoldedInput(rotation, gain.float().index_fill(0, torch.tensor([3]), 0.0), norm).map_hessian(observed.hessian)
     with torch.no_grad():
         config = QuantConfig.from_preset("W4A8", scope="ah", method="hadamard_gptq", stats=stats)
         report = quantize_(policy, config, config.select(policy, spec.components))
@@ -202,8 +312,8 @@ def test_xvla_and_oft_hadamard_w4a4_on_the_grid(vla_demos, model_name):
 
 def test_captured_sampler_fuses_the_rotation_and_matches_the_eager_cell(demos):
     """pi0.5's captured sampler (its static code, run eagerly on the CPU) under W4A4 + Hadamard:
-    every SigLIP and Gemma linear group is fused, its input rotated and quantized inside the op that
-    produces it, once per group (q/k/v, gate/up), bit-identical to every linear called as a module
+    every SigLIP and Gemma linear group is fused, its input (rotated online, except where the VLM's
+    offline-rotated stream is read) quantized inside the op that produces it, once per group (q/k/v, gate/up), bit-identical to every linear called as a module
     through its own hook, with the same hook counts, and close to lerobot's eager chunk."""
     from vlaquantbench.models.pi05.fast import CapturedSampler
     from vlaquantbench.quant.hooks import Rotated
@@ -221,8 +331,12 @@ def test_captured_sampler_fuses_the_rotation_and_matches_the_eager_cell(demos):
         groups = sampler._groups
         layer_groups = [g for layer in groups.vision + groups.prefix + groups.expert
                         for g in (layer.qkv, layer.out, layer.mlp_in, layer.mlp_out)]
-        assert all(g.fused and isinstance(g.input_quantization, Rotated) for g in layer_groups)
-        assert {g.input_quantization.quantization for g in layer_groups} == {4}
+        # the VLM's q/k/v and gate/up read its offline-rotated stream: plain 4-bit quantization there
+        offline = {id(g) for layer in groups.prefix for g in (layer.qkv, layer.mlp_in)}
+        assert all(g.fused for g in layer_groups) and len(offline) == 2 * len(groups.prefix) > 0
+        assert all(g.input_quantization == 4 if id(g) in offline else isinstance(g.input_quantization, Rotated)
+                   for g in layer_groups)
+        assert {g.input_quantization.quantization for g in layer_groups if id(g) not in offline} == {4}
         fused_calls = report.hook_calls()
         assert report.unfired() == []
 

@@ -18,9 +18,11 @@ import torch
 from torch import nn
 
 from vlaquantbench.models.registry import Component, demo_build, seeded_build
+from vlaquantbench.quant.rotation import ResidualStream, declare_stream
 
 _VLM = "paligemma_with_expert.paligemma.model"
 _EXPERT = "paligemma_with_expert.gemma_expert"
+EXPERT_DECODER = f"{_EXPERT}.model"
 
 # Demo sizes keep every depth, head count and the grouped-query layout (8 query heads, 1 KV head,
 # shared between VLM and expert) so layer names and subset counts equal the full model's; only
@@ -38,15 +40,50 @@ REDUCED_WIDTHS_FILE = "vlaquantbench_reduced_widths.json"
 TRAINING_FILE = "vlaquantbench_training.json"
 
 
-def pi_components(action_projections: Sequence[str]) -> dict[str, Component]:
-    """Component scopes of a pi-family policy whose expert-side projections are `action_projections`."""
+def pi_components(action_projections: Sequence[str],
+                  expert_stream: Callable[[nn.Module], tuple] | None = None) -> dict[str, Component]:
+    """Component scopes of a pi-family policy whose expert-side projections are `action_projections`;
+    `expert_stream(model)` declares the expert's residual stream where its norms fold (pi0's plain
+    RMSNorms; pi0.5's adaptive ones do not). The VLM's Gemma stream always folds (`vlm_stream`); the
+    SigLIP tower's LayerNorms (a mean subtracted, a bias added) do not, and it is rotated online."""
     return {
         "ve": Component(roots=(f"{_VLM}.vision_tower",)),
         "mp": Component(roots=(f"{_VLM}.multi_modal_projector",)),
-        "llm": Component(roots=(f"{_VLM}.language_model",)),
+        "llm": Component(roots=(f"{_VLM}.language_model",), residual_streams=vlm_stream),
         # The expert's lm_head is a vocabulary head that inference never calls: never quantized.
-        "ah": Component(roots=(_EXPERT, *action_projections), never=("*lm_head",)),
+        "ah": Component(roots=(_EXPERT, *action_projections), never=("*lm_head",), residual_streams=expert_stream),
     }
+
+
+# Gemma's RMSNorm computes x / rms(x) * (1 + w): gain offset 1.
+GEMMA_GAIN_OFFSET = 1.0
+
+
+def gemma_stream(model: nn.Module, name: str, root: str, writers: Sequence[str],
+                 final_readers: Sequence[str] = ()) -> ResidualStream:
+    """The residual stream of the Gemma decoder at `root` (`<root>.layers.<i>`): written by `writers`
+    (embeddings, projections) and each layer's o_proj and down_proj, read through each layer's
+    input_layernorm (q/k/v) and post_attention_layernorm (gate/up), and through the final
+    `<root>.norm` by `final_readers` (none: the norm's output is not on the action path)."""
+    depth = len(model.get_submodule(f"{root}.layers"))
+    layers = [f"{root}.layers.{i}" for i in range(depth)]
+    norms = [norm for layer in layers for norm in (
+        (f"{layer}.input_layernorm", [f"{layer}.self_attn.{p}_proj" for p in "qkv"]),
+        (f"{layer}.post_attention_layernorm", [f"{layer}.mlp.gate_proj", f"{layer}.mlp.up_proj"]))]
+    if final_readers:
+        norms.append((f"{root}.norm", final_readers))
+    writers = [*writers, *(f"{layer}.{w}" for layer in layers for w in ("self_attn.o_proj", "mlp.down_proj"))]
+    return declare_stream(model, name, writers, norms, GEMMA_GAIN_OFFSET)
+
+
+def vlm_stream(model: nn.Module) -> tuple[ResidualStream, ...]:
+    """PaliGemma's Gemma stream: written by the token embedding and the multi-modal projector (a
+    scalar scaling of either would commute with the rotation; lerobot 0.6.1 applies none). Its
+    final norm is left unfolded: the prefix pass's last hidden state is discarded (only the KV
+    cache reaches the action expert), and the vocabulary head reading it, tied to the embedding,
+    is never called; both would see the rotated stream."""
+    return (gemma_stream(model, "vlm", f"{_VLM}.language_model",
+                         (f"{_VLM}.language_model.embed_tokens", f"{_VLM}.multi_modal_projector.linear")),)
 
 
 def pi_builders(modeling: types.ModuleType, model_cls: type, config_cls: type) -> dict[str, Callable]:

@@ -47,10 +47,14 @@ class Component:
     `roots` are qualified module names (relative to the built model); a layer belongs to the
     component when its name equals a root or lies below one. `never` holds glob patterns for
     linear layers that stay at released precision whatever the user selects (vocabulary heads).
+    `residual_streams(model)`, where given, declares the component's residual streams whose norms
+    fold (`quant.rotation.ResidualStream`: writers, RMSNorms and their readers), which a Hadamard
+    rotation rotates offline; a component without one is rotated online only.
     """
 
     roots: tuple[str, ...]
     never: tuple[str, ...] = ()
+    residual_streams: Callable[[nn.Module], tuple] | None = field(default=None, repr=False, compare=False)
 
     def owns(self, qualified_name: str) -> bool:
         inside = any(qualified_name == r or qualified_name.startswith(r + ".") for r in self.roots)

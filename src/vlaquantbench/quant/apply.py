@@ -36,6 +36,7 @@ from vlaquantbench.quant.hooks import CountingHook, InputTransform
 from vlaquantbench.quant.methods import MethodConfig, get_method
 from vlaquantbench.quant.presets import Preset, parse_preset
 from vlaquantbench.quant.patterns import scope_components
+from vlaquantbench.quant.rotation import is_offline
 from vlaquantbench.quant.scope import LayerOwner, Selection, select_layers
 from vlaquantbench.quant.transforms import Smoothing, input_steps
 
@@ -185,13 +186,13 @@ def quantize_(model: nn.Module, config: QuantConfig, selection: Selection) -> Qu
     errors = _OutputErrors(selection, config.stats)
     inputs: dict[str, tuple] = {}
     for transform in config.transforms:
-        for name, step in transform.apply(selection, config.stats).items():
-            inputs[name] = (*inputs.get(name, ()), step)
+        for name, steps in transform.apply(replace(selection, inputs=inputs), config.stats).items():
+            inputs[name] = (*inputs.get(name, ()), *steps)
     result = method.resolve()(model, replace(selection, inputs=inputs), config)
     # Smoothing is described by the method's format (its calibration settings); other transforms here.
     result.format += "".join(f"; {t.description}" for t in config.transforms if hasattr(t, "description"))
     result.calibrated |= {name for name, steps in inputs.items() if any(isinstance(s, InputTransform) for s in steps)}
-    return QuantReport(config, selection, result, errors.measure(model, result))
+    return QuantReport(config, selection, result, errors.measure(model, result, inputs))
 
 
 def layer_statistics(selection: Selection, config: QuantConfig, method: str, what: str, how: str,
@@ -231,17 +232,24 @@ class _OutputErrors:
                 rows = observed.samples.to(layer.weight.device, layer.weight.dtype)
                 self.rows[name], self.reference[name] = rows, layer(rows).float()
 
-    def measure(self, model: nn.Module, result: MethodResult) -> dict[str, float | None]:
+    def measure(self, model: nn.Module, result: MethodResult,
+                inputs: Mapping[str, tuple]) -> dict[str, float | None]:
+        """`inputs`: the transforms' steps by layer; offline ones (an offline rotation's) map the rows
+        observed on the untransformed model into the layer's new input space, and its reference
+        outputs into its new output space."""
         errors: dict[str, list[float]] = {comp: [] for comp in self.selection.layers}
         with torch.no_grad():
             for name, rows in self.rows.items():
+                offline = [step for step in inputs.get(name, ()) if is_offline(step)]
+                reference = self.reference[name]
+                for step in offline:
+                    rows, reference = step.map_rows(rows), step.map_output(reference)
                 quantized = model.get_submodule(name)  # a kernel method may have replaced the layer
                 hook = result.hooks.get(name)
                 calls = hook.calls if hook is not None else 0
                 out = quantized(rows).float()  # through the layer's input hook, as in an episode
                 if hook is not None:
                     hook.quantizer.calls = calls  # this is no evidence that an episode quantized the layer
-                reference = self.reference[name]
                 errors[self.selection.component_of(name)].append(
                     ((out - reference).pow(2).sum() / reference.pow(2).sum().clamp_min(1e-30)).item())
         return {comp: sum(values) / len(values) if values else None for comp, values in errors.items()}

@@ -20,7 +20,9 @@ compensation) GPTQ gives RTN's weights bit for bit.
 
 Activations, where the preset quantizes them, are quantized per token by counting hooks as in RTN.
 After pre-quantization transforms (`hadamard_gptq`), each layer's Hessian is mapped into the space of
-its transformed inputs by the transforms' linear input steps (`map_hessian`: R H R^T for a rotation).
+its transformed inputs by the transforms' linear input steps (`map_hessian`: R H R^T for an online
+rotation, R D^-1 H D^-1 R^T for a reader of an offline-rotated stream whose norm gain D was folded
+into it; `quant.rotation.FoldedInput`): the Hessians are collected on the untransformed model.
 """
 
 from __future__ import annotations

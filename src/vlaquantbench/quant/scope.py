@@ -16,7 +16,7 @@ from torch import nn
 
 from vlaquantbench.quant.patterns import COMPONENT_NAMES, select_names
 
-__all__ = ["COMPONENT_NAMES", "LayerOwner", "Selection", "eligible_linears", "select_layers"]
+__all__ = ["COMPONENT_NAMES", "LayerOwner", "Selection", "declared_streams", "eligible_linears", "select_layers"]
 
 
 class LayerOwner(Protocol):
@@ -26,14 +26,24 @@ class LayerOwner(Protocol):
     def owns(self, qualified_name: str) -> bool: ...
 
 
+def declared_streams(model: nn.Module, components: Mapping[str, LayerOwner]) -> tuple:
+    """The residual streams (`quant.rotation.ResidualStream`) that `model`'s components declare
+    foldable (`residual_streams(model)` of a component that has one), in component order."""
+    return tuple(stream for comp in components.values()
+                 for stream in (comp.residual_streams(model) if getattr(comp, "residual_streams", None) else ()))
+
+
 @dataclass(frozen=True)
 class Selection:
     """The layers one quantization acts on, grouped by component (every component in scope is a key),
     and what the pre-quantization transforms (`quant.transforms`) left each layer's input to do before
-    it is quantized (steps in order, e.g. divide by the smoothing vector and clip), by layer name."""
+    it is quantized (steps in order, e.g. divide by the smoothing vector and clip), by layer name,
+    and the residual streams the model's components declare foldable (`declared_streams`), which a
+    rotation may rotate offline (`quant.transforms.Hadamard`)."""
 
     layers: dict[str, dict[str, nn.Linear]]
     inputs: dict[str, tuple[Callable, ...]] = field(default_factory=dict)
+    streams: tuple = ()
 
     def flat(self) -> dict[str, nn.Linear]:
         return {name: layer for group in self.layers.values() for name, layer in group.items()}
@@ -76,4 +86,5 @@ def select_layers(
     """
     eligible = eligible_linears(model, components)
     names = select_names({c: list(group) for c, group in eligible.items()}, scope, only, exclude)
-    return Selection({c: {n: eligible[c][n] for n in group} for c, group in names.items()})
+    return Selection({c: {n: eligible[c][n] for n in group} for c, group in names.items()},
+                     streams=declared_streams(model, components))

@@ -7,4 +7,4 @@ resumed by the new code, and a table mixing both says so. Commits that do not ch
 (refactors, speed, logging) leave it alone and resume each other's cells.
 """
 
-QUANT_SEMANTICS = 1
+QUANT_SEMANTICS = 2  # 2: `hadamard` rotates residual streams offline where their RMSNorms fold (issue 31)

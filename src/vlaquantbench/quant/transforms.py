@@ -2,17 +2,23 @@
 a method quantizes them. `QuantConfig.transforms` is an ordered list; `quantize_` applies each in turn,
 then runs the method on the transformed weights.
 
-A transform changes weights in place and returns, per layer it changed, the step the layer's input
-must take first (a callable on the input tensor, e.g. `InputTransform(smooth=d, clip=c)`): with it, the
-layer's output is unchanged up to the transform's own approximation (clipping). Methods that compose
+A transform changes weights in place and returns, per layer it changed, the steps the layer's input
+must take first (callables on the input tensor, e.g. `InputTransform(smooth=d, clip=c)`): with them,
+the layer's output is unchanged up to the transform's own approximation (clipping). It sees the
+steps earlier transforms left (`selection.inputs`). An offline step (`quant.rotation.FoldedInput`,
+`RotatedOutput`: `offline` True) records what the transformed model now computes itself; no hook
+runs it, but it maps calibration rows and Hessians into the layer's new input space and its
+reference outputs into its new output space. Methods that compose
 with transforms (`rtn`, `gptq`) run those steps, in order, ahead of their activation quantization
 (`input_steps`); the others refuse a non-empty list.
 
     Smoothing   rollout smoothing and clipping (paper `app:calib`): W diag(d), x / d clipped at the
                 calibrated quantile, on the layers of the calibrated components
-    Hadamard    an orthonormal block-Hadamard rotation R of every selected layer's input, folded into
-                its weight: W R^T (R x) = W x (QuaRot's online Hadamard transform, here before every
-                selected linear; see `Hadamard`)
+    Hadamard    QuaRot's block-Hadamard rotation R: residual streams whose RMSNorms fold (pi0 and
+                pi0.5's VLM, pi0's expert) rotated offline, the norms' gains and R folded into the
+                weights that write and read them; every other selected input (down_proj/o_proj and
+                fc2-type layers, LayerNorm models, pi0.5's adaptive-norm expert) rotated online,
+                W R^T (R x) = W x (see `Hadamard`)
 
 Methods that take a layer's calibration Hessian (GPTQ) map it into the transformed input space
 through the step's `map_hessian`; a step without one (smoothing's clip is not linear) is refused there.
@@ -28,9 +34,11 @@ from typing import TYPE_CHECKING
 import scipy.linalg
 import torch
 
+from vlaquantbench.errors import UserError
 from vlaquantbench.quant.calibration import FLOOR, CalibrationSettings, CalibrationStats, smoothing_factors
 from vlaquantbench.quant.hooks import InputTransform
 from vlaquantbench.quant.presets import Preset
+from vlaquantbench.quant.rotation import FoldedInput, RotatedOutput, is_offline, rotate_stream
 
 if TYPE_CHECKING:
     from vlaquantbench.quant.scope import Selection
@@ -44,7 +52,7 @@ class Smoothing:
 
     settings: CalibrationSettings
 
-    def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, Callable]:
+    def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, tuple[Callable, ...]]:
         steps = {}
         for name, layer in selection.flat().items():
             layer_stats = stats.layers.get(name) if selection.component_of(name) in self.settings.components else None
@@ -56,38 +64,71 @@ class Smoothing:
                 if self.settings.quantile is not None:
                     clip = (layer_stats.quantile.float().to(smooth.device) / smooth).clamp_min(FLOOR)
                 layer.weight.copy_((layer.weight.float() * smooth).to(layer.weight.dtype))
-            steps[name] = InputTransform(smooth=smooth, clip=clip)
+            steps[name] = (InputTransform(smooth=smooth, clip=clip),)
         return steps
 
 
 @dataclass(frozen=True)
 class Hadamard:
-    """Rotate each selected linear's input by R = blockdiag(H_b, ..., H_b), H_b the Sylvester Hadamard
-    matrix of order b scaled by 1/sqrt(b) (orthonormal), b the largest power of two dividing the layer's
-    input width (the whole width for the Gemma layers of pi0 and pi0.5), and fold R^T into the weight
-    (in float32, then the layer's dtype). Rotating spreads an outlier channel over b channels, which is
-    what lets 4-bit per-token activation grids keep the rest (QuaRot, Ashkboos et al. 2024).
+    """QuaRot's rotations (Ashkboos et al. 2024) with R = blockdiag(H_b, ..., H_b), H_b the Sylvester
+    Hadamard matrix of order b scaled by 1/sqrt(b) (orthonormal), b the largest power of two dividing
+    the width (`BlockHadamard`; the whole width for every Gemma layer of pi0 and pi0.5). Rotating
+    spreads an outlier channel over b channels, which is what lets 4-bit per-token activation grids
+    keep the rest. All folding is in float32, then the weights' dtype.
 
-    This is QuaRot's *online* form applied to every selected layer, not its offline rotation of the
-    residual stream with RMSNorm weights folded into the next layers: every selected input is rotated
-    exactly as QuaRot's offline rotation would rotate it (an orthonormal R), so the layers compute on
-    the same kind of rotated inputs and weights, but at the cost of one transform per layer; it
-    needs no norm to be foldable (pi0.5's action expert's adaptive RMSNorm, which scales channels by a
-    per-sample vector, is not), so it applies to every model, LayerNorm ones included. It rotates
-    what selection selects, `nn.Linear` layers: fused ones (X-VLA's qkv) like any other, never a
-    convolution (patch embeddings, DaViT's depthwise position convolutions stay as they are). An odd
-    input width has block 1, R = I: such a layer is quantized unrotated (the demo OpenVLA-OFT's
-    119-wide SigLIP fc2; no released width of pi0, pi0.5, X-VLA or OFT is odd)."""
+    Offline, where a residual stream's norms fold (`quant.rotation`; each model declares its
+    streams through its component scopes): every writer's output rows are multiplied by R, every
+    RMSNorm's gain is folded into the linears reading it and the norm set to unit gain, and those
+    readers take R^T on their input columns. Their inputs arrive rotated: their hooks only quantize.
+    A stream is rotated when the selection selects one of its readers (a scope that selects none,
+    e.g. `ah` for the VLM's stream, leaves it as it is); its unselected writers and readers are
+    rotated too, so the whole model stays function preserving, and stay unquantized.
+        pi0, pi0.5   the VLM's Gemma stream (token embedding and projector write it; q/k/v and
+                     gate/up read it); pi0's expert stream (state_proj, action_time_mlp_out write
+                     it; its final norm folds into action_out_proj). pi0.5's expert norms are
+                     adaptive (a per-sample scale and shift from the flow time): not foldable.
+        OFT          not declared: its LLaMA's final norm feeds the action head's LayerNorm over
+                     7 concatenated hidden states, which cannot read a rotated stream.
+        LayerNorm    SigLIP, DINOv2 and every X-VLA norm subtract a mean and add a bias, which do
+                     not commute with R: not declared, rotated online.
+    Online, on every other selected linear (down_proj/o_proj and fc2-type layers, whose inputs
+    come from inside a block, and every layer of a stream that is not folded): R^T folded into the
+    weight and the input rotated at run time by `BlockHadamard` (W R^T (R x) = W x), inside pi0.5's
+    captured sampler with the op producing it (`quant.hooks.Rotated`).
 
-    description = "inputs rotated by block-Hadamard transforms folded into the weights (QuaRot online form)"
+    It rotates what the selection selects, `nn.Linear` layers: fused ones (X-VLA's qkv) like any
+    other, never a convolution (patch embeddings, DaViT's depthwise position convolutions stay as
+    they are). An odd input width has block 1, R = I: such a layer is quantized unrotated (the demo
+    OpenVLA-OFT's 119-wide SigLIP fc2; no released width of pi0, pi0.5, X-VLA or OFT is odd).
+    Rollout smoothing before an offline rotation is refused (a folded reader's input is computed
+    by the model, where no per-channel division can run first)."""
 
-    def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, Callable]:
-        steps = {}
-        for name, layer in selection.flat().items():
+    description = ("residual streams rotated offline where their RMSNorms fold, other inputs rotated online "
+                   "(QuaRot block-Hadamard)")
+
+    def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, tuple[Callable, ...]]:
+        layers = selection.flat()
+        steps: dict[str, tuple[Callable, ...]] = {}
+        for stream in selection.streams:
+            if not stream.readers() & set(layers):
+                continue  # nothing selected reads it: left as it is
+            rotation = BlockHadamard(stream.width, stream.norms[0].norm.weight.device)
+            folded = {name: FoldedInput(rotation, norm.gain(), norm.name)
+                      for norm in stream.norms for name in norm.readers if name in layers}
+            smoothed = [name for name in folded if selection.inputs.get(name)]
+            if smoothed:
+                raise UserError(f"the offline rotation of residual stream {stream.name!r} cannot follow rollout "
+                                f"smoothing of its reader {smoothed[0]}: run Hadamard without smoothing")
+            rotate_stream(stream, rotation)
+            steps.update({name: (step,) for name, step in folded.items()})
+            steps.update({name: (RotatedOutput(rotation),) for name in stream.writers if name in layers})
+        for name, layer in layers.items():
+            if name in steps and isinstance(steps[name][0], FoldedInput):
+                continue
             rotation = BlockHadamard(layer.in_features, layer.weight.device)
             with torch.no_grad():
                 layer.weight.copy_(rotation.rotate(layer.weight, torch.float32).to(layer.weight.dtype))
-            steps[name] = rotation
+            steps[name] = (*steps.get(name, ()), rotation)
         return steps
 
 
@@ -157,6 +198,7 @@ def input_steps(steps: Sequence[Callable], preset: Preset) -> Callable:
     form the fast paths know: rotate, divide, clip, quantize; pi0.5's captured sampler computes a
     rotation and quantization once per input that several layers read)."""
     quantize = InputTransform(act_bits=preset.act_bits, act_format=preset.act_format)
+    steps = [step for step in steps if not is_offline(step)]  # what the rotated model computes itself
     if not steps:
         return quantize
     if len(steps) == 1 and isinstance(steps[0], BlockHadamard):  # the form the captured fast path fuses

@@ -3,6 +3,11 @@
 MP holds both projectors (vision features and robot state into the LLM). VE counts SigLIP's
 attention-pooling head too: the policy never runs it, which is why the paper observes 204 of the
 209 VE layers during calibration and why hook accounting reports those 5 as unfired.
+
+No residual stream is declared for the Hadamard rotation's offline form (`quant.rotation`): the
+LLaMA's per-layer RMSNorms would fold, but its final norm's output feeds the action head's
+LayerNorm over 7 concatenated hidden states, which subtracts their mean and so cannot read a
+rotated stream; DINOv2 and SigLIP use LayerNorm. Every OFT input is rotated online.
 """
 
 from vlaquantbench.models.openvla_oft.architecture import DEMO, OpenVLAOFT

@@ -1,7 +1,10 @@
 """pi0.5 component scopes (paper `tab:vla_params`: VE 162, MP 1, LLM 126, AH 167 linear layers).
 
 The action expert (AH) includes its adaRMS modulations (`*layernorm.dense`, the final
-`gemma_expert.model.norm.dense`) and the flow-matching projections around it.
+`gemma_expert.model.norm.dense`) and the flow-matching projections around it. Its adaptive RMSNorms
+scale and shift each sample's channels by a modulation of the flow time, so no fixed gain folds
+into the next layers: the expert declares no foldable residual stream and a Hadamard rotation
+rotates its inputs online; the VLM's stream folds (`paligemma_family.vlm_stream`).
 """
 
 from lerobot.policies.pi05 import modeling_pi05

@@ -5,6 +5,9 @@ a 24-block soft-prompted transformer as its action head. It has no separate MP s
 checkpoint projects image features with a raw parameter matrix, not a linear layer, so the native
 `multi_modal_projector.image_projection` that lerobot builds in its place belongs to no component.
 The domain-aware action encoder/decoder are embedding lookups, not `nn.Linear`, so never selected.
+Every norm (DaViT, BART, the head) is a LayerNorm, whose mean subtraction and bias do not commute
+with a rotation: no residual stream is declared foldable, and a Hadamard rotation rotates every
+input online (`quant.transforms.Hadamard`).
 
 The demo build keeps every depth (DaViT stages 1/1/9/1, 12 encoder layers, 24 head blocks), the
 window size and the patch layout, so layer names and subset counts equal the full model's; only
