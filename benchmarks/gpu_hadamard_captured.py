@@ -7,22 +7,29 @@ seed 0, 2 cameras at 224 px, 200 prompt tokens, 10 flow steps; scope e2e, all 45
     baseline        BASELINE (bf16, the SigLIP tower and projector float32)
     w4a4            rtn-W4A4-e2e: the fused per-token quantization of every linear's input
     w4a4_hadamard   hadamard-W4A4-e2e: every linear's input rotated by its block-Hadamard transform
-                    (`quant.transforms.BlockHadamard`, two products with factors of order <= 128),
-                    then quantized, inside the op that produces it; once per input that q/k/v or
+                    (`quant.transforms.BlockHadamard`) and quantized per token by one Triton kernel
+                    after the op that produces it (`quant.fused_kernel.rotated_fake_quant`: products
+                    with the +-1 Hadamard factors on the tensor cores); once per input that q/k/v or
                     gate/up share (`quant.hooks.Rotated`)
 Also recorded: the linear groups the captured sampler fused, every hook's count after capture, the
 actions of each cell against BASELINE, and the Hadamard cell's captured chunk against lerobot's eager
 `sample_actions` of the same quantized model (batch 1; `models.adapter.CUDA_PROBE_BOUND` is 0.05).
 Timing: `gpu_policy_inference.alternate` (the cells take turns `--rounds` times, each turn capturing
 again), median of the repeats: the typical chunk, not the best.
+Checks and breakdown: the rotation kernel against the reference transform on CUDA (fraction of equal
+values, largest difference over the row's absmax; TF32 off, the hook's float32 products); each
+rotated width's kernel time at batch 1 and 32 token counts against the unrotated quantization kernel
+and the reference's rotation then quantization; kernel profiles (`kernel_profile`, the captured code
+without its graph) of the two W4A4 cells at batch 1 and 32.
 
-    python benchmarks/gpu_hadamard_captured.py --out benchmarks/results/gpu_hadamard_captured.json   # ~4 min, H200
+    python benchmarks/gpu_hadamard_captured.py --out benchmarks/results/gpu_hadamard_captured.json   # ~6 min, H200
     python benchmarks/gpu_hadamard_captured.py --device cpu --smoke --out /tmp/h.json   # demo widths, CPU, inductor
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import time
@@ -32,13 +39,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from gpu_fp8_real import groups_summary, rel_l2  # noqa: E402
-from gpu_policy_inference import alternate, chunk_inputs, machine  # noqa: E402
+from gpu_policy_inference import alternate, chunk_inputs, kernel_profile, machine, uncaptured_chunk  # noqa: E402
 
 from vlaquantbench.models import get_model_spec  # noqa: E402
 from vlaquantbench.models.pi05.fast import CapturedSampler  # noqa: E402
 from vlaquantbench.quant import QuantConfig, quantize_  # noqa: E402
-from vlaquantbench.quant.fused_kernel import fuse_activation_hooks  # noqa: E402
-from vlaquantbench.quant.hooks import Rotated  # noqa: E402
+from vlaquantbench.quant.fused_kernel import fuse_activation_hooks, fused_fake_quant, rotated_fake_quant  # noqa: E402
+from vlaquantbench.quant.hooks import InputTransform, Rotated  # noqa: E402
+from vlaquantbench.quant.transforms import BlockHadamard  # noqa: E402
 
 CELLS = {"baseline": ("BASELINE", "rtn"), "w4a4": ("W4A4", "rtn"), "w4a4_hadamard": ("W4A4", "hadamard")}
 
@@ -49,6 +57,71 @@ def build(spec, device, variant: str, preset: str, method: str):
     report = quantize_(model, config, config.select(model, spec.components))
     fuse_activation_hooks(report)  # the Triton per-token kernel for the layers outside the groups (CUDA)
     return model, report
+
+
+# (tokens, width, dtype) of the rotated inputs at batch 1 and 32 (2 cameras, 200 prompt tokens, 50
+# actions): SigLIP (float32 in lerobot) 1,152 and fc2's 4,304; Gemma 2,048 and down_proj's 16,384;
+# the expert's 1,024, 2,048 (o_proj) and 4,096.
+ROTATED_SHAPES = [(tokens * b, width, dtype) for b in (1, 32) for tokens, width, dtype in (
+    (512, 1152, torch.float32), (512, 4304, torch.float32), (712, 2048, torch.bfloat16),
+    (712, 16384, torch.bfloat16), (50, 1024, torch.bfloat16), (50, 2048, torch.bfloat16),
+    (50, 4096, torch.bfloat16))]
+
+
+def rotation_kernel_check(device) -> dict:
+    """Per shape and bit width: the fraction of values where `rotated_fake_quant` equals the hooks'
+    `InputTransform(rotation=BlockHadamard, act_bits)` (bf16: expected all but the rare value whose
+    float32 rotation, summed in another order, rounds the other way), and the largest difference over
+    its row's absmax (float32 rows: float32 rounding of the rotation, ~1e-7)."""
+    out = {}
+    g = torch.Generator(device="cpu").manual_seed(0)
+    tf32 = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = False  # the hook's rotation: float32 products
+    try:
+        for rows, cols, dtype in [(968, 2048, torch.bfloat16), (50, 16384, torch.bfloat16), (50, 1024, torch.bfloat16),
+                                  (50, 4096, torch.bfloat16), (512, 1152, torch.bfloat16), (512, 1152, torch.float32),
+                                  (512, 4304, torch.float32)]:
+            x = (torch.randn(rows, cols, generator=g) * torch.rand(cols, generator=g) * 5).to(device, dtype)
+            rotation = BlockHadamard(cols, device)
+            for bits in (4, 8):
+                ref = InputTransform(rotation=rotation, act_bits=bits)(x)
+                got = rotated_fake_quant(x, rotation, bits)
+                absmax = ref.float().abs().amax(-1, keepdim=True).clamp_min(1e-30)
+                out[f"{rows}x{cols}_{str(dtype)[6:]}_a{bits}"] = {
+                    "equal_fraction": (got == ref).double().mean().item(),
+                    "max_diff_over_absmax": ((got.float() - ref.float()).abs() / absmax).max().item()}
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = tf32
+    return out
+
+
+def rotation_kernel_us(device, repeats: int = 50) -> dict:
+    """Microseconds per call, per rotated shape (`ROTATED_SHAPES`): the rotation kernel (with its
+    own choice of warps, and with 4, 8 and 16), the unrotated per-token kernel (`fused_fake_quant`,
+    what plain W4A4 adds) and the reference (`BlockHadamard` in float32, then `fused_fake_quant`).
+    Each form's calls are queued back to back, so for the few rows of batch 1 this is mostly the
+    launch, not the captured kernel's time."""
+    out = {}
+    for rows, cols, dtype in ROTATED_SHAPES:
+        x = torch.randn(rows, cols, device=device).to(dtype)
+        rotation = BlockHadamard(cols, device)
+        forms = {"rotated_kernel": lambda: rotated_fake_quant(x, rotation, 4),
+                 **{f"rotated_kernel_{w}_warps": functools.partial(rotated_fake_quant, x, rotation, 4, num_warps=w)
+                    for w in (4, 8, 16)},
+                 "unrotated_kernel": lambda: fused_fake_quant(x, 4),
+                 "reference": lambda: fused_fake_quant(rotation(x), 4)}
+        entry = {}
+        for name, fn in forms.items():
+            fn()
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            for _ in range(repeats):
+                fn()
+            end.record()
+            torch.cuda.synchronize()
+            entry[name] = 1e3 * start.elapsed_time(end) / repeats
+        out[f"{rows}x{cols}_{str(dtype)[6:]}"] = entry
+    return out
 
 
 def rotated_groups(sampler: CapturedSampler) -> int:
@@ -63,7 +136,7 @@ def main() -> None:
     parser.add_argument("--out", required=True)
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 8, 32])
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--cameras", type=int, default=2)
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--device", default="cuda")
@@ -78,6 +151,13 @@ def main() -> None:
     results = {"machine": machine() if device.type == "cuda" else {"device": "cpu"}, "variant": variant,
                "cameras": args.cameras, "steps": args.steps, "batches": args.batches}
     write = lambda: Path(args.out).write_text(json.dumps(results, indent=1))  # noqa: E731
+
+    if device.type == "cuda":
+        results["rotation_kernel_equal"] = rotation_kernel_check(device)
+        print("rotation kernel == reference:", results["rotation_kernel_equal"], flush=True)
+        results["rotation_kernel_us"] = rotation_kernel_us(device)
+        print("rotation kernel us:", results["rotation_kernel_us"], flush=True)
+        write()
 
     spec = get_model_spec("pi05")
     inputs = {b: chunk_inputs(b, device, seed=b, cameras=args.cameras) for b in args.batches}
@@ -121,6 +201,19 @@ def main() -> None:
     results["wall_s"] = time.perf_counter() - started
     print("chunk ms:", ms, "\nvs baseline:", results["vs_baseline"], flush=True)
     write()
+
+    if device.type == "cuda":  # where the time goes: the captured code's kernels, without the graph
+        results["profiles"] = {}
+        for name in ("w4a4", "w4a4_hadamard"):
+            sampler = samplers[name]
+            for b in (args.batches[0], args.batches[-1]):
+                sampler(*inputs[b])
+                with sampler._kernel_choices():
+                    results["profiles"][f"{name}_b{b}"] = kernel_profile(uncaptured_chunk(sampler.model, sampler, inputs[b]))
+                sampler.reset()
+                print(name, b, "profile:", results["profiles"][f"{name}_b{b}"], flush=True)
+        results["wall_s"] = time.perf_counter() - started
+        write()
     print("wrote", args.out)
 
 

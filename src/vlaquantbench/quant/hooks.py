@@ -165,7 +165,10 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | PerTokenCast |
     quantization of its (last) output alone, `op.per_token_quantizer(x, bits)`, run after the op
     compiled by itself (for ops whose compiled composition is slower than the two), with
     `op.per_token_kernel_supports(first_arg)`; where the compiled form is asked for and the kernel
-    supports the input, it runs instead of the compiled composition."""
+    supports the input, it runs instead of the compiled composition. A rotated per-token integer
+    quantization runs on CUDA as the op compiled alone, then one Triton kernel for the rotation and
+    the quantization, or as `op.rotated_kernel(*args, rotation=, bits=)` where the op names one
+    (`_rotating_kernel_or`)."""
     if quantization is None:
         return compiler(op) if compiler is not None else op
     # A compiler may name the form of x / scale its code computes exactly (`Inductor.quotient`).
@@ -186,6 +189,8 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | PerTokenCast |
                                            None, fn.__closure__))
     if isinstance(quantization, PerTokenCast):
         return _as_cast_rows(compiled)
+    if isinstance(quantization, Rotated) and isinstance(quantization.quantization, int):
+        return _rotating_kernel_or(compiled, op, quantization, compiler)
     supports = getattr(op, "per_token_kernel_supports", None)
     if supports is None or not isinstance(quantization, int):  # the kernels quantize unrotated integer rows
         return compiled
@@ -201,6 +206,34 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | PerTokenCast |
         return kernel(*args, bits=quantization) if supports(args[0]) else compiled(*args)
 
     return kernel_or_compiled
+
+
+def _rotating_kernel_or(compiled: Callable, op: Callable, quantization: Rotated, compiler: Callable) -> Callable:
+    """For a rotated per-token integer quantization: on CUDA, `op` compiled alone, then the rotation
+    and the quantization of its (last) output in one Triton kernel (`quant.fused_kernel.
+    rotated_fake_quant`: one read of the row, the products on the tensor cores). Compiled together,
+    inductor ran the rotation as float32 products of their own, with float32 copies around them:
+    1.5-1.6x BASELINE's chunk for W4A4 on an H200, against 1.02-1.05x unrotated. Elsewhere (or for a
+    rotation the kernel does not compute) `compiled`."""
+    from vlaquantbench.quant import fused_kernel  # it imports this module (InputTransform)
+
+    if not fused_kernel.supports_rotation(quantization.rotation):
+        return compiled
+    rotation, bits = quantization.rotation, quantization.quantization
+    kernel = getattr(op, "rotated_kernel", None)  # the op, its rotation and quantization in one kernel
+    plain = compiler(op) if kernel is None else None
+
+    def rotated_kernel_or_compiled(*args):
+        if not fused_kernel.supports(args[0]):
+            return compiled(*args)
+        if kernel is not None:
+            return kernel(*args, rotation=rotation, bits=bits)
+        out = plain(*args)
+        if isinstance(out, tuple):
+            return (*out[:-1], fused_kernel.rotated_fake_quant(out[-1], rotation, bits))
+        return fused_kernel.rotated_fake_quant(out, rotation, bits)
+
+    return rotated_kernel_or_compiled
 
 
 def _as_cast_rows(fn: Callable) -> Callable:

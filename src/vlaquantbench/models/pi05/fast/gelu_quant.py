@@ -16,6 +16,9 @@ its one fused multiply-add, the activation rounded to the tensor's dtype before 
 product rounded before it is quantized; the quantization is `quant.fused_kernel`'s (IEEE division's
 quotient, round-half-even, the scale floor). `benchmarks/gpu_policy_inference.py` checks the equality on the
 GPU (`checks.fused_norm_quant_equal_fraction`).
+
+`gelu_rotated_fake_quant` is the same activation followed by a block-Hadamard rotation and the
+quantization (`quant.fused_kernel.rotated_fake_quant_tile`), for rotated (`hadamard`) cells.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ import math
 import numpy as np
 import torch
 
-from vlaquantbench.quant.fused_kernel import fake_quant_row_args, triton
+from vlaquantbench.quant.fused_kernel import fake_quant_row_args, rotation_tile, triton
 
 # ATen's GeluCUDAKernelImpl (tanh): constexpr float kBeta = M_SQRT2 * M_2_SQRTPI * 0.5, kKappa = 0.044715.
 K_BETA = float(np.float32(math.sqrt(2.0) * (2.0 / math.sqrt(math.pi)) * 0.5))
@@ -36,7 +39,7 @@ if triton is not None:  # Triton ships with torch's CUDA wheels; without it the 
     import triton.language as tl
     from triton.language.extra import libdevice
 
-    from vlaquantbench.quant.fused_kernel import fake_quant_row, fake_quant_scaled
+    from vlaquantbench.quant.fused_kernel import fake_quant_row, fake_quant_scaled, rotated_fake_quant_tile
 
     @triton.jit
     def _gelu_product(gate_ptr, up_ptr, row, cols, inside, gate_row_stride, up_row_stride, k_beta, k_kappa,
@@ -92,6 +95,25 @@ if triton is not None:  # Triton ships with torch's CUDA wheels; without it the 
             quantized = fake_quant_scaled(act.to(tl.float32), absmax, q_max, inv_q_max, scale_floor)
             tl.store(out_ptr + row * n_cols + cols, quantized.to(act.dtype), mask=inside)
 
+    @triton.jit
+    def _gelu_rotated_fake_quant(
+        gate_ptr, up_ptr, out_ptr, inner_ptr, outer_ptr, n_cols, n_tile_rows, gate_row_stride, up_row_stride,
+        q_max, inv_q_max, scale_floor, k_beta, k_kappa, HAS_UP: tl.constexpr, OUTER: tl.constexpr,
+        LOG_OUTER: tl.constexpr, INNER: tl.constexpr, LOG_INNER: tl.constexpr, TILE_ROWS: tl.constexpr,
+    ):
+        """A row per program: the activation computed once in the rotation's tile layout, rotated
+        and quantized (`quant.fused_kernel.rotated_fake_quant_tile`), written once."""
+        row = tl.program_id(0).to(tl.int64)
+        tile_rows = tl.arange(0, TILE_ROWS)
+        inner_cols = tl.arange(0, INNER)
+        offsets = tile_rows[:, None] * INNER + inner_cols[None, :]
+        inside = (tile_rows < n_tile_rows)[:, None]
+        act = _gelu_product(gate_ptr, up_ptr, row, offsets, inside, gate_row_stride, up_row_stride, k_beta, k_kappa,
+                            HAS_UP)
+        quantized = rotated_fake_quant_tile(act, tile_rows, inner_cols, inner_ptr, outer_ptr, q_max, inv_q_max,
+                                            scale_floor, OUTER, LOG_OUTER, INNER, LOG_INNER)
+        tl.store(out_ptr + row * n_cols + offsets, quantized.to(act.dtype), mask=inside)
+
 
 # Chunked programs (`_gelu_fake_quant_row_chunks`): values per chunk, warps per program.
 CHUNK, CHUNK_WARPS = 2048, 8
@@ -128,17 +150,22 @@ def _rows(x: torch.Tensor) -> torch.Tensor:
     return rows if rows.stride(-1) == 1 else rows.contiguous()
 
 
+def _operands(gate: torch.Tensor, up: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(gate rows, up rows (the gate's without `up`), the output) of a GELU kernel's call."""
+    if up is not None and (up.shape != gate.shape or up.dtype != gate.dtype):
+        raise ValueError(f"gate {tuple(gate.shape)} {gate.dtype} and up {tuple(up.shape)} {up.dtype} differ")
+    gate_rows = _rows(gate)
+    return gate_rows, gate_rows if up is None else _rows(up), torch.empty(gate.shape, dtype=gate.dtype,
+                                                                          device=gate.device)
+
+
 def gelu_fake_quant(gate: torch.Tensor, up: torch.Tensor | None, bits: int, *, chunk: int | None = None,
                     num_warps: int | None = None) -> torch.Tensor:
     """`fake_quant_activation(F.gelu(gate, approximate="tanh") * up, bits)` (`up` None: the GELU
     alone) in one kernel on CUDA tensors (`quant.fused_kernel.supports`). The result is contiguous. `chunk` and
     `num_warps` override `_launch`'s choice (chunk 0: each row held whole, at most `MAX_ROW` values)."""
-    if up is not None and (up.shape != gate.shape or up.dtype != gate.dtype):
-        raise ValueError(f"gate {tuple(gate.shape)} {gate.dtype} and up {tuple(up.shape)} {up.dtype} differ")
-    gate_rows = _rows(gate)
-    up_rows = gate_rows if up is None else _rows(up)
+    gate_rows, up_rows, out = _operands(gate, up)
     rows, n_cols = gate_rows.shape
-    out = torch.empty(gate.shape, dtype=gate.dtype, device=gate.device)
     if chunk is None:
         chunk, warps = _launch(rows, n_cols, gate.device)
     else:
@@ -152,4 +179,19 @@ def gelu_fake_quant(gate: torch.Tensor, up: torch.Tensor | None, bits: int, *, c
     else:
         _gelu_fake_quant_rows[(rows,)](*args, HAS_UP=up is not None, BLOCK=triton.next_power_of_2(n_cols),
                                        num_warps=num_warps or warps)
+    return out
+
+
+def gelu_rotated_fake_quant(gate: torch.Tensor, up: torch.Tensor | None, rotation, bits: int) -> torch.Tensor:
+    """`InputTransform(rotation=rotation, act_bits=bits)(F.gelu(gate, approximate="tanh") * up)` (`up`
+    None: the GELU alone) in one kernel on CUDA tensors, for a rotation that
+    `quant.fused_kernel.supports_rotation`: the down_proj / fc2 input of a rotated W4A4 model,
+    without writing the activation out and reading it back. The result is contiguous."""
+    gate_rows, up_rows, out = _operands(gate, up)
+    rows, n_cols = gate_rows.shape
+    q_max, inv_q_max, scale_floor = fake_quant_row_args(bits)
+    _gelu_rotated_fake_quant[(rows,)](
+        gate_rows, up_rows, out, n_cols=n_cols, gate_row_stride=gate_rows.stride(0), up_row_stride=up_rows.stride(0),
+        q_max=q_max, inv_q_max=inv_q_max, scale_floor=scale_floor, k_beta=K_BETA, k_kappa=K_KAPPA,
+        HAS_UP=up is not None, **rotation_tile(n_cols, rotation))
     return out

@@ -125,6 +125,8 @@ def gelu_tanh_mul(gate: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
 # With down_proj's per-token input quantization: one hand-written kernel (see `gelu_quant`).
 gelu_tanh_mul.per_token_kernel = gelu_quant.gelu_fake_quant
 gelu_tanh_mul.per_token_kernel_supports = fused_kernel.supports
+# ... and with its rotation first (`quant.hooks.Rotated`), as one kernel too.
+gelu_tanh_mul.rotated_kernel = gelu_quant.gelu_rotated_fake_quant
 
 
 def layer_norm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, eps: float):
@@ -177,6 +179,7 @@ def _activation(x, bias) -> tuple:
 # With fc2's per-token input quantization: one hand-written kernel (see `gelu_quant`).
 gelu_tanh.per_token_kernel = functools.partial(gelu_quant.gelu_fake_quant, up=None)
 gelu_tanh.per_token_kernel_supports = fused_kernel.supports
+gelu_tanh.rotated_kernel = functools.partial(gelu_quant.gelu_rotated_fake_quant, up=None)
 
 
 def rotary_into_cache(query, key, value, cos, sin, cache_keys, cache_values, start: int):
