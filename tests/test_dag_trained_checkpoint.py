@@ -103,21 +103,22 @@ def test_the_dag_runs_a_trained_checkpoint_cell_and_its_header_names_the_revisio
 
 
 def test_the_header_stat_prints_a_components_error_from_the_committed_records():
-    """tables/methods_2026's MSE columns on the committed records: GPTQ's action-head error, `--` for a method
-    that sampled no calibration rows (RTN) and for a component outside the scope; a header without the field
-    at all is an error naming it."""
+    """tables/methods_2026's MSE columns on the committed records: each method's action-head error (RTN's too: the
+    study sets `layer_errors`), `--` for a component outside the scope; a header without the field at all is an
+    error naming it."""
     from vlaquantbench.tables.definition import TableDefinition
     from vlaquantbench.tables.latex import render_latex
 
     base = "metaworld/metaworld_mt50/pi05/"
     cells = {base + name: read_cell(ROOT / "results/methods_2026" / base / name) for name in ("gptq-W4A4-ah", "rtn-W4A4-ah")}
-    expected = cells[base + "gptq-W4A4-ah"].header["quant_report"]["ah"]["mean_rel_mse"]
+    expected = {name: cells[base + name].header["quant_report"]["ah"]["mean_rel_mse"] for name in ("gptq-W4A4-ah", "rtn-W4A4-ah")}
     raw = {"caption": "mse", "align": "lrr", "header": [["Cell", "VE", "AH"]],
            "values": [{"stat": "header", "cell": "cell", "key": "quant_report.ve.mean_rel_mse"},
                       {"stat": "header", "cell": "cell", "key": "quant_report.ah.mean_rel_mse"}],
            "rows": [{"label": "gptq", "cell": base + "gptq-W4A4-ah"}, {"label": "rtn", "cell": base + "rtn-W4A4-ah"}]}
     latex = render_latex(TableDefinition.from_dict("mse", raw), cells)
-    assert f"gptq & -- & {expected:.1e} \\\\" in latex and "rtn & -- & -- \\\\" in latex
+    assert f"gptq & -- & {expected['gptq-W4A4-ah']:.1e} \\\\" in latex and f"rtn & -- & {expected['rtn-W4A4-ah']:.1e} \\\\" in latex
+    assert expected["gptq-W4A4-ah"] < expected["rtn-W4A4-ah"]  # GPTQ's rounding lowers the layers' output error
     raw["values"][0]["key"] = "quant_reprot.ve.mean_rel_mse"
     with pytest.raises(UserError, match=f"cell {base}gptq-W4A4-ah: its header .* has no quant_reprot"):
         render_latex(TableDefinition.from_dict("mse", raw), cells)
