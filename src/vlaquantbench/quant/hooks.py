@@ -175,10 +175,7 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | PerTokenCast |
     quotient = getattr(compiler, "quotient", torch.div)
 
     def fn(*args):
-        out = op(*args)
-        if isinstance(out, tuple):
-            return (*out[:-1], _quantized(out[-1], quantization, quotient))
-        return _quantized(out, quantization, quotient)
+        return _on_last_output(op(*args), lambda x: _quantized(x, quantization, quotient))
 
     if compiler is None:
         return _as_cast_rows(fn) if isinstance(quantization, PerTokenCast) else fn
@@ -199,8 +196,7 @@ def quantizing_op(op: Callable, quantization: int | FloatFormat | PerTokenCast |
         plain, quantizer = compiler(op), op.per_token_quantizer
 
         def kernel(*args, bits):
-            out = plain(*args)
-            return (*out[:-1], quantizer(out[-1], bits)) if isinstance(out, tuple) else quantizer(out, bits)
+            return _on_last_output(plain(*args), lambda x: quantizer(x, bits))
 
     def kernel_or_compiled(*args):
         return kernel(*args, bits=quantization) if supports(args[0]) else compiled(*args)
@@ -228,12 +224,15 @@ def _rotating_kernel_or(compiled: Callable, op: Callable, quantization: Rotated,
             return compiled(*args)
         if kernel is not None:
             return kernel(*args, rotation=rotation, bits=bits)
-        out = plain(*args)
-        if isinstance(out, tuple):
-            return (*out[:-1], fused_kernel.rotated_fake_quant(out[-1], rotation, bits))
-        return fused_kernel.rotated_fake_quant(out, rotation, bits)
+        return _on_last_output(plain(*args), lambda x: fused_kernel.rotated_fake_quant(x, rotation, bits))
 
     return rotated_kernel_or_compiled
+
+
+def _on_last_output(out, transform: Callable):
+    """`transform` of an op's output, or of the last one where it returns several (a residual add
+    returns the new hidden state and its normalized copy, which a layer reads)."""
+    return (*out[:-1], transform(out[-1])) if isinstance(out, tuple) else transform(out)
 
 
 def _as_cast_rows(fn: Callable) -> Callable:
