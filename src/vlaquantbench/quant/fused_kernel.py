@@ -81,17 +81,6 @@ if triton is not None:
         tl.store(y_ptr + row * n_cols + cols, y.to(dtype), mask=inside)
 
     @triton.jit
-    def _sylvester_signs(rows, cols, LOG_ORDER: tl.constexpr):
-        """Entries (rows, cols) of Sylvester's +-1 Hadamard matrix of order 2^LOG_ORDER, as bfloat16
-        (exact): (-1) to the number of bits that the row and column indices share."""
-        shared = rows[:, None] & cols[None, :]
-        parity = tl.zeros_like(shared)
-        for bit in tl.static_range(LOG_ORDER):
-            parity ^= (shared >> bit) & 1
-        # through float32: the interpreter casts integers to bfloat16 as raw bits
-        return (1.0 - 2.0 * parity.to(tl.float32)).to(tl.bfloat16)
-
-    @triton.jit
     def _bfloat16_parts(a):
         """float32 `a` as the sum of three bfloat16 parts (8 significant bits each, so exact for every
         float32): their products with +-1 matrices are exact on the bf16 tensor cores, accumulated in
@@ -102,15 +91,50 @@ if triton is not None:
         return high, middle, (rest - middle.to(tl.float32)).to(tl.bfloat16)
 
     @triton.jit
-    def rotated_fake_quant_tile(x, tile_rows, inner_cols, inner_ptr, outer_ptr, q_max, inv_q_max, scale_floor,
-                                OUTER: tl.constexpr, LOG_OUTER: tl.constexpr, INNER: tl.constexpr, LOG_INNER: tl.constexpr):
-        """One token's row `x` (bf16 or float32) laid out as a tile of rows r = block * OUTER + p and
-        INNER columns (padding rows 0): X H_q per tile row, then H_p (.) per block as a product with
-        blockdiag(H_p, ...), each scaled by the reference factor's entry (read at `inner_ptr`,
-        `outer_ptr`); rounded to x's dtype as `BlockHadamard.__call__` rounds it; then quantized per
-        token. Returns float32 values (padding rows 0)."""
+    def token_tile(first_token, n_tokens, n_tile_rows, TOKENS: tl.constexpr, TILE_ROWS: tl.constexpr,
+                   INNER: tl.constexpr):
+        """The tile of `TOKENS` consecutive tokens' rows from `first_token`, each as TILE_ROWS x INNER
+        (row-major, its first n_tile_rows rows valid): (tile row r, column, each row's token, each
+        value's offset within its token's row, valid values)."""
+        rows = tl.arange(0, TOKENS * TILE_ROWS)
+        token = first_token + rows // TILE_ROWS
+        within_token = rows % TILE_ROWS
+        cols = tl.arange(0, INNER)
+        inside = ((within_token < n_tile_rows) & (token < n_tokens))[:, None]
+        return rows, cols, token, within_token[:, None] * INNER + cols[None, :], inside
+
+    @triton.jit
+    def per_token(row_values, TOKENS: tl.constexpr, TILE_ROWS: tl.constexpr, IS_MAX: tl.constexpr):
+        """A tile's per-row reductions (max or sum) reduced per token, as a column over the tile's rows
+        (one token: a scalar, the form measured on an H200)."""
+        if TOKENS == 1:
+            if IS_MAX:
+                values = tl.max(row_values, axis=0)
+            else:
+                values = tl.sum(row_values, axis=0)
+        else:
+            by_token = tl.reshape(row_values, (TOKENS, TILE_ROWS))
+            if IS_MAX:
+                token_values = tl.max(by_token, axis=1)
+            else:
+                token_values = tl.sum(by_token, axis=1)
+            values = tl.reshape(tl.broadcast_to(token_values[:, None], (TOKENS, TILE_ROWS)), (TOKENS * TILE_ROWS,))
+            values = values[:, None]
+        return values
+
+    @triton.jit
+    def rotated_fake_quant_tile(x, tile_rows, inner_cols, inner_ptr, outer_ptr, inner_signs_ptr, outer_signs_ptr,
+                                q_max, inv_q_max, scale_floor, OUTER: tl.constexpr, INNER: tl.constexpr,
+                                TOKENS: tl.constexpr, TILE_ROWS: tl.constexpr):
+        """TOKENS tokens' rows `x` (bf16 or float32; `token_tile`), each laid out as TILE_ROWS rows
+        r = block * OUTER + p of INNER columns (padding rows 0): X H_q per tile row, then H_p (.) per
+        block as a product with blockdiag(H_p, ...), the factors' signs read at `inner_signs_ptr`,
+        `outer_signs_ptr` (`BlockHadamard.inner_signs`, `outer_signs`), each product scaled by the
+        reference factor's entry (read at `inner_ptr`, `outer_ptr`); rounded to x's dtype as
+        `BlockHadamard.__call__` rounds it; then quantized per token. Returns float32 values (padding
+        rows 0)."""
         dtype = x.dtype
-        inner = _sylvester_signs(inner_cols, inner_cols, LOG_INNER)
+        inner = tl.load(inner_signs_ptr + inner_cols[:, None] * INNER + inner_cols[None, :])
         if dtype == tl.bfloat16:  # bf16 values times +-1 are exact products: one pass suffices
             rotated = tl.dot(x, inner)
         elif INNER <= 32:
@@ -122,33 +146,32 @@ if triton is not None:
             rotated = tl.dot(high, inner, tl.dot(middle, inner, tl.dot(low, inner)))
         rotated = rotated * tl.load(inner_ptr)  # +1/sqrt(q) in float32, as the reference factor has it
         if OUTER > 1:
-            # blockdiag(H_p, H_p, ...) over the tile's rows (symmetric); padding rows stay zero
+            # blockdiag(H_p, H_p, ...) over the tile's rows (symmetric; a block never spans two tokens,
+            # TILE_ROWS being a multiple of OUTER); padding rows stay zero
             same_block = (tile_rows[:, None] // OUTER) == (tile_rows[None, :] // OUTER)
-            outer = tl.where(same_block, _sylvester_signs(tile_rows % OUTER, tile_rows % OUTER, LOG_OUTER), 0.0)
-            outer = outer.to(tl.bfloat16)
+            within = tile_rows % OUTER
+            outer = tl.load(outer_signs_ptr + within[:, None] * OUTER + within[None, :], mask=same_block, other=0.0)
             high, middle, low = _bfloat16_parts(rotated)
             rotated = tl.dot(outer, high, tl.dot(outer, middle, tl.dot(outer, low))) * tl.load(outer_ptr)
         rotated = rotated.to(dtype).to(tl.float32)
-        absmax = tl.max(tl.max(tl.abs(rotated), axis=1), axis=0)
+        absmax = per_token(tl.max(tl.abs(rotated), axis=1), TOKENS, TILE_ROWS, True)
         return fake_quant_scaled(rotated, absmax, q_max, inv_q_max, scale_floor)
 
     @triton.jit
     def _rotated_fake_quant(
-        x_ptr, y_ptr, inner_ptr, outer_ptr, n_cols, n_tile_rows, q_max, inv_q_max, scale_floor,
-        OUTER: tl.constexpr, LOG_OUTER: tl.constexpr, INNER: tl.constexpr, LOG_INNER: tl.constexpr,
+        x_ptr, y_ptr, inner_ptr, outer_ptr, inner_signs_ptr, outer_signs_ptr, n_tokens, n_cols, n_tile_rows, q_max,
+        inv_q_max, scale_floor, OUTER: tl.constexpr, INNER: tl.constexpr, TOKENS: tl.constexpr,
         TILE_ROWS: tl.constexpr,
     ):
-        """A token per program: its row read once as a TILE_ROWS x INNER tile (masked past the row's
-        n_tile_rows), rotated and quantized (`rotated_fake_quant_tile`), written once."""
-        token = tl.program_id(0).to(tl.int64)
-        tile_rows = tl.arange(0, TILE_ROWS)
-        inner_cols = tl.arange(0, INNER)
-        offsets = tile_rows[:, None] * INNER + inner_cols[None, :]
-        inside = (tile_rows < n_tile_rows)[:, None]
-        x = tl.load(x_ptr + token * n_cols + offsets, mask=inside, other=0.0)
-        y = rotated_fake_quant_tile(x, tile_rows, inner_cols, inner_ptr, outer_ptr, q_max, inv_q_max, scale_floor,
-                                    OUTER, LOG_OUTER, INNER, LOG_INNER)
-        tl.store(y_ptr + token * n_cols + offsets, y.to(x.dtype), mask=inside)
+        """TOKENS tokens per program: their rows read once as a tile (`token_tile`), rotated and
+        quantized (`rotated_fake_quant_tile`), written once."""
+        first = tl.program_id(0).to(tl.int64) * TOKENS
+        rows, cols, token, within, inside = token_tile(first, n_tokens, n_tile_rows, TOKENS, TILE_ROWS, INNER)
+        offsets = token[:, None] * n_cols + within
+        x = tl.load(x_ptr + offsets, mask=inside, other=0.0)
+        y = rotated_fake_quant_tile(x, rows, cols, inner_ptr, outer_ptr, inner_signs_ptr, outer_signs_ptr,
+                                    q_max, inv_q_max, scale_floor, OUTER, INNER, TOKENS, TILE_ROWS)
+        tl.store(y_ptr + offsets, y.to(x.dtype), mask=inside)
 
 
 def supports(x: torch.Tensor) -> bool:
@@ -186,34 +209,49 @@ def supports_rotation(rotation) -> bool:
     return triton is not None and isinstance(rotation, BlockHadamard) and rotation.inner_order >= 16
 
 
-def rotation_tile(n_cols: int, rotation: BlockHadamard) -> dict:
-    """The launch arguments of a kernel built on `rotated_fake_quant_tile` for rows of `n_cols`:
-    the factors' entries, the tile's valid rows and its constexpr shape, and the warps."""
+# Tile rows (tokens times each token's tile rows) up to which tokens may share a program.
+MAX_SHARED_TILE_ROWS = 128
+
+
+def rotation_tile(n_cols: int, rotation: BlockHadamard, n_tokens: int = 1, tokens_per_program: int = 1) -> dict:
+    """The launch arguments of a kernel built on `rotated_fake_quant_tile` for `n_tokens` rows of
+    `n_cols`: the factors' entries, the tile's valid rows and its constexpr shape, the warps, and
+    `grid`, the programs. A program takes one token by default, the form measured on an H200; with
+    `tokens_per_program` (a power of two, the tile at most `MAX_SHARED_TILE_ROWS` rows) several share
+    one, reading the Hadamard factors once and multiplying taller tiles -- for many rows (the
+    expert's 1,600 x 1,024 at batch 32 took 13 us at one token per program, against 2.5 unrotated);
+    `benchmarks/gpu_hadamard_captured.py` times it, not yet run on a GPU."""
     blocks = n_cols // rotation.block
     outer = rotation.outer_order
     tile_rows = max(16, triton.next_power_of_2(blocks) * outer)  # tl.dot's smallest dimension is 16
+    if (tokens_per_program < 1 or tokens_per_program & (tokens_per_program - 1)
+            or (tokens_per_program > 1 and tokens_per_program * tile_rows > MAX_SHARED_TILE_ROWS)):
+        raise ValueError(f"tokens_per_program must be a power of two with at most {MAX_SHARED_TILE_ROWS} tile rows "
+                         f"({tile_rows} per token of {n_cols}), not {tokens_per_program}")
     # The factors' entries are read on the device (no host sync, so it runs inside a graph capture).
     return {"inner_ptr": rotation.inner, "outer_ptr": rotation.outer if rotation.outer is not None else rotation.inner,
-            "n_tile_rows": blocks * outer, "OUTER": outer, "LOG_OUTER": outer.bit_length() - 1,
-            "INNER": rotation.inner_order, "LOG_INNER": rotation.inner_order.bit_length() - 1,
-            "TILE_ROWS": tile_rows, "num_warps": min(8, max(4, tile_rows * rotation.inner_order // 1024))}
+            "inner_signs_ptr": rotation.inner_signs, "outer_signs_ptr": rotation.outer_signs,
+            "n_tokens": n_tokens, "n_tile_rows": blocks * outer, "OUTER": outer, "INNER": rotation.inner_order,
+            "TOKENS": tokens_per_program, "TILE_ROWS": tile_rows, "grid": (triton.cdiv(n_tokens, tokens_per_program),),
+            "num_warps": min(8, max(4, tokens_per_program * tile_rows * rotation.inner_order // 1024))}
 
 
 def rotated_fake_quant(x: torch.Tensor, rotation: BlockHadamard, bits: int, *,
-                       num_warps: int | None = None) -> torch.Tensor:
+                       num_warps: int | None = None, tokens_per_program: int = 1) -> torch.Tensor:
     """`InputTransform(rotation=rotation, act_bits=bits)(x)` in one kernel (a CUDA tensor, or a CPU
     one under Triton's interpreter; `supports_rotation(rotation)`): R x, rounded to x's dtype, then
     quantized per token. Equal to the reference to float32 rounding of R x (both sum the same
     products in float32, in different orders): a value differs only where that moves R x across a
-    rounding boundary of x's dtype. `num_warps` overrides `rotation_tile`'s choice."""
+    rounding boundary of x's dtype. `num_warps` overrides `rotation_tile`'s choice;
+    `tokens_per_program` as there."""
     x = x.contiguous()
     n_cols = x.shape[-1]
     y = torch.empty_like(x)
     q_max, inv_q_max, scale_floor = fake_quant_row_args(bits)
-    launch = rotation_tile(n_cols, rotation)
+    launch = rotation_tile(n_cols, rotation, x.numel() // n_cols, tokens_per_program)
     launch["num_warps"] = num_warps or launch["num_warps"]
-    _rotated_fake_quant[(x.numel() // n_cols,)](x, y, n_cols=n_cols, q_max=q_max, inv_q_max=inv_q_max,
-                                                scale_floor=scale_floor, **launch)
+    _rotated_fake_quant[launch.pop("grid")](x, y, n_cols=n_cols, q_max=q_max, inv_q_max=inv_q_max,
+                                            scale_floor=scale_floor, **launch)
     return y
 
 

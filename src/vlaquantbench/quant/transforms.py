@@ -155,6 +155,10 @@ class BlockHadamard:
         self.outer_order = self.block // self.inner_order
         self.inner = _orthonormal_hadamard(self.inner_order, device)
         self.outer = _orthonormal_hadamard(self.outer_order, device) if self.outer_order > 1 else None
+        # The factors' +-1 entries, exact in bfloat16, for the Triton kernels to read rather than
+        # derive: deriving a 128 x 128 factor took seven integer passes over it in every program.
+        self.inner_signs = _hadamard_signs(self.inner_order, device)
+        self.outer_signs = _hadamard_signs(self.outer_order, device)
 
     @property
     def name(self) -> str:
@@ -185,6 +189,11 @@ class BlockHadamard:
 
     def __hash__(self) -> int:
         return hash((BlockHadamard, self.block, str(self.inner.device)))
+
+
+def _hadamard_signs(order: int, device: torch.device | str) -> torch.Tensor:
+    """Sylvester's +-1 Hadamard matrix of `order` (a power of two), bfloat16."""
+    return torch.tensor(scipy.linalg.hadamard(order), dtype=torch.bfloat16, device=device)
 
 
 def _orthonormal_hadamard(order: int, device: torch.device | str) -> torch.Tensor:

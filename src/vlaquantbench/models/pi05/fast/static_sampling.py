@@ -49,7 +49,7 @@ from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 from torch import nn
 from transformers.models.gemma.modeling_gemma import apply_rotary_pos_emb
 
-from vlaquantbench.models.pi05.fast import gelu_quant
+from vlaquantbench.models.pi05.fast import gelu_quant, rotated_norms
 from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
 from vlaquantbench.quant import fused_kernel
 from vlaquantbench.quant.grid import fma_quotient
@@ -115,6 +115,12 @@ def gated_add_ada_rms_norm(hidden, update, gate, scale, shift, eps: float):
     """Gated residual `hidden + update * gate`, then the next AdaRMSNorm: (new hidden, normed)."""
     hidden = hidden + update * gate
     return hidden, ada_rms_norm(hidden, scale, shift, eps)
+
+
+# With a rotation before the expert's q/k/v or gate/up quantization (the expert's stream is not
+# rotated offline): the norm, the rotation and the quantization as one kernel (`rotated_norms`).
+ada_rms_norm.rotated_kernel = rotated_norms.ada_rms_norm_rotated_fake_quant
+gated_add_ada_rms_norm.rotated_kernel = rotated_norms.gated_add_ada_rms_norm_rotated_fake_quant
 
 
 def gelu_tanh_mul(gate: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
@@ -197,6 +203,10 @@ def merge_heads(out: torch.Tensor) -> torch.Tensor:
     """Attention output B x heads x L x D -> B x L x (heads * D)."""
     batch, heads, length, dim = out.shape
     return out.transpose(1, 2).reshape(batch, length, heads * dim)
+
+
+# With o_proj's rotated quantization: the heads read where they are, rotated and quantized, one kernel.
+merge_heads.rotated_kernel = rotated_norms.merge_heads_rotated_fake_quant
 
 
 def attention_probs(scores: torch.Tensor, scaling: float, bias: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
