@@ -194,6 +194,8 @@ def test_hadamard_gptq_rounds_in_the_rotated_space(demos):
     with pytest.raises(UserError, match="residual stream 'expert' cannot follow rollout smoothing of its reader "
                                         "paligemma_with_expert.gemma_expert.model.layers.0.self_attn.q_proj"):
         quantize_(smoothed, config, config.select(smoothed, spec.components))
+    # refused before the smoothing divided anything: the model is as it was
+    assert all(torch.equal(a, b) for a, b in zip(smoothed.state_dict().values(), demo.state_dict().values(), strict=True))
     # a reader of the folded expert stream: its inputs become R (x / (1 + w)), its Hessian R D^-1 H D^-1 R^T
     reader = "paligemma_with_expert.gemma_expert.model.layers.0.self_attn.k_proj"
     gain = 1 + demo.get_submodule("paligemma_with_expert.gemma_expert.model.layers.0.input_layernorm").weight.double()

@@ -183,6 +183,9 @@ def quantize_(model: nn.Module, config: QuantConfig, selection: Selection) -> Qu
     if config.transforms and not method.composes:
         raise UserError(f"method {method.name!r} does not run after pre-quantization transforms "
                         f"({', '.join(type(t).__name__ for t in config.transforms)})")
+    for index, transform in enumerate(config.transforms):  # refusals first: no weight has changed yet
+        if hasattr(transform, "check_after"):
+            transform.check_after(config.transforms[:index], selection, config.stats)
     errors = _OutputErrors(selection, config.stats)
     inputs: dict[str, tuple] = {}
     for transform in config.transforms:

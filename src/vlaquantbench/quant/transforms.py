@@ -26,6 +26,7 @@ through the step's `map_hessian`; a step without one (smoothing's clip is not li
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -52,12 +53,17 @@ class Smoothing:
 
     settings: CalibrationSettings
 
+    def layers(self, selection: Selection, stats: CalibrationStats | None) -> list[str]:
+        """The selected layers it divides: those of the calibrated components that calibration observed
+        (the others stay untransformed)."""
+        return [name for name in selection.flat() if selection.component_of(name) in self.settings.components
+                and stats is not None and name in stats.layers]
+
     def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, tuple[Callable, ...]]:
         steps = {}
-        for name, layer in selection.flat().items():
-            layer_stats = stats.layers.get(name) if selection.component_of(name) in self.settings.components else None
-            if layer_stats is None:  # layers never observed during calibration stay untransformed
-                continue
+        layers = selection.flat()
+        for name in self.layers(selection, stats):
+            layer, layer_stats = layers[name], stats.layers[name]
             with torch.no_grad():
                 smooth = smoothing_factors(layer_stats.absmax, layer.weight, self.settings.alpha)
                 clip = None
@@ -106,6 +112,18 @@ class Hadamard:
     description = ("residual streams rotated offline where their RMSNorms fold, other inputs rotated online "
                    "(QuaRot block-Hadamard)")
 
+    def check_after(self, earlier: Sequence, selection: Selection, stats: CalibrationStats | None) -> None:
+        """Refuse, before any transform changes a weight, to follow a smoothing of a reader this
+        rotation folds (`quantize_` asks every transform before applying the first)."""
+        layers = selection.flat()
+        smoothed = {name for transform in earlier if isinstance(transform, Smoothing)
+                    for name in transform.layers(selection, stats)}
+        for stream in selection.streams:
+            if stream.readers() & set(layers):
+                for name in (name for norm in stream.norms for name in norm.readers if name in layers and name in smoothed):
+                    raise UserError(f"the offline rotation of residual stream {stream.name!r} cannot follow rollout "
+                                    f"smoothing of its reader {name}: run Hadamard without smoothing")
+
     def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, tuple[Callable, ...]]:
         layers = selection.flat()
         steps: dict[str, tuple[Callable, ...]] = {}
@@ -115,10 +133,6 @@ class Hadamard:
             rotation = BlockHadamard(stream.width, stream.norms[0].norm.weight.device)
             folded = {name: FoldedInput(rotation, norm.gain(), norm.name)
                       for norm in stream.norms for name in norm.readers if name in layers}
-            smoothed = [name for name in folded if selection.inputs.get(name)]
-            if smoothed:
-                raise UserError(f"the offline rotation of residual stream {stream.name!r} cannot follow rollout "
-                                f"smoothing of its reader {smoothed[0]}: run Hadamard without smoothing")
             rotate_stream(stream, rotation)
             steps.update({name: (step,) for name, step in folded.items()})
             steps.update({name: (RotatedOutput(rotation),) for name in stream.writers if name in layers})
@@ -191,11 +205,14 @@ class BlockHadamard:
         return hash((BlockHadamard, self.block, str(self.inner.device)))
 
 
+# One read-only copy per order and device, whatever the number of layers rotated (456 for pi0.5's e2e).
+@functools.cache
 def _hadamard_signs(order: int, device: torch.device | str) -> torch.Tensor:
     """Sylvester's +-1 Hadamard matrix of `order` (a power of two), bfloat16."""
     return torch.tensor(scipy.linalg.hadamard(order), dtype=torch.bfloat16, device=device)
 
 
+@functools.cache
 def _orthonormal_hadamard(order: int, device: torch.device | str) -> torch.Tensor:
     """Sylvester's Hadamard matrix of `order` (a power of two) scaled by 1/sqrt(order), float32."""
     return torch.tensor(scipy.linalg.hadamard(order), dtype=torch.float32, device=device) / math.sqrt(order)
