@@ -119,10 +119,9 @@ class Hadamard:
         smoothed = {name for transform in earlier if isinstance(transform, Smoothing)
                     for name in transform.layers(selection, stats)}
         for stream in selection.streams:
-            if stream.readers() & set(layers):
-                for name in (name for norm in stream.norms for name in norm.readers if name in layers and name in smoothed):
-                    raise UserError(f"the offline rotation of residual stream {stream.name!r} cannot follow rollout "
-                                    f"smoothing of its reader {name}: run Hadamard without smoothing")
+            if conflicts := [name for name in _folded_readers(stream, layers) if name in smoothed]:
+                raise UserError(f"the offline rotation of residual stream {stream.name!r} cannot follow rollout "
+                                f"smoothing of its reader {conflicts[0]}: run Hadamard without smoothing")
 
     def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, tuple[Callable, ...]]:
         layers = selection.flat()
@@ -132,7 +131,7 @@ class Hadamard:
                 continue  # nothing selected reads it: left as it is
             rotation = BlockHadamard(stream.width, stream.norms[0].norm.weight.device)
             folded = {name: FoldedInput(rotation, norm.gain(), norm.name)
-                      for norm in stream.norms for name in norm.readers if name in layers}
+                      for name, norm in _folded_readers(stream, layers).items()}
             rotate_stream(stream, rotation)
             steps.update({name: (step,) for name, step in folded.items()})
             steps.update({name: (RotatedOutput(rotation),) for name in stream.writers if name in layers})
@@ -144,6 +143,11 @@ class Hadamard:
                 layer.weight.copy_(rotation.rotate(layer.weight, torch.float32).to(layer.weight.dtype))
             steps[name] = (*steps.get(name, ()), rotation)
         return steps
+
+
+def _folded_readers(stream, layers: dict) -> dict:
+    """The selected linears reading `stream` through its norms, in the stream's order: {name: norm}."""
+    return {name: norm for norm in stream.norms for name in norm.readers if name in layers}
 
 
 # The largest Hadamard factor a rotation multiplies by (`BlockHadamard`): blocks beyond it are
@@ -215,7 +219,7 @@ def _hadamard_signs(order: int, device: torch.device | str) -> torch.Tensor:
 @functools.cache
 def _orthonormal_hadamard(order: int, device: torch.device | str) -> torch.Tensor:
     """Sylvester's Hadamard matrix of `order` (a power of two) scaled by 1/sqrt(order), float32."""
-    return torch.tensor(scipy.linalg.hadamard(order), dtype=torch.float32, device=device) / math.sqrt(order)
+    return _hadamard_signs(order, device).float() / math.sqrt(order)
 
 
 def input_steps(steps: Sequence[Callable], preset: Preset) -> Callable:
