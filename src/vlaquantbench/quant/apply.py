@@ -38,7 +38,7 @@ from vlaquantbench.quant.presets import Preset, parse_preset
 from vlaquantbench.quant.patterns import scope_components
 from vlaquantbench.quant.rotation import is_offline
 from vlaquantbench.quant.scope import LayerOwner, Selection, select_layers
-from vlaquantbench.quant.transforms import Smoothing, input_steps
+from vlaquantbench.quant.transforms import Smoothing, Transform, input_steps
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,7 @@ class QuantConfig:
     method: MethodConfig = field(default_factory=lambda: get_method("rtn"))
     calibration: CalibrationSettings | None = None
     stats: CalibrationStats | None = None
-    transforms: tuple = ()  # pre-quantization transforms (`quant.transforms`), applied in order
+    transforms: tuple[Transform, ...] = ()  # pre-quantization transforms (`quant.transforms`), applied in order
 
     @classmethod
     def from_preset(
@@ -62,7 +62,7 @@ class QuantConfig:
         method: str | MethodConfig = "rtn",
         calibration: CalibrationSettings | None = None,
         stats: CalibrationStats | None = None,
-        transforms: Sequence | None = None,
+        transforms: Sequence[Transform] | None = None,
     ) -> QuantConfig:
         """`method`: a registered name or a method config; `transforms` None: rollout smoothing
         (`Smoothing(calibration)`) where the calibration settings smooth and the method composes,
@@ -184,16 +184,14 @@ def quantize_(model: nn.Module, config: QuantConfig, selection: Selection) -> Qu
         raise UserError(f"method {method.name!r} does not run after pre-quantization transforms "
                         f"({', '.join(type(t).__name__ for t in config.transforms)})")
     for index, transform in enumerate(config.transforms):  # refusals first: no weight has changed yet
-        if hasattr(transform, "check_after"):
-            transform.check_after(config.transforms[:index], selection, config.stats)
+        transform.check_after(config.transforms[:index], selection, config.stats)
     errors = _OutputErrors(selection, config.stats)
     inputs: dict[str, tuple] = {}
     for transform in config.transforms:
         for name, steps in transform.apply(replace(selection, inputs=inputs), config.stats).items():
             inputs[name] = (*inputs.get(name, ()), *steps)
     result = method.resolve()(model, replace(selection, inputs=inputs), config)
-    # Smoothing is described by the method's format (its calibration settings); other transforms here.
-    result.format += "".join(f"; {t.description}" for t in config.transforms if hasattr(t, "description"))
+    result.format += "".join(f"; {t.description}" for t in config.transforms if t.description)
     result.calibrated |= {name for name, steps in inputs.items() if any(isinstance(s, InputTransform) for s in steps)}
     return QuantReport(config, selection, result, errors.measure(model, result, inputs))
 

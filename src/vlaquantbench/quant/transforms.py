@@ -45,8 +45,22 @@ if TYPE_CHECKING:
     from vlaquantbench.quant.scope import Selection
 
 
+class Transform:
+    """What `quantize_` asks of a pre-quantization transform: `check_after` first (every transform, before
+    any changes a weight), then `apply` in list order; `description` extends the cell's quant_format."""
+
+    description = ""  # empty: the method's format already says it (smoothing: the calibration settings)
+
+    def check_after(self, earlier: Sequence[Transform], selection: Selection, stats: CalibrationStats | None) -> None:
+        """Refuse, naming the conflict, to follow the transforms `earlier` in the list; by default it follows any."""
+
+    def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, tuple[Callable, ...]]:
+        """Rewrite the selected layers' weights in place; per layer changed, the steps its input takes first."""
+        raise NotImplementedError
+
+
 @dataclass(frozen=True)
-class Smoothing:
+class Smoothing(Transform):
     """SmoothQuant-style migration from rollout statistics, d_j = max(a_j^alpha / w_j^(1-alpha), 1e-5)
     (`quant.calibration.smoothing_factors`), and clipping of x / d at quantile_j / d_j (none when the
     settings' quantile is None: then an exact identity before quantization)."""
@@ -75,7 +89,7 @@ class Smoothing:
 
 
 @dataclass(frozen=True)
-class Hadamard:
+class Hadamard(Transform):
     """QuaRot's rotations (Ashkboos et al. 2024) with R = blockdiag(H_b, ..., H_b), H_b the Sylvester
     Hadamard matrix of order b scaled by 1/sqrt(b) (orthonormal), b the largest power of two dividing
     the width (`BlockHadamard`; the whole width for every Gemma layer of pi0 and pi0.5). Rotating
@@ -112,9 +126,8 @@ class Hadamard:
     description = ("residual streams rotated offline where their RMSNorms fold, other inputs rotated online "
                    "(QuaRot block-Hadamard)")
 
-    def check_after(self, earlier: Sequence, selection: Selection, stats: CalibrationStats | None) -> None:
-        """Refuse, before any transform changes a weight, to follow a smoothing of a reader this
-        rotation folds (`quantize_` asks every transform before applying the first)."""
+    def check_after(self, earlier: Sequence[Transform], selection: Selection, stats: CalibrationStats | None) -> None:
+        """Refuse to follow a smoothing of a reader this rotation folds."""
         layers = selection.flat()
         smoothed = {name for transform in earlier if isinstance(transform, Smoothing)
                     for name in transform.layers(selection, stats)}
