@@ -28,6 +28,18 @@ def study(**weights) -> dict:
             "runner": {"max_steps": 10}}
 
 
+def workflow_with_tables(tmp_path):
+    """A checkout linking the workflow, the package and the committed checkpoint (its outputs its own), and an
+    empty folder for a test's table definitions."""
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    for item in ("Snakefile", "rules", "workflow", "config", "src", "checkpoints"):
+        (checkout / item).symlink_to(ROOT / item)
+    tables = tmp_path / "tables"
+    tables.mkdir()
+    return checkout, tables
+
+
 def test_the_cell_config_pins_the_trained_checkpoint_and_its_input():
     cfg = cell_config(REF, study())
     assert (cfg["checkpoint"], cfg["revision"]) == (TRAINING["checkpoint"], TRAINING["revision"])
@@ -69,12 +81,7 @@ def test_a_checkpoint_of_another_model_is_refused():
 def test_the_dag_runs_a_trained_checkpoint_cell_and_its_header_names_the_revision(tmp_path):
     """`snakemake tables/<t>.tex` with one W4A4 action-head row on the trained policy: one 10-step episode of
     drawer-close. The checkpoint is in no HF_HOME of the process: the jobs load it from the entry's folder."""
-    checkout = tmp_path / "checkout"
-    checkout.mkdir()
-    for item in ("Snakefile", "rules", "workflow", "config", "src", "checkpoints"):
-        (checkout / item).symlink_to(ROOT / item)
-    tables = tmp_path / "tables"
-    tables.mkdir()
+    checkout, tables = workflow_with_tables(tmp_path)
     (tables / "trained.yaml").write_text(yaml.safe_dump({
         "caption": "trained", "align": "lrr", "header": [["Cell", "Episodes", "Jerk"]],
         "values": [{"stat": "episodes", "cell": "cell"}, {"stat": "mean_ci", "cell": "cell", "field": "jerk"}],
@@ -130,12 +137,7 @@ def test_the_trained_policy_shows_a_real_quantization_effect(tmp_path):
     succeeds on most episodes of drawer-close and handle-press (variations 0-7, never demonstrated), RTN W2A2
     over the whole policy on clearly fewer of the same episodes (tests/test_trained_sequential.py: the live
     stopping rule calls it worse at alpha 0.05). Random weights would fail the first assertion: they never succeed."""
-    checkout = tmp_path / "checkout"
-    checkout.mkdir()
-    for item in ("Snakefile", "rules", "workflow", "config", "src", "checkpoints"):
-        (checkout / item).symlink_to(ROOT / item)
-    tables = tmp_path / "tables"
-    tables.mkdir()
+    checkout, tables = workflow_with_tables(tmp_path)
     base = "metaworld/metaworld_mt50/pi05/"
     (tables / "effect.yaml").write_text(yaml.safe_dump({
         "caption": "effect", "align": "lr", "header": [["Cell", "Success"]], "values": [{"stat": "rate", "cell": "cell"}],

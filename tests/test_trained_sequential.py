@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from paths import ROOT
+from test_dag_trained_checkpoint import workflow_with_tables
 from vlaquantbench.records import read_cell
 from vlaquantbench.runner.journal import TIMING_FIELDS
 from vlaquantbench.sequential import Design, live_episodes, retrospective
@@ -61,10 +62,7 @@ def test_the_destructive_cell_stops_early_and_the_near_baseline_cell_runs_to_its
 def test_snakemake_renders_the_live_table_and_the_retrospective_from_the_committed_records(tmp_path):
     """No episode runs: the live table's `stopped` column prints each cell's decision@episodes, and
     tables/sequential.csv (the rule on the full records) makes the same decisions."""
-    checkout = tmp_path / "checkout"
-    checkout.mkdir()
-    for item in ("Snakefile", "rules", "workflow", "config", "src", "checkpoints"):
-        (checkout / item).symlink_to(ROOT / item)
+    checkout, _ = workflow_with_tables(tmp_path)
     # Only the study's records and manifests: whatever the run writes stays in the checkout.
     (checkout / "results").mkdir()
     (checkout / "results/trained_sequential").symlink_to(ROOT / "results/trained_sequential")
