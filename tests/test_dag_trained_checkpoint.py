@@ -17,6 +17,7 @@ from paths import ROOT
 from vlaquantbench.cells import cell_config
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import read_cell
+from vlaquantbench.runner.provenance import host
 
 HOME = "checkpoints/pi05_metaworld_cpu"  # the committed CPU-trained pi0.5 (config/trained_cpu.yaml)
 TRAINING = json.loads((ROOT / HOME / "training.json").read_text())
@@ -103,6 +104,7 @@ def test_the_dag_runs_a_trained_checkpoint_cell_and_its_header_names_the_revisio
     assert cell.header["tokenizer"]["repo"] == TRAINING["tokenizer"]["repo"]
     assert cell.header["normalization"]["policy_postprocessor"]["norm_map"]["ACTION"] == "MEAN_STD"
     assert len(cell.episodes) == 1 and cell.episodes["task_name"].tolist() == ["drawer-close-v3"]
+    assert cell.header["host"] == host()  # the CPU and renderer the episodes ran on
     # The action head's error on the sampled calibration rows, measured through the layers' input hooks.
     assert 0 < cell.header["quant_report"]["ah"]["mean_rel_mse"] < 1
     assert cell.header["quant_report"]["act_calib"] and "smoothing" not in cell.header["quant_format"]

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 import yaml
 from test_dag_slurm import SNAKEMAKE, jobs_by_rule, workflow_copy
 
@@ -18,6 +19,7 @@ from vlaquantbench.envs.memory import job_memory_mb
 from vlaquantbench.errors import UserError
 from vlaquantbench.runner.gpus import Gpu, LocalGpuPlan, NoFreeGpu, device_record, gpu_slot, node_gpus
 from vlaquantbench.runner.journal import header_differences
+from vlaquantbench.runner.provenance import host
 
 # A job: take a slot of `gpus` devices, print which (and the CUDA_VISIBLE_DEVICES it set), hold it until killed.
 HOLDER = """
@@ -133,3 +135,24 @@ def test_the_header_names_no_device_on_the_cpu_and_a_cell_resumes_on_another_gpu
     h100 = {"index": 0, "name": "NVIDIA H100 80GB HBM3", "uuid": "GPU-cccc"}
     assert header_differences({**base, "device": h200}, {**base, "device": h100}) == [
         'device: recorded={"name": "NVIDIA H200"} current={"name": "NVIDIA H100 80GB HBM3"}']
+
+
+def test_the_header_names_the_host_and_a_cell_resumes_only_on_its_cpu_and_renderer():
+    """`host`: the CPU model and torch's instruction set, MuJoCo's rendering backend and the listed GPUs. A
+    journal resumes on a node listing other GPUs, not on another CPU or renderer (both move closed-loop
+    outcomes), and a journal from before headers named the host resumes."""
+    here = host()
+    cpuinfo = Path("/proc/cpuinfo").read_text()
+    assert here["cpu"] and f"model name\t: {here['cpu']}" in cpuinfo
+    assert here["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert here["mujoco_gl"] == os.environ.get("MUJOCO_GL", "egl")
+    if shutil.which("nvidia-smi") is None:
+        assert here["gpus"] == []
+    base = {"model": "pi05", "config": {}}
+    xeon = {"cpu": "Intel(R) Xeon(R) Platinum 8480+", "cpu_capability": "AVX512", "mujoco_gl": "egl", "gpus": ["NVIDIA H200"]}
+    assert header_differences({**base, "host": xeon}, {**base, "host": {**xeon, "gpus": ["NVIDIA H200"] * 8}}) == []
+    assert header_differences(base, {**base, "host": here}) == []
+    assert header_differences({**base, "host": xeon}, {**base, "host": {**xeon, "cpu": here["cpu"]}}) == [
+        f'host: recorded={json.dumps({k: v for k, v in xeon.items() if k != "gpus"})} '
+        f'current={json.dumps({**{k: v for k, v in xeon.items() if k != "gpus"}, "cpu": here["cpu"]})}']
+    assert header_differences({**base, "host": xeon}, {**base, "host": {**xeon, "mujoco_gl": "osmesa"}})

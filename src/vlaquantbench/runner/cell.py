@@ -46,7 +46,7 @@ from vlaquantbench.runner.lock import writing
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.quant.apply import hook_summary
 from vlaquantbench.quant.semantics import QUANT_SEMANTICS
-from vlaquantbench.runner.provenance import code_revision, versions
+from vlaquantbench.runner.provenance import code_revision, host, versions
 from vlaquantbench.runner.stopping import StoppingRule
 from vlaquantbench.software_env import Environment, activate
 
@@ -261,6 +261,7 @@ class CellRun:
             "max_steps": self.max_steps,
             "versions": {**versions(), **{k: v for k, v in self.simulator.items() if k != "mujoco"}},
             "environment": self.environment.describe(),
+            "host": host(),
             "quant_semantics": QUANT_SEMANTICS,
             "code_revision": code_revision(),
             **({} if device is None else {"device": device}),

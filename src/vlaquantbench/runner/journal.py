@@ -33,6 +33,9 @@ PROBE_MEASUREMENTS = ("max_abs_diff", "rel_l2", "eager_ulp_spread")
 # Which GPU of a model ran the cell (runner.gpus gives each job any free one): a rerun resumes on another
 # device of the same name, whose arithmetic is the same; a device of another name is refused (README "GPUs").
 DEVICE_SLOT = ("index", "uuid")
+# The GPUs a host lists (`provenance.host`): a node with more or fewer of them resumes; its CPU model and
+# rendering backend must match, as a CUDA device's name must (another CPU or renderer moves outcomes).
+HOST_GPUS = ("gpus",)
 # What two runs of one episode may record differently: how long it took, and the memory it took.
 TIMING_FIELDS = ("wall_time_s", "policy_batch_latency_mean_s", "policy_latency_mean_s", "inference_latency_mean_s",
                  "peak_vram_gb")
@@ -48,6 +51,8 @@ def _compared(header: dict[str, Any]) -> dict[str, Any]:
         kept["inference"] = {**kept["inference"], "fast_path_probe": probe}
     if isinstance(kept.get("device"), dict):
         kept["device"] = {k: v for k, v in kept["device"].items() if k not in DEVICE_SLOT}
+    if isinstance(kept.get("host"), dict):
+        kept["host"] = {k: v for k, v in kept["host"].items() if k not in HOST_GPUS}
     return kept
 
 
@@ -57,7 +62,7 @@ def header_differences(recorded: dict[str, Any], current: dict[str, Any]) -> lis
     recorded, current = _compared(recorded), _compared(current)
     lines = []
     for key in sorted(set(recorded) | set(current)):
-        if key == "device" and "device" not in recorded:  # a journal begun before headers named the device
+        if key in ("device", "host") and key not in recorded:  # a journal begun before headers named them
             continue
         if recorded.get(key) != current.get(key):
             lines.append(f"{key}: recorded={json.dumps(recorded.get(key))} current={json.dumps(current.get(key))}")
