@@ -32,7 +32,8 @@ def host() -> dict:
     backend, which the simulator workers inherit (`egl` when unset), and the GPUs nvidia-smi lists, one of
     which an EGL context renders on where there are any (otherwise Mesa renders on the CPU). A closed loop
     amplifies any last-bit difference: the methods study's cells, recorded on an H200 host's Xeon with EGL on
-    its GPU and re-run on an AMD EPYC without a GPU, kept 27-29 of 30 outcomes and 14-18 of 30 step counts."""
+    its GPU and re-run on an AMD EPYC without a GPU, kept 27-29 of 30 outcomes and 14-18 of 30 step counts
+    (benchmarks/rerun_agreement.py)."""
     import torch
 
     from vlaquantbench.runner.gpus import listed_gpus
