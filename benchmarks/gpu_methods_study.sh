@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The methods study of issue 31 item 7 (tables/methods_2026.tex) on the GPU machine: the whole study DAG of
-# config/trained_cpu.yaml (the CPU-trained pi0.5, 17 cells, 2 GPTQ calibrations) through Snakemake, then
+# config/trained_cpu.yaml (the CPU-trained pi0.5, 21 cells and their calibrations) through Snakemake, then
 # every finished cell copied under methods_2026/<ref>/ (the layout of the committed results/methods_2026
 # that the config's `records_dir` reads) into OUT_DIR/methods_2026.tar, the logs into OUT_DIR/logs.tar:
 #   MUJOCO_GL=egl bash benchmarks/gpu_methods_study.sh OUT_DIR [CORES]
