@@ -213,14 +213,16 @@ def supports_rotation(rotation) -> bool:
 MAX_SHARED_TILE_ROWS = 128
 
 
-def rotation_tile(n_cols: int, rotation: BlockHadamard, n_tokens: int = 1, tokens_per_program: int = 1) -> dict:
+def rotation_tile(n_cols: int, rotation: BlockHadamard, n_tokens: int = 1, tokens_per_program: int = 1,
+                  num_warps: int | None = None) -> dict:
     """The launch arguments of a kernel built on `rotated_fake_quant_tile` for `n_tokens` rows of
     `n_cols`: the factors' entries, the tile's valid rows and its constexpr shape, the warps, and
     `grid`, the programs. A program takes one token by default, the form measured on an H200; with
     `tokens_per_program` (a power of two, the tile at most `MAX_SHARED_TILE_ROWS` rows) several share
     one, reading the Hadamard factors once and multiplying taller tiles -- for many rows (the
     expert's 1,600 x 1,024 at batch 32 took 13 us at one token per program, against 2.5 unrotated);
-    `benchmarks/gpu_hadamard_captured.py` times it, not yet run on a GPU."""
+    `benchmarks/gpu_hadamard_captured.py` times it, not yet run on a GPU. `num_warps` overrides the
+    warps chosen from the tile's size."""
     blocks = n_cols // rotation.block
     outer = rotation.outer_order
     tile_rows = max(16, triton.next_power_of_2(blocks) * outer)  # tl.dot's smallest dimension is 16
@@ -233,7 +235,7 @@ def rotation_tile(n_cols: int, rotation: BlockHadamard, n_tokens: int = 1, token
             "inner_signs_ptr": rotation.inner_signs, "outer_signs_ptr": rotation.outer_signs,
             "n_tokens": n_tokens, "n_tile_rows": blocks * outer, "OUTER": outer, "INNER": rotation.inner_order,
             "TOKENS": tokens_per_program, "TILE_ROWS": tile_rows, "grid": (triton.cdiv(n_tokens, tokens_per_program),),
-            "num_warps": min(8, max(4, tokens_per_program * tile_rows * rotation.inner_order // 1024))}
+            "num_warps": num_warps or min(8, max(4, tokens_per_program * tile_rows * rotation.inner_order // 1024))}
 
 
 def rotated_fake_quant(x: torch.Tensor, rotation: BlockHadamard, bits: int, *,
@@ -248,8 +250,7 @@ def rotated_fake_quant(x: torch.Tensor, rotation: BlockHadamard, bits: int, *,
     n_cols = x.shape[-1]
     y = torch.empty_like(x)
     q_max, inv_q_max, scale_floor = fake_quant_row_args(bits)
-    launch = rotation_tile(n_cols, rotation, x.numel() // n_cols, tokens_per_program)
-    launch["num_warps"] = num_warps or launch["num_warps"]
+    launch = rotation_tile(n_cols, rotation, x.numel() // n_cols, tokens_per_program, num_warps)
     _rotated_fake_quant[launch.pop("grid")](x, y, n_cols=n_cols, q_max=q_max, inv_q_max=inv_q_max,
                                             scale_floor=scale_floor, **launch)
     return y

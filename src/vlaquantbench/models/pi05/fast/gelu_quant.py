@@ -112,9 +112,9 @@ if triton is not None:  # Triton ships with torch's CUDA wheels; without it the 
         tl.store(out_ptr + token[:, None] * n_cols + within, quantized.to(act.dtype), mask=inside)
 
 
-# Fewest warps of a rotated GELU program: on an H200 the expert's 50 x 4,096 took 5.5 us with 8
-# warps, 6.8 with 4, and 1,600 x 4,096 (batch 32) 30.9 against 34.2 (`gpu_hadamard_captured.py`,
-# calls in a CUDA graph).
+# Warps of a rotated GELU program (at least what `rotation_tile` picks, which is at most 8): on an
+# H200 the expert's 50 x 4,096 took 5.5 us with 8 warps, 6.8 with 4, and 1,600 x 4,096 (batch 32)
+# 30.9 against 34.2 (`gpu_hadamard_captured.py`, calls in a CUDA graph).
 GELU_WARPS = 8
 # Chunked programs (`_gelu_fake_quant_row_chunks`): values per chunk, warps per program.
 CHUNK, CHUNK_WARPS = 2048, 8
@@ -189,12 +189,11 @@ def gelu_rotated_fake_quant(gate: torch.Tensor, up: torch.Tensor | None, rotatio
     None: the GELU alone) in one kernel on CUDA tensors, for a rotation that
     `quant.fused_kernel.supports_rotation`: the down_proj / fc2 input of a rotated W4A4 model,
     without writing the activation out and reading it back. The result is contiguous. `num_warps`
-    overrides the choice of `rotation_tile` (at least `GELU_WARPS`); `tokens_per_program` as there."""
+    overrides `GELU_WARPS`; `tokens_per_program` as in `rotation_tile`."""
     gate_rows, up_rows, out = _operands(gate, up)
     rows, n_cols = gate_rows.shape
     q_max, inv_q_max, scale_floor = fake_quant_row_args(bits)
-    launch = rotation_tile(n_cols, rotation, rows, tokens_per_program)
-    launch["num_warps"] = num_warps or max(launch["num_warps"], GELU_WARPS)
+    launch = rotation_tile(n_cols, rotation, rows, tokens_per_program, num_warps or GELU_WARPS)
     _gelu_rotated_fake_quant[launch.pop("grid")](
         gate_rows, up_rows, out, n_cols=n_cols, gate_row_stride=gate_rows.stride(0), up_row_stride=up_rows.stride(0),
         q_max=q_max, inv_q_max=inv_q_max, scale_floor=scale_floor, k_beta=K_BETA, k_kappa=K_KAPPA,

@@ -102,8 +102,7 @@ def _ada_norm_launch(hidden, update, gate, scale, shift, eps: float, rotation, b
     shift, shift_stride = _per_batch("shift", shift, batch, width)
     out = torch.empty_like(hidden)
     q_max, inv_q_max, scale_floor = fake_quant_row_args(bits)
-    launch = rotation_tile(width, rotation, batch * tokens, tokens_per_program)
-    launch["num_warps"] = num_warps or launch["num_warps"]
+    launch = rotation_tile(width, rotation, batch * tokens, tokens_per_program, num_warps)
     _ada_rms_norm_rotated_fake_quant[launch.pop("grid")](
         hidden, update, gate, scale, shift, hidden_out, out, n_cols=width, tokens=tokens,
         gate_batch_stride=gate_stride, scale_batch_stride=scale_stride, shift_batch_stride=shift_stride,
@@ -137,8 +136,7 @@ def merge_heads_rotated_fake_quant(out: torch.Tensor, *, rotation, bits: int, nu
     batch, heads, tokens, head_dim = out.shape
     merged = torch.empty(batch, tokens, heads * head_dim, dtype=out.dtype, device=out.device)
     q_max, inv_q_max, scale_floor = fake_quant_row_args(bits)
-    launch = rotation_tile(heads * head_dim, rotation, batch * tokens, tokens_per_program)
-    launch["num_warps"] = num_warps or launch["num_warps"]
+    launch = rotation_tile(heads * head_dim, rotation, batch * tokens, tokens_per_program, num_warps)
     _merge_heads_rotated_fake_quant[launch.pop("grid")](
         out, merged, n_cols=heads * head_dim, tokens=tokens, head_dim=head_dim, batch_stride=out.stride(0),
         head_stride=out.stride(1), token_stride=out.stride(2), q_max=q_max, inv_q_max=inv_q_max,
