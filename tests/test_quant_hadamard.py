@@ -141,9 +141,14 @@ def test_streams_whose_rmsnorms_fold_are_rotated_offline(demos, model_name):
                 assert torch.allclose(rotated.get_submodule(q_proj).weight, folded, atol=1e-6)
         w4a4 = copy.deepcopy(demo)
         config = QuantConfig.from_preset("W4A4", scope="e2e", method="hadamard")
-        report = quantize_(w4a4, config, config.select(w4a4, spec.components))
+        selection = config.select(w4a4, spec.components)
+        (hadamard,) = config.transforms
+        declared_online = set(hadamard.runtime_step_layers(selection, None))  # asked before anything changes
+        report = quantize_(w4a4, config, selection)
         pi_chunk(model_name, w4a4, 3)
     assert report.unfired() == []
+    rotated_online = {name for name, hook in report.result.hooks.items() if hook.transform.rotation is not None}
+    assert declared_online == rotated_online and 0 < len(rotated_online) < len(report.result.hooks)
     for root, folds in ((VLM, True), (EXPERT, model_name == "pi0")):
         for reader in ("self_attn.q_proj", "self_attn.v_proj", "mlp.gate_proj", "mlp.up_proj"):
             transform = report.result.hooks[f"{root}.layers.5.{reader}"].transform
@@ -192,7 +197,8 @@ def test_hadamard_gptq_rounds_in_the_rotated_space(demos):
     config = QuantConfig.from_preset("W4A8", scope="ah", method="hadamard_gptq", stats=stats,
                                      calibration=calib.CalibrationSettings(alpha=0.5, quantile=None))
     with pytest.raises(UserError, match="residual stream 'expert' cannot follow rollout smoothing of its reader "
-                                        "paligemma_with_expert.gemma_expert.model.layers.0.self_attn.q_proj"):
+                                        "paligemma_with_expert.gemma_expert.model.layers.0.self_attn.q_proj: "
+                                        "run the Hadamard rotation without it"):
         quantize_(smoothed, config, config.select(smoothed, spec.components))
     # refused before the smoothing divided anything: the model is as it was
     assert all(torch.equal(a, b) for a, b in zip(smoothed.state_dict().values(), demo.state_dict().values(), strict=True))

@@ -50,9 +50,15 @@ class Transform:
     any changes a weight), then `apply` in list order; `description` extends the cell's quant_format."""
 
     description = ""  # empty: the method's format already says it (smoothing: the calibration settings)
+    title = "a transform"  # what refusals call it
 
     def check_after(self, earlier: Sequence[Transform], selection: Selection, stats: CalibrationStats | None) -> None:
         """Refuse, naming the conflict, to follow the transforms `earlier` in the list; by default it follows any."""
+
+    def runtime_step_layers(self, selection: Selection, stats: CalibrationStats | None) -> list[str]:
+        """The selected layers whose input `apply` will give a step computed at run time (a division, an
+        online rotation), changing nothing: what a later transform that cannot follow such a step asks."""
+        raise NotImplementedError
 
     def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, tuple[Callable, ...]]:
         """Rewrite the selected layers' weights in place; per layer changed, the steps its input takes first."""
@@ -66,8 +72,9 @@ class Smoothing(Transform):
     settings' quantile is None: then an exact identity before quantization)."""
 
     settings: CalibrationSettings
+    title = "rollout smoothing"
 
-    def layers(self, selection: Selection, stats: CalibrationStats | None) -> list[str]:
+    def runtime_step_layers(self, selection: Selection, stats: CalibrationStats | None) -> list[str]:
         """The selected layers it divides: those of the calibrated components that calibration observed
         (the others stay untransformed)."""
         return [name for name in selection.flat() if selection.component_of(name) in self.settings.components
@@ -76,7 +83,7 @@ class Smoothing(Transform):
     def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, tuple[Callable, ...]]:
         steps = {}
         layers = selection.flat()
-        for name in self.layers(selection, stats):
+        for name in self.runtime_step_layers(selection, stats):
             layer, layer_stats = layers[name], stats.layers[name]
             with torch.no_grad():
                 smooth = smoothing_factors(layer_stats.absmax, layer.weight, self.settings.alpha)
@@ -123,25 +130,37 @@ class Hadamard(Transform):
     Rollout smoothing before an offline rotation is refused (a folded reader's input is computed
     by the model, where no per-channel division can run first)."""
 
+    title = "the Hadamard rotation"
     description = ("residual streams rotated offline where their RMSNorms fold, other inputs rotated online "
                    "(QuaRot block-Hadamard)")
 
     def check_after(self, earlier: Sequence[Transform], selection: Selection, stats: CalibrationStats | None) -> None:
-        """Refuse to follow a smoothing of a reader this rotation folds."""
+        """Refuse to follow a transform that gives a reader this rotation folds a run-time input step: the
+        folded reader's input is computed by the model, where no step can run first."""
         layers = selection.flat()
-        smoothed = {name for transform in earlier if isinstance(transform, Smoothing)
-                    for name in transform.layers(selection, stats)}
-        for stream in selection.streams:
-            if conflicts := [name for name in _folded_readers(stream, layers) if name in smoothed]:
-                raise UserError(f"the offline rotation of residual stream {stream.name!r} cannot follow rollout "
-                                f"smoothing of its reader {conflicts[0]}: run Hadamard without smoothing")
+        for transform in earlier:
+            stepped = set(transform.runtime_step_layers(selection, stats))
+            for stream in self._rotated_streams(selection):
+                if conflicts := [name for name in _folded_readers(stream, layers) if name in stepped]:
+                    raise UserError(f"the offline rotation of residual stream {stream.name!r} cannot follow "
+                                    f"{transform.title} of its reader {conflicts[0]}: run {self.title} without it")
+
+    def runtime_step_layers(self, selection: Selection, stats: CalibrationStats | None) -> list[str]:
+        """The layers rotated online: every selected layer that no rotated stream's norm feeds."""
+        layers = selection.flat()
+        folded = {name for stream in self._rotated_streams(selection) for name in _folded_readers(stream, layers)}
+        return [name for name in layers if name not in folded]
+
+    @staticmethod
+    def _rotated_streams(selection: Selection) -> list:
+        """The residual streams it rotates offline: those whose readers the selection selects."""
+        layers = selection.flat()
+        return [stream for stream in selection.streams if stream.readers() & set(layers)]
 
     def apply(self, selection: Selection, stats: CalibrationStats | None) -> dict[str, tuple[Callable, ...]]:
         layers = selection.flat()
         steps: dict[str, tuple[Callable, ...]] = {}
-        for stream in selection.streams:
-            if not stream.readers() & set(layers):
-                continue  # nothing selected reads it: left as it is
+        for stream in self._rotated_streams(selection):  # one nothing selected reads is left as it is
             rotation = BlockHadamard(stream.width, stream.norms[0].norm.weight.device)
             folded = {name: FoldedInput(rotation, norm.gain(), norm.name)
                       for name, norm in _folded_readers(stream, layers).items()}
