@@ -313,7 +313,9 @@ def load_stats(path: str | Path, expected_key: str | None = None) -> Calibration
     path = Path(path)
     if not path.is_file():
         raise UserError(f"calibration statistics not found: {path}")
-    payload = torch.load(path, map_location="cpu", weights_only=True)
+    # Mapped, not read: a GPTQ cell's Hessians outweigh its policy (pi0.5 e2e: 24 GiB in float32), and the method
+    # reads one layer's at a time (copy-on-write pages: nothing is written back to the file).
+    payload = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     if expected_key is not None and payload["key"] != expected_key:
         raise UserError(f"calibration cache {path} has key {payload['key']}, expected {expected_key}")
     layers = {n: ChannelStats(**s) for n, s in payload["layers"].items()}

@@ -60,9 +60,11 @@ def gptq_weight(weight: torch.Tensor, hessian: torch.Tensor, grid: WeightGrid, d
     fixed = _fixed_grids(w, grid, group) if group is None or act_order else None
     order = torch.argsort(h.diagonal(), descending=True, stable=True) if act_order else torch.arange(columns)
     order = order.to(w.device)
-    w, damped = w[:, order], h[order][:, order]
-    damped.diagonal().add_(damp * damped.diagonal().mean())
-    upper = torch.linalg.cholesky(torch.cholesky_inverse(torch.linalg.cholesky(damped)), upper=True)
+    if act_order:
+        w, h = w[:, order], h[order][:, order]
+    h.diagonal().add_(damp * h.diagonal().mean())
+    upper = torch.linalg.cholesky(torch.cholesky_inverse(torch.linalg.cholesky(h)), upper=True)
+    del h  # an [in, in] float64 copy fewer while rounding (2 GiB for pi0.5's 16,384-wide down_proj)
     rounded = torch.empty_like(w)
     block = group if fixed is None else block_size
     for start in range(0, columns, block):
@@ -108,16 +110,19 @@ def gptq(model: nn.Module, selection: Selection, config: QuantConfig) -> MethodR
         usable=lambda layer: layer.hessian is not None)
     grid: WeightGrid = preset.weight
     ratios, dead = [], 0
-    hessians = {}
-    for name in selection.flat():  # in the space of the inputs the transforms leave (all checked before any rounding)
-        hessians[name] = stats[name].hessian.double()
+    for name in selection.flat():  # every layer's input steps checked before any rounding
         for step in selection.inputs.get(name, ()):
             if not hasattr(step, "map_hessian"):
                 raise UserError(f"method {method.name!r} cannot map layer {name}'s Hessian through the input step "
                                 f"{type(step).__name__} of a pre-quantization transform (only linear steps, e.g. Hadamard)")
-            hessians[name] = step.map_hessian(hessians[name])
     for name, layer in selection.flat().items():
-        done = gptq_weight(layer.weight, hessians[name], grid, method.damp, method.act_order, method.block_size)
+        # One layer's float64 Hessian at a time, in the space of the inputs the transforms leave: pi0.5's e2e
+        # Hessians are 24 GiB in float32 (OpenVLA-OFT's 34), which `load_stats` maps rather than reads.
+        hessian = stats[name].hessian.double()
+        for step in selection.inputs.get(name, ()):
+            hessian = step.map_hessian(hessian)
+        done = gptq_weight(layer.weight, hessian, grid, method.damp, method.act_order, method.block_size)
+        del hessian  # before the next layer's is made
         with torch.no_grad():
             layer.weight.copy_(done.weight.to(layer.weight.dtype))
         dead += done.dead_columns
