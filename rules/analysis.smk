@@ -4,20 +4,6 @@
 # and Snakemake removes the old outputs of every job it runs: no stale table survives. Without a frozen
 # manifest, `records_manifest` builds one (`paper` asks for it) but no rendering job waits for it: a record
 # refused there would stop the run before the tables' jobs start, leaving their old outputs in place.
-from vlaquantbench.workflow import BUILT_MANIFEST
-
-PAPER_TABLES = WF.table_names()
-FROZEN_MANIFEST = [str(WF.manifest)] if WF.manifest else []
-
-
-def records_of(refs):
-    """Record files of the cells `refs` (authors' .jsonl, a cell folder's episodes.parquet, or the DAG's cell)."""
-    return [WF.cell_input(ref) for ref in refs]
-
-
-def headers_of(refs):
-    """The header.json files read beside the cell folders among `refs` (declared inputs too)."""
-    return [header for header in map(WF.cell_header, refs) if header is not None]
 
 
 rule records_manifest:
@@ -48,11 +34,6 @@ rule summary:
         "logs/summary.log",
     script:
         "../workflow/scripts/summary.py"
-
-
-def report_params(target):
-    """What the report's caption of `target` names: its data source and what its records were checked against."""
-    return {"target": target, "source": WF.data_source(), "checks": WF.record_checks()}
 
 
 rule paper_table:

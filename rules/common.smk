@@ -1,4 +1,6 @@
-# Shared by every rule file: config validation and where a cell's records live.
+# Shared by all rule files. It holds the validated config and, one section per rule file, the constants and
+# functions its rules take their inputs, outputs, parameters and resources from; rule files hold only rules.
+import os
 import sys
 from pathlib import Path
 
@@ -6,6 +8,163 @@ sys.path.insert(0, str(Path(workflow.basedir) / "src"))
 
 validate(config, "../workflow/schemas/config.schema.yaml")
 
-from vlaquantbench.workflow import WorkflowConfig  # noqa: E402
+from vlaquantbench import cells as cell_configs  # noqa: E402
+from vlaquantbench.diagnostics.proxy_audit import diagnostics_files, load_cohort  # noqa: E402
+from vlaquantbench.envs.memory import job_memory_mb  # noqa: E402
+from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE, JOURNAL_FILE  # noqa: E402
+from vlaquantbench.replay.study import RecordSettings, analysis_files, load_study, with_formats  # noqa: E402
+from vlaquantbench.runner.gpus import SLOTS_DIR, LocalGpuPlan, NoGpu  # noqa: E402
+from vlaquantbench.runner.lock import LOCK_FILE  # noqa: E402
+from vlaquantbench.workflow import BUILT_MANIFEST, CELLS_DIR, WorkflowConfig  # noqa: E402
 
 WF = WorkflowConfig.from_snakemake(config, workflow.basedir)
+
+
+# --- Records, tables and figures (rules/analysis.smk) ---------------------------------------------
+PAPER_TABLES = WF.table_names()
+FROZEN_MANIFEST = [str(WF.manifest)] if WF.manifest else []
+
+
+def records_of(refs):
+    """Record files of the cells `refs` (authors' .jsonl, a cell folder's episodes.parquet, or the DAG's cell)."""
+    return [WF.cell_input(ref) for ref in refs]
+
+
+def headers_of(refs):
+    """The header.json files read beside the cell folders among `refs` (declared inputs too)."""
+    return [header for header in map(WF.cell_header, refs) if header is not None]
+
+
+def report_params(target):
+    """What the report's caption of `target` names: its data source and what its records were checked against."""
+    return {"target": target, "source": WF.data_source(), "checks": WF.record_checks()}
+
+
+# --- Cells: checkpoints, calibrations and rollouts (rules/rollout.smk) ----------------------------
+
+
+# Built (and every cell checked against the registries and the layer-name index) at parse time.
+CELLS = {} if WF.records_dir else WF.study_cells()
+CALIBRATIONS = {
+    cell_configs.config_hash(calib): calib
+    for calib in map(cell_configs.calibration_config, CELLS.values())
+    if calib is not None
+}
+CHECKPOINTS = {
+    cell_configs.checkpoint_key(cfg): {k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}
+    for cfg in CELLS.values()
+}
+# A checkpoint trained here (study.models.<model>.trained) resolves offline from its own HF_HOME folder. Its
+# training.json is read while the DAG is built (the revision it names is hashed into every cell), so it is no
+# job's input: a missing one is refused then, naming the command that trains it (rule train_policy). As an input
+# it would also rerun the training of a committed checkpoint whose demonstrations are not committed.
+for info in CHECKPOINTS.values():
+    if WF.study.models[info["model"]].trained:
+        info["hf_home"] = WF.study.models[info["model"]].trained
+
+
+def on_gpu(cfg):
+    return cfg["runner"]["device"].startswith("cuda")
+
+
+# Local GPU jobs (no SLURM, whose --gpus=1 isolates each job): Snakemake counts the `gpu` resource but
+# gives no job a device, so each takes a slot of its own (vlaquantbench.runner.gpus); `--resources gpu`
+# is set to the device count, refused above it, and the node's cores are split between the GPU jobs.
+GPU_PLAN = None
+NO_GPU = None  # the refusal of a study on cuda on a node without GPUs, which dry runs only state
+if workflow.local_exec and "SLURM_JOB_ID" not in os.environ and any(map(on_gpu, [*CELLS.values(), *CALIBRATIONS.values()])):
+    requested = workflow.global_resources.get("gpu")
+    try:
+        GPU_PLAN = LocalGpuPlan.for_node(WF.study.execution.gpus, None if requested is None else requested.value,
+                                         workflow.cores)
+    except NoGpu as err:
+        NO_GPU = err
+        print(f"{err}: a real run stops here (a dry run plans the jobs all the same)", file=sys.stderr)
+    if GPU_PLAN is not None and workflow.is_main_process:
+        workflow.register_resource("gpu", GPU_PLAN.jobs)
+        print(GPU_PLAN.describe(WF.study.execution.num_envs), file=sys.stderr)
+
+
+def gpu_job(cfg):
+    """A GPU job's `threads`, its LIBERO workers and its slot, where the workflow assigns its device."""
+    if GPU_PLAN is None or not on_gpu(cfg):
+        return {"threads": 2, "slots": None}
+    return {"threads": GPU_PLAN.threads, "workers": GPU_PLAN.workers(WF.study.execution.num_envs),
+            "slots": {"dir": SLOTS_DIR, "gpus": WF.study.execution.gpus}}
+
+
+def execution(cfg, kwargs):
+    job = gpu_job(cfg)
+    return {**kwargs, "num_envs": job["workers"]} if "workers" in job else kwargs
+
+
+def checkpoint_stamp(cfg):
+    return f"results/checkpoints/{cell_configs.checkpoint_key(cfg)}/checkpoint.json"
+
+
+def memory_mb(cfg, episodes):
+    """A job's `mem_mb`: the LIBERO workers it starts (study.execution.num_envs, at most one per episode) at
+    their measured footprint, and its policy (vlaquantbench.envs.memory). A profile's set-resources overrides it."""
+    workers = gpu_job(cfg).get("workers", WF.study.execution.num_envs)  # fewer on a node's split cores
+    return job_memory_mb(cfg["benchmark"], cfg["suite"], min(workers, episodes))
+
+
+def against_records(cfg):
+    """The records (episodes first, then header) of the cell a sequential cell is tested against
+    (study.sequential): they exist before its rollout starts."""
+    against = (cfg.get("sequential") or {}).get("against")
+    return [] if against is None else [f"{CELLS_DIR}/{against['config_hash']}/{name}" for name in (EPISODES_FILE, HEADER_FILE)]
+
+
+def calibration_stats(cfg):
+    calib = cell_configs.calibration_config(cfg)
+    return [] if calib is None else [f"results/calibration/{cell_configs.config_hash(calib)}.pt"]
+
+
+# --- Replay and layer diagnostics (rules/replay.smk) ----------------------------------------------
+REPLAY_STUDY = "pi05_libero_spatial"
+REPLAY_OPTIONS = config.get("replay") or {}
+REPLAY = with_formats(load_study(REPLAY_STUDY), REPLAY_OPTIONS.get("formats"))
+REPLAY_DIR = config.get("replay_analysis_dir") or f"results/replay/{REPLAY_STUDY}"
+REPLAY_ANALYSES = [str(path) for path in analysis_files(REPLAY_DIR, REPLAY["formats"]).values()]
+# The recording: records.json and one file per (task, init state) trajectory, every one declared.
+RECORDING = f"results/replay/{REPLAY_STUDY}/records"
+TRAJECTORIES = [f"{RECORDING}/{name}" for name in RecordSettings.from_study(REPLAY, REPLAY_OPTIONS).trajectory_files()]
+# Success rates of the matching closed-loop cells (SR column): a summary with the authors' columns.
+SUCCESS_SUMMARY = config.get("success_summary") or "tables/summary.csv"
+
+
+def replay_runs(replay_format, suffix):
+    """One format's replays (`.json` summaries or `.npz` arrays), full precision's two runs first."""
+    return [f"results/replay/{REPLAY_STUDY}/fp/{REPLAY['baseline']}.{suffix}",
+            f"results/replay/{REPLAY_STUDY}/fp/{REPLAY['repeat']}.{suffix}",
+            *(f"results/replay/{REPLAY_STUDY}/{replay_format}/{name}.{suffix}" for name in REPLAY["configurations"])]
+
+
+# Layer diagnostics -> proxy audit (tab:proxy_audit)
+PROXY_COHORT = load_cohort("proxy_audit")
+DIAGNOSTICS_DIR = config.get("diagnostics_dir") or "results/diagnostics"
+
+
+def proxy_audit_diagnostics(wildcards):
+    """The cohort's diagnostics files; without diagnostics_dir only the recorded model's can be collected."""
+    from vlaquantbench.errors import UserError
+
+    uncollectable = [m for m in PROXY_COHORT["models"] if m != REPLAY["model"]]
+    if not config.get("diagnostics_dir") and uncollectable:
+        raise UserError(f"tables/proxy_audit.tex needs diagnostics of {', '.join(uncollectable)}, which this DAG "
+                        f"cannot collect (it records {REPLAY['model']}); set diagnostics_dir to a folder holding them")
+    return [str(path) for path in diagnostics_files(PROXY_COHORT, DIAGNOSTICS_DIR).values()]
+
+
+# --- Sequential evaluation (rules/sequential.smk) -------------------------------------------------
+SEQUENTIAL = config.get("sequential") or {}
+SEQUENTIAL_TABLES = SEQUENTIAL.get("tables", ["clustered", "lattice"])
+SEQUENTIAL_TARGET = "tables/sequential.tex"
+
+
+def sequential_refs():
+    """The recorded cells of the listed tables' contrasts (read when the target is asked for: a study whose
+    tables_dir lacks those tables builds its DAG without them)."""
+    refs = sorted({ref for name in SEQUENTIAL_TABLES for pair in WF.table(name).contrasts() for ref in pair})
+    return WF.checked_refs(WF.record_refs(refs, SEQUENTIAL_TARGET), SEQUENTIAL_TARGET)

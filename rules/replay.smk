@@ -3,18 +3,6 @@
 # `<format>/analysis.json` files; otherwise the DAG records full-precision trajectories in LIBERO,
 # replays every configuration on them (one job each; full precision twice, under `fp/`) and
 # analyses each format under results/replay/<study>/.
-from vlaquantbench.replay.study import RecordSettings, analysis_files, load_study, with_formats  # noqa: E402
-
-REPLAY_STUDY = "pi05_libero_spatial"
-REPLAY_OPTIONS = config.get("replay") or {}
-REPLAY = with_formats(load_study(REPLAY_STUDY), REPLAY_OPTIONS.get("formats"))
-REPLAY_DIR = config.get("replay_analysis_dir") or f"results/replay/{REPLAY_STUDY}"
-REPLAY_ANALYSES = [str(path) for path in analysis_files(REPLAY_DIR, REPLAY["formats"]).values()]
-# The recording: records.json and one file per (task, init state) trajectory, every one declared.
-RECORDING = f"results/replay/{REPLAY_STUDY}/records"
-TRAJECTORIES = [f"{RECORDING}/{name}" for name in RecordSettings.from_study(REPLAY, REPLAY_OPTIONS).trajectory_files()]
-# Success rates of the matching closed-loop cells (SR column): a summary with the authors' columns.
-SUCCESS_SUMMARY = config.get("success_summary") or "tables/summary.csv"
 
 
 wildcard_constraints:
@@ -51,13 +39,6 @@ rule replay_configuration:
         f"logs/replay_configuration/{REPLAY_STUDY}/{{replay_format}}/{{config}}.log",
     script:
         "../workflow/scripts/replay_configuration.py"
-
-
-def replay_runs(replay_format, suffix):
-    """One format's replays (`.json` summaries or `.npz` arrays), full precision's two runs first."""
-    return [f"results/replay/{REPLAY_STUDY}/fp/{REPLAY['baseline']}.{suffix}",
-            f"results/replay/{REPLAY_STUDY}/fp/{REPLAY['repeat']}.{suffix}",
-            *(f"results/replay/{REPLAY_STUDY}/{replay_format}/{name}.{suffix}" for name in REPLAY["configurations"])]
 
 
 rule replay_analyze:
@@ -144,12 +125,6 @@ rule replay_formats_figure:
 # Layer diagnostics -> proxy audit (tab:proxy_audit). With `diagnostics_dir` set (e.g. the authors'
 # diagnostics/v2), its files are read; otherwise they are collected under results/diagnostics/ on the
 # replay study's full-precision recording (models of that recording only).
-from vlaquantbench.diagnostics.proxy_audit import diagnostics_files, load_cohort  # noqa: E402
-
-PROXY_COHORT = load_cohort("proxy_audit")
-DIAGNOSTICS_DIR = config.get("diagnostics_dir") or "results/diagnostics"
-
-
 rule diagnostics_collect:
     input:
         records=f"{RECORDING}/records.json",
@@ -162,17 +137,6 @@ rule diagnostics_collect:
         "logs/diagnostics_collect/{model}-{scope}-{preset}.log",
     script:
         "../workflow/scripts/diagnostics_collect.py"
-
-
-def proxy_audit_diagnostics(wildcards):
-    """The cohort's diagnostics files; without diagnostics_dir only the recorded model's can be collected."""
-    from vlaquantbench.errors import UserError
-
-    uncollectable = [m for m in PROXY_COHORT["models"] if m != REPLAY["model"]]
-    if not config.get("diagnostics_dir") and uncollectable:
-        raise UserError(f"tables/proxy_audit.tex needs diagnostics of {', '.join(uncollectable)}, which this DAG "
-                        f"cannot collect (it records {REPLAY['model']}); set diagnostics_dir to a folder holding them")
-    return [str(path) for path in diagnostics_files(PROXY_COHORT, DIAGNOSTICS_DIR).values()]
 
 
 rule proxy_audit_table:

@@ -1,15 +1,5 @@
 # Sequential evaluation (issue 32): the stopping rule replayed on the recorded contrasts of other tables.
 # `sequential` in the config: which tables' contrasts (default tab:clustered and tab:lattice), alpha, margin.
-SEQUENTIAL = config.get("sequential") or {}
-SEQUENTIAL_TABLES = SEQUENTIAL.get("tables", ["clustered", "lattice"])
-SEQUENTIAL_TARGET = "tables/sequential.tex"
-
-
-def sequential_refs():
-    """The recorded cells of the listed tables' contrasts (read when the target is asked for: a study whose
-    tables_dir lacks those tables builds its DAG without them)."""
-    refs = sorted({ref for name in SEQUENTIAL_TABLES for pair in WF.table(name).contrasts() for ref in pair})
-    return WF.checked_refs(WF.record_refs(refs, SEQUENTIAL_TARGET), SEQUENTIAL_TARGET)
 
 
 rule sequential_table:

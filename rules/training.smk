@@ -9,8 +9,8 @@ if "training" in config and DEMONSTRATIONS is not None:
             dataset=rules.demonstrations.output.dataset,
             manifest=rules.demonstrations.output.manifest,
         output:
-            hub=directory(TRAINING["output"] + "/hub"),
-            provenance=TRAINING["output"] + "/training.json",
+            hub=directory(f"{TRAINING['output']}/hub"),
+            provenance=f"{TRAINING['output']}/training.json",
         params:
             training=TRAINING,
             dataset_repo_id=DEMONSTRATIONS.repo_id,
