@@ -181,14 +181,19 @@ HADAMARD_KERNELS = {
     "gpu_hadamard_captured_run2.json": "norm / head merge compiled by inductor, then the rotation kernel",
     "gpu_hadamard_captured_run3.json": "norm / head merge, rotation and quantization in one kernel (rotated_norms), "
                                        "the Hadamard signs read, not derived; the expert's GELU with 4 warps (now 8)",
+    "gpu_hadamard_captured_run4.json": "as run3, the expert's GELU with 8 warps (main's kernels, 2026-12-05)",
+    "gpu_hadamard_captured_run5.json": "as run3, the expert's GELU with 8 warps (main's kernels, 2026-12-05)",
 }
+# The runs of main's kernels: the value is their median (earlier runs measured earlier kernels).
+CURRENT_KERNELS = ("gpu_hadamard_captured_run4.json", "gpu_hadamard_captured_run5.json")
 
 
 def _hadamard_captured() -> dict:
     """Issue 31's keys from `gpu_hadamard_captured*.json` (`gpu_hadamard_captured.py`, one file per
     device call): W4A4 + Hadamard (rotations inside the captured chunk) over BASELINE, the cells
     taking turns in one process, with plain W4A4 of the same run beside it. The value is the median
-    over the runs whose BASELINE is a reference (`BASELINE_NOT_A_REFERENCE`), every run beside it;
+    over the runs of main's kernels (`CURRENT_KERNELS`) whose BASELINE is a reference
+    (`BASELINE_NOT_A_REFERENCE`), those runs beside it;
     `hadamard_vs_w4a4` is the Hadamard cell over plain W4A4 in every run, with the kernels it ran
     (`HADAMARD_KERNELS`)."""
     runs = {path.name: run for path, run in ((p, json.loads(p.read_text()))
@@ -196,13 +201,14 @@ def _hadamard_captured() -> dict:
             if "chunk_ms" in run}
     if not runs:
         return {}
-    referenced = {name: run for name, run in runs.items() if name not in BASELINE_NOT_A_REFERENCE}
+    referenced = {name: run for name, run in runs.items()
+                  if name not in BASELINE_NOT_A_REFERENCE and name in CURRENT_KERNELS}
     first = next(iter(runs.values()))
     where = "; ".join(_machine(run) for run in runs.values())
     form = (f"captured, {first['cameras']} cameras, BASELINE / rtn-W4A4-e2e / hadamard-W4A4-e2e taking turns "
             f"({first['rounds']} rounds x {first['repeats_per_round']} chunks each, median); value: median of "
             f"{', '.join(referenced)}; the VLM residual stream rotated offline (quant.rotation), every other "
-            "selected input rotated online inside the captured chunk")
+            "selected input rotated online inside the captured chunk, fused with the op producing it")
     out = {}
     for b in (1, 8, 32):
         ratios = [run["vs_baseline"]["w4a4_hadamard"][str(b)] for run in referenced.values()]
