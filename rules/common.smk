@@ -41,8 +41,6 @@ def report_params(target):
 
 
 # --- Cells: checkpoints, calibrations and rollouts (rules/rollout.smk) ----------------------------
-
-
 # Built (and every cell checked against the registries and the layer-name index) at parse time.
 CELLS = {} if WF.records_dir else WF.study_cells()
 CALIBRATIONS = {

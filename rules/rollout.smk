@@ -37,7 +37,7 @@ rule calibrate:
         "logs/calibrate/{calibration}.log",
     threads: lambda wc: gpu_job(CALIBRATIONS[wc.calibration])["threads"]
     resources:
-        gpu=lambda wc: int(CALIBRATIONS[wc.calibration]["runner"]["device"].startswith("cuda")),
+        gpu=lambda wc: int(on_gpu(CALIBRATIONS[wc.calibration])),
         mem_mb=lambda wc: memory_mb(CALIBRATIONS[wc.calibration], len(CALIBRATIONS[wc.calibration]["calibration"]["tasks"])
                                     * len(CALIBRATIONS[wc.calibration]["calibration"]["init_states"])),
     script:
@@ -67,7 +67,7 @@ rule rollout:
         "logs/rollout/{cell}.log",
     threads: lambda wc: gpu_job(CELLS[wc.cell])["threads"]
     resources:
-        gpu=lambda wc: int(CELLS[wc.cell]["runner"]["device"].startswith("cuda")),
+        gpu=lambda wc: int(on_gpu(CELLS[wc.cell])),
         mem_mb=lambda wc: memory_mb(CELLS[wc.cell], len(CELLS[wc.cell]["tasks"]) * CELLS[wc.cell]["episodes_per_task"]),
     script:
         "../workflow/scripts/rollout.py"
