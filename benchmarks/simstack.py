@@ -108,6 +108,19 @@ json.dump({"opened": sorted(opened), "referenced": sorted(referenced), "modules"
 """
 
 
+# The policy stack alone (`pack --benchmark none`): what the GPU policy benchmarks (benchmarks/gpu_*.py)
+# import to build, quantize and run a model, and the runner's config validation (jsonschema).
+_POLICY_PROBE = _AUDIT_HEADER + r"""
+import jsonschema
+import vlaquantbench.models.pi05.fast, vlaquantbench.quant.fused_kernel
+from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+adapter = make_adapter(AdapterConfig(model="pi05", variant="demo"))
+adapter.load()
+modules = {name.split(".")[0]: m.__file__ for name, m in list(sys.modules.items()) if getattr(m, "__file__", None)}
+json.dump({"modules": modules}, open(sys.argv[1], "w"))
+"""
+
+
 def _site_packages() -> Path:
     return Path(sysconfig.get_paths()["purelib"])
 
@@ -392,6 +405,20 @@ def pack_metaworld(config: Path, out: Path, closed_loop: bool = False) -> list[P
     return _write_parts(groups, out, {"benchmark": "metaworld", "tasks": tasks, "dists": dists})
 
 
+def pack_policy(out: Path) -> list[Path]:
+    """The policy stack without a simulator (`_POLICY_PROBE`): lerobot, transformers, tokenizers,
+    jsonschema and what they import that the GPU machine lacks, for benchmarks that run no episode."""
+    with tempfile.TemporaryDirectory() as tmp:
+        found = Path(tmp) / "probe.json"
+        subprocess.run([sys.executable, "-c", _POLICY_PROBE, str(found)], check=True,
+                       env={**os.environ, "VQB_SIMSTACK_HIDDEN": ",".join(OPTIONAL + METAWORLD_HIDDEN)})
+        modules = json.loads(found.read_text())["modules"]
+    site = _site_packages()
+    dists = _needed_dists(modules, trees=(), left_out=())
+    groups = {"dists": [(f, f"site/{f.relative_to(site)}") for d in dists for f in _dist_files(d)]}
+    return _write_parts(groups, out, {"benchmark": None, "dists": dists})
+
+
 def unpack(source: Path, target: Path) -> Path:
     tarballs = sorted(source.glob("part*/*.tar.xz"))
     if not tarballs:
@@ -487,7 +514,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("pack")
-    p.add_argument("--benchmark", choices=("libero", "metaworld"), default="libero")
+    p.add_argument("--benchmark", choices=("libero", "metaworld", "none"), default="libero",
+                   help="none: the policy stack alone, for the GPU policy benchmarks")
     p.add_argument("--suite", default="libero_spatial", help="the LIBERO suite")
     p.add_argument("--config", type=Path, default=Path("config/trained_study.yaml"),
                    help="Meta-World: the workflow config whose demonstrations section names the tasks")
@@ -504,7 +532,9 @@ def main(argv: list[str] | None = None) -> None:
     c.add_argument("--steps", type=int, default=5)
     c.add_argument("--camera-size", type=int, default=256)
     args = parser.parse_args(argv)
-    if args.command == "pack" and args.benchmark == "metaworld":
+    if args.command == "pack" and args.benchmark == "none":
+        pack_policy(args.out)
+    elif args.command == "pack" and args.benchmark == "metaworld":
         pack_metaworld(args.config, args.out, args.closed_loop)
     elif args.command == "pack":
         pack(args.suite, args.out, args.camera_size)

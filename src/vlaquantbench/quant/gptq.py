@@ -60,6 +60,9 @@ def gptq_weight(weight: torch.Tensor, hessian: torch.Tensor, grid: WeightGrid, d
     fixed = _fixed_grids(w, grid, group) if group is None or act_order else None
     order = torch.argsort(h.diagonal(), descending=True, stable=True) if act_order else torch.arange(columns)
     order = order.to(w.device)
+    # The processing order as host integers, read once: indexing the device tensor per column waited on the
+    # GPU once per column (pi0.5's e2e: about a million columns).
+    columns_in_order = order.tolist()
     if act_order:
         w, h = w[:, order], h[order][:, order]
     h.diagonal().add_(damp * h.diagonal().mean())
@@ -73,7 +76,7 @@ def gptq_weight(weight: torch.Tensor, hessian: torch.Tensor, grid: WeightGrid, d
         errors = torch.zeros_like(pending)
         group_grid = grid_of(pending, grid.bits, grid.symmetric) if fixed is None else None  # block == group
         for i in range(end - start):
-            column = int(order[start + i])
+            column = columns_in_order[start + i]
             row_grid = group_grid if fixed is None else fixed[column // group if group else 0]
             q = row_grid.quantize_column(pending[:, i]).double()
             rounded[:, start + i] = q
@@ -117,8 +120,11 @@ def gptq(model: nn.Module, selection: Selection, config: QuantConfig) -> MethodR
                                 f"{type(step).__name__} of a pre-quantization transform (only linear steps, e.g. Hadamard)")
     for name, layer in selection.flat().items():
         # One layer's float64 Hessian at a time, in the space of the inputs the transforms leave: pi0.5's e2e
-        # Hessians are 24 GiB in float32 (OpenVLA-OFT's 34), which `load_stats` maps rather than reads.
-        hessian = stats[name].hessian.double()
+        # Hessians are 24 GiB in float32 (OpenVLA-OFT's 34), which `load_stats` maps rather than reads. Made on
+        # the layer's device from the mapped file's float32 (converted there: `.to(device, float64)` converts
+        # on the host first), so on a GPU neither the float64 copy nor the rotations' products (`map_hessian`)
+        # are host work.
+        hessian = stats[name].hessian.to(layer.weight.device).double()
         for step in selection.inputs.get(name, ()):
             hessian = step.map_hessian(hessian)
         done = gptq_weight(layer.weight, hessian, grid, method.damp, method.act_order, method.block_size)
