@@ -164,3 +164,24 @@ def test_gptq_refuses_float_formats_and_missing_hessians(calibrated):
         config = QuantConfig.from_preset("W4", scope="ah", method="gptq_act", stats=rows_only)
         quantize_(policy, config, config.select(policy, spec.components))
     assert all(torch.equal(before[k], v) for k, v in policy.state_dict().items())
+
+
+def test_gptq_refuses_a_non_finite_hessian_before_rounding_and_an_indefinite_one_naming_the_layer(calibrated):
+    spec, demo, stats = calibrated["pi05"]
+    policy = copy.deepcopy(demo)
+    before = {k: v.clone() for k, v in policy.state_dict().items()}
+    ah = select_layers(policy, spec.components, "ah").flat()
+    last = list(ah)[-1]
+    bad = dict(stats.layers)
+    bad[last] = copy.copy(stats.layers[last])
+    bad[last].hessian = stats.layers[last].hessian.clone()
+    bad[last].hessian[0, 0] = float("nan")
+    nan_stats = calib.CalibrationStats("nanstats", {}, bad)
+    with pytest.raises(UserError, match=rf"Hessian of layer {last} in calibration statistics nanstats.pt holds non-finite"):
+        config = QuantConfig.from_preset("W4A8", scope="ah", method="gptq", stats=nan_stats)
+        quantize_(policy, config, config.select(policy, spec.components))
+    assert all(torch.equal(before[k], v) for k, v in policy.state_dict().items())  # the last layer's NaN refused first
+    bad[last].hessian = -torch.eye(bad[last].hessian.shape[0])
+    with pytest.raises(UserError, match=rf"layer {last}'s Hessian plus damping \(0.01 of its mean diagonal\) is not positive"):
+        config = QuantConfig.from_preset("W4A8", scope="ah", method="gptq", stats=calib.CalibrationStats("neg", {}, bad))
+        quantize_(policy, config, config.select(policy, spec.components))

@@ -113,11 +113,16 @@ def gptq(model: nn.Module, selection: Selection, config: QuantConfig) -> MethodR
         usable=lambda layer: layer.hessian is not None)
     grid: WeightGrid = preset.weight
     ratios, dead = [], 0
-    for name in selection.flat():  # every layer's input steps checked before any rounding
+    for name in selection.flat():  # every layer's input steps and Hessian checked before any rounding
         for step in selection.inputs.get(name, ()):
             if not hasattr(step, "map_hessian"):
                 raise UserError(f"method {method.name!r} cannot map layer {name}'s Hessian through the input step "
                                 f"{type(step).__name__} of a pre-quantization transform (only linear steps, e.g. Hadamard)")
+        # A NaN or infinity in X^T X (an overflowing or NaN activation while calibrating) would round the
+        # layer to NaN weights, or not, depending on where the factorization meets it.
+        if not torch.isfinite(stats[name].hessian).all():
+            raise UserError(f"method {method.name!r}: the Hessian of layer {name} in calibration statistics "
+                            f"{config.stats.key}.pt holds non-finite values; calibrate again")
     for name, layer in selection.flat().items():
         # One layer's float64 Hessian at a time, in the space of the inputs the transforms leave: pi0.5's e2e
         # Hessians are 24 GiB in float32 (OpenVLA-OFT's 34), which `load_stats` maps rather than reads. Made on
@@ -127,7 +132,12 @@ def gptq(model: nn.Module, selection: Selection, config: QuantConfig) -> MethodR
         hessian = stats[name].hessian.to(layer.weight.device).double()
         for step in selection.inputs.get(name, ()):
             hessian = step.map_hessian(hessian)
-        done = gptq_weight(layer.weight, hessian, grid, method.damp, method.act_order, method.block_size)
+        try:
+            done = gptq_weight(layer.weight, hessian, grid, method.damp, method.act_order, method.block_size)
+        except torch.linalg.LinAlgError as error:
+            raise UserError(f"method {method.name!r}: layer {name}'s Hessian plus damping ({method.damp} of its mean "
+                            f"diagonal) is not positive definite, so GPTQ cannot invert it ({error}); give the "
+                            "method a larger damp or calibrate on more rows") from error
         del hessian  # before the next layer's is made
         with torch.no_grad():
             layer.weight.copy_(done.weight.to(layer.weight.dtype))
