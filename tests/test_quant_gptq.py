@@ -174,14 +174,18 @@ def test_gptq_refuses_a_non_finite_hessian_before_rounding_and_an_indefinite_one
     last = list(ah)[-1]
     bad = dict(stats.layers)
     bad[last] = copy.copy(stats.layers[last])
+    # what one NaN input row leaves in the observer's statistics: a NaN absmax and a NaN row and column of X^T X
+    bad[last].absmax = stats.layers[last].absmax.clone()
+    bad[last].absmax[0] = float("nan")
     bad[last].hessian = stats.layers[last].hessian.clone()
-    bad[last].hessian[0, 0] = float("nan")
+    bad[last].hessian[0, :] = bad[last].hessian[:, 0] = float("nan")
     nan_stats = calib.CalibrationStats("nanstats", {}, bad)
-    with pytest.raises(UserError, match=rf"Hessian of layer {last} in calibration statistics nanstats.pt holds non-finite"):
+    with pytest.raises(UserError, match=rf"layer {last}'s inputs held non-finite values while calibrating \(calibration "
+                                        r"statistics nanstats.pt\)"):
         config = QuantConfig.from_preset("W4A8", scope="ah", method="gptq", stats=nan_stats)
         quantize_(policy, config, config.select(policy, spec.components))
     assert all(torch.equal(before[k], v) for k, v in policy.state_dict().items())  # the last layer's NaN refused first
-    bad[last].hessian = -torch.eye(bad[last].hessian.shape[0])
+    bad[last].absmax, bad[last].hessian = stats.layers[last].absmax, -torch.eye(bad[last].hessian.shape[0])
     with pytest.raises(UserError, match=rf"layer {last}'s Hessian plus damping \(0.01 of its mean diagonal\) is not positive"):
         config = QuantConfig.from_preset("W4A8", scope="ah", method="gptq", stats=calib.CalibrationStats("neg", {}, bad))
         quantize_(policy, config, config.select(policy, spec.components))
