@@ -36,7 +36,7 @@ RESULTS = Path(__file__).resolve().parent / "results" / "trained_policy_closed_l
 
 def evaluate(home: Path, suite_name: str, tasks: list[str], episodes: int, first_variation: int, workers: int,
              device: str, flow_steps: int, max_steps: int | None = None, preset: str | None = None,
-             scope: str = "e2e") -> dict:
+             scope: str = "e2e", records_file: Path | None = None) -> dict:
     if device == "cpu":
         # One intra-op thread: this policy's ops are tiny (10 x 32 matmuls), and on a loaded 2-core machine
         # each op's second OpenMP thread waits for a core, ~2 ms an op: 4.5 s a chunk against 0.25 s with
@@ -61,9 +61,16 @@ def evaluate(home: Path, suite_name: str, tasks: list[str], episodes: int, first
     specs = [suite.episode_spec(t, first_variation + e) for t in task_ids for e in range(episodes)]
     max_steps = suite.step_limit if max_steps is None else max_steps
     records: list[dict] = []
+
+    def finished(batch: list[dict]) -> None:
+        records.extend(batch)
+        if records_file is not None:  # each episode as it ends: a run cut short keeps what it finished
+            with open(records_file, "a") as f:
+                f.writelines(json.dumps(r) + "\n" for r in batch)
+
     started = time.perf_counter()
     with make_env("metaworld", suite, workers, camera_size=adapter.policy_config.image_resolution[0]) as env:
-        run_episodes(adapter, env, specs, max_steps, records.extend)
+        run_episodes(adapter, env, specs, max_steps, finished)
     per_task: dict[str, dict] = {}
     for record in records:
         outcome = per_task.setdefault(record["task_name"], {"episodes": 0, "successes": 0})
@@ -76,6 +83,8 @@ def evaluate(home: Path, suite_name: str, tasks: list[str], episodes: int, first
         "executed_chunk": adapter.executed_chunk, "flow_steps": flow_steps, "max_steps": max_steps,
         "episodes": len(records), "success_rate": round(sum(r["success"] for r in records) / len(records), 3),
         "per_task": per_task, "wall_s": round(time.perf_counter() - started, 1),
+        "outcomes": [{"task": r["task_name"], "variation": r["init_state_id"], "success": r["success"], "steps": r["steps"]}
+                     for r in sorted(records, key=lambda r: (r["task_id"], r["init_state_id"]))],
     }
 
 
@@ -93,9 +102,10 @@ def main() -> None:
     parser.add_argument("--preset", default=None, help="e.g. W2, W4A4 (default: full precision)")
     parser.add_argument("--scope", default="e2e", help="component scope of --preset: e2e, ve, llm or ah")
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--records", type=Path, default=None, help="JSONL file each finished episode's record is appended to")
     args = parser.parse_args()
     result = evaluate(args.home, args.suite, args.tasks, args.episodes, args.first_variation, args.workers,
-                      args.device, args.flow_steps, args.max_steps, args.preset, args.scope)
+                      args.device, args.flow_steps, args.max_steps, args.preset, args.scope, args.records)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))

@@ -170,7 +170,7 @@ def test_a_bad_section_is_refused_naming_the_field(section, message):
 ])
 def test_a_bad_task_or_variation_range_is_refused_before_any_worker(section, message, tmp_path):
     with pytest.raises(UserError, match=message):
-        write_demonstrations(DemonstrationConfig.from_dict(section), tmp_path / "out", num_envs=2)
+        write_demonstrations(DemonstrationConfig.from_dict(section), tmp_path / "out", workers=2)
     assert not (tmp_path / "out").exists()
 
 
