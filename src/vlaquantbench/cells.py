@@ -40,7 +40,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from vlaquantbench.config.study import RunnerConfig, StudyConfig
-from vlaquantbench.envs import BENCHMARK_SUITES, check_ids
+from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_step_limit
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import client_conventions, step_limit
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
@@ -196,12 +196,13 @@ class CellConfig(PolicyRunConfig):
         except UserError as err:
             raise UserError(f"cell {ref!r}: {err}") from None
         runner = _runner(study.runner, weights.runner, client, fields["flow_steps"], released_limit)
-        episodes = weights.episodes_per_task or study.episodes_per_task or client.episodes_per_task
+        episodes, _ = episodes_per_task(study, model)
         only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
         seed = study.seed + fields["seed_offset"]
         calibration = _calibration(ref, fields, study, seed)
         _check_fits_suite(ref, benchmark, suite, model, study, episodes, calibration, fields)
         _check_mujoco(ref, model, study, client, runner)
+        _check_steps(ref, benchmark, suite, model, study, runner)
         return cls(
             ref=ref,
             cell=name,
@@ -338,8 +339,7 @@ def _check_fits_suite(ref: str, benchmark: str, suite: str, model: str, study: S
         else:
             check_ids("study.tasks", study.tasks, size.tasks, f"{suite} has {size.tasks} tasks")
         if episodes > size.init_states:
-            field = (f"study.models.{model}.episodes_per_task" if study.models[model].episodes_per_task
-                     else "study.episodes_per_task" if study.episodes_per_task else f"{model}'s client episodes_per_task")
+            _, field = episodes_per_task(study, model)
             raise UserError(f"{field}: {episodes} episodes per task, but {suite} has {size.init_states} official init "
                             f"states per task (episode i starts from init state i)")
         if calibration is not None:
@@ -358,11 +358,39 @@ def _check_fits_suite(ref: str, benchmark: str, suite: str, model: str, study: S
         raise UserError(f"cell {ref!r}: {err}") from None
 
 
+def episodes_per_task(study: StudyConfig, model: str) -> tuple[int, str]:
+    """The episodes per task of `model`'s cells (episode i of a task starts from init state or variation i) and
+    the config field they come from: the model's own, else the study's, else its released client's."""
+    if study.models[model].episodes_per_task:
+        return study.models[model].episodes_per_task, f"study.models.{model}.episodes_per_task"
+    if study.episodes_per_task:
+        return study.episodes_per_task, "study.episodes_per_task"
+    return client_conventions(model).episodes_per_task, f"{model}'s client episodes_per_task"
+
+
+def _runner_field(study: StudyConfig, model: str, key: str) -> str:
+    """The config field a cell's `runner.<key>` comes from: the model's own runner, else the study's, else (unset in
+    both) the model's released client."""
+    if key in study.models[model].runner:
+        return f"study.models.{model}.runner.{key}"
+    return f"study.runner.{key}" if getattr(study.runner, key) is not None else f"{model}'s client {key}"
+
+
+def _check_steps(ref: str, benchmark: str, suite: str, model: str, study: StudyConfig, runner: RunnerConfig) -> None:
+    """An episode's steps fit the simulator's horizon (`envs.SuiteSize.horizon`): one that outruns it dies inside
+    the simulator at the horizon's step, so a longer `max_steps` is refused now, naming the field."""
+    try:
+        check_step_limit(_runner_field(study, model, "max_steps"), runner.max_steps, benchmark, suite,
+                         runner.settle_steps, _runner_field(study, model, "settle_steps"))
+    except UserError as err:
+        raise UserError(f"cell {ref!r}: {err}") from None
+
+
 def _check_mujoco(ref: str, model: str, study: StudyConfig, client, runner: RunnerConfig) -> None:
     """A model's cells run in its software environment, which installs its client's MuJoCo pin; any other
     `runner.mujoco` would be refused when the simulator starts, so it is refused now."""
     if runner.mujoco != client.mujoco:
-        field = f"study.models.{model}.runner.mujoco" if "mujoco" in study.models[model].runner else "study.runner.mujoco"
+        field = _runner_field(study, model, "mujoco")
         raise UserError(f"cell {ref!r}: {field}: {runner.mujoco!r}, but {model} cells run on MuJoCo {client.mujoco}, the "
                         "pin of their software environment (vlaquantbench.software_env)")
 

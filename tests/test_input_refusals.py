@@ -1,0 +1,138 @@
+"""Bad input to the parts added for Meta-World, demonstrations, training and sequential evaluation (issue 48) is
+refused before any expensive work, by name: step limits beyond the simulator's, demonstrations on evaluated
+variations. Real Meta-World and LIBERO give the limits; the workflow refusals are real `snakemake -n` runs on
+the committed trained-policy config (config/trained_cpu.yaml)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from paths import ROOT
+from vlaquantbench.cells import cell_config
+from vlaquantbench.config.study import StudyConfig
+from vlaquantbench.demonstrations import DemonstrationConfig, check_disjoint_from_evaluation
+from vlaquantbench.envs import BENCHMARK_SUITES
+from vlaquantbench.errors import UserError
+
+TRAINED_CPU = "config/trained_cpu.yaml"
+DEMONSTRATED_TASKS = ["drawer-close-v3"]
+
+
+def checkout_with_records(tmp_path: Path) -> Path:
+    """A working folder that links the workflow, the package, the committed checkpoints, manifests and
+    records (a dry run writes only its own .snakemake/ here)."""
+    checkout = tmp_path / "checkout"
+    (checkout / "results").mkdir(parents=True)
+    for item in ("Snakefile", "rules", "workflow", "config", "src", "checkpoints", "manifests"):
+        (checkout / item).symlink_to(ROOT / item)
+    for records in (ROOT / "results").iterdir():
+        if records.is_dir():
+            (checkout / "results" / records.name).symlink_to(records)
+    return checkout
+
+
+def dry_run(checkout: Path, target: str, overrides: dict, *config: str) -> tuple[int, str]:
+    """`snakemake -n target --configfile config/trained_cpu.yaml <overrides>` [--config ...]: its exit status and
+    output (Snakemake prints a parse-time error on stdout, a job plan on stdout, its own messages on stderr)."""
+    (checkout / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+    run = subprocess.run([sys.executable, "-m", "snakemake", "-n", target, "--configfile", TRAINED_CPU,
+                          "overrides.yaml", *(("--config", *config) if config else ())],
+                         cwd=checkout, capture_output=True, text=True, timeout=600)
+    return run.returncode, run.stdout + run.stderr
+
+
+# --- 1. Step limits: each benchmark's hard limit, refused by field while the DAG is built ----------------
+
+
+def test_the_declared_horizons_are_the_simulators_own():
+    import inspect
+
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+    from vlaquantbench.envs.libero.offline import load_libero
+
+    load_libero()  # LIBERO's own paths, without its interactive first-run prompt
+    from libero.libero.envs.env_wrapper import ControlEnv
+
+    assert BENCHMARK_SUITES["metaworld"]["metaworld_mt50"].horizon.steps == ALL_V3_ENVIRONMENTS["reach-v3"]().max_path_length
+    assert BENCHMARK_SUITES["libero"]["libero_10"].horizon.steps == inspect.signature(ControlEnv).parameters["horizon"].default
+
+
+@pytest.mark.parametrize(("ref", "study", "message"), [
+    ("metaworld/metaworld_mt50/metaworld_expert/rtn-BASELINE-e2e",
+     {"models": {"metaworld_expert": {"variant": "full"}}, "tasks": 1, "episodes_per_task": 1, "runner": {"max_steps": 501}},
+     r"study\.runner\.max_steps: 501 steps is beyond metaworld_mt50's limit of 500 env steps an episode "
+     r"\(Meta-World's max_path_length: it refuses to step on\); set it to at most 500"),
+    ("libero/libero_spatial/pi05/rtn-BASELINE-e2e",
+     {"models": {"pi05": {"variant": "demo", "runner": {"max_steps": 995}}}, "tasks": 1, "episodes_per_task": 1},
+     r"study\.models\.pi05\.runner\.max_steps: 995 steps after study\.runner\.settle_steps 10 is beyond "
+     r"libero_spatial's limit of 1000 env steps .*; set it to at most 990"),
+])
+def test_a_cell_stepping_past_the_simulators_limit_is_refused_naming_the_field(ref, study, message):
+    with pytest.raises(UserError, match=message):
+        cell_config(ref, study)
+    at_the_limit = {**study, "runner": {"max_steps": 500, "settle_steps": 0}}
+    at_the_limit["models"] = {model: {"variant": w["variant"]} for model, w in study["models"].items()}
+    assert cell_config(ref, at_the_limit)["runner"]["max_steps"] == 500
+
+
+def test_demonstrations_stepping_past_meta_worlds_limit_are_refused_naming_the_field():
+    with pytest.raises(UserError, match=r"^demonstrations\.max_steps: 600 steps is beyond metaworld_mt50's limit of 500"):
+        DemonstrationConfig.from_dict({"tasks": DEMONSTRATED_TASKS, "max_steps": 600})
+    with pytest.raises(UserError, match=r"unknown Meta-World suite \(demonstrations\.suite\) 'mt50'"):
+        DemonstrationConfig.from_dict({"tasks": DEMONSTRATED_TASKS, "suite": "mt50"})
+    assert DemonstrationConfig.from_dict({"tasks": DEMONSTRATED_TASKS, "max_steps": 500}).max_steps == 500
+
+
+def test_the_dag_refuses_a_meta_world_study_stepping_past_500(tmp_path):
+    checkout = checkout_with_records(tmp_path)
+    status, output = dry_run(checkout, "tables/methods_2026.tex", {"study": {"runner": {"max_steps": 600}}},
+                             "records_dir=", "manifest=")
+    assert status != 0
+    assert ("cell 'metaworld/metaworld_mt50/pi05/gptq-W2A2-e2e': study.runner.max_steps: 600 steps is beyond "
+            "metaworld_mt50's limit of 500 env steps an episode") in output, output[-3000:]
+    status, output = dry_run(checkout, "results/demonstrations/metaworld_cpu/manifest.tsv",
+                             {"demonstrations": {"max_steps": 600}})
+    assert status != 0 and "demonstrations.max_steps: 600 steps is beyond metaworld_mt50's limit" in output
+
+
+# --- 3. Demonstrations on evaluated variations: every range the config names, by the range that meets ------
+
+
+def test_the_readme_retrain_command_refuses_demonstrations_on_the_evaluated_variations(tmp_path):
+    """config/trained_cpu.yaml reads its records (no cell in the DAG): the check runs all the same."""
+    status, output = dry_run(checkout_with_records(tmp_path), "checkpoints/pi05_metaworld_cpu/training.json",
+                             {"demonstrations": {"first_variation": 5}})
+    assert status != 0
+    assert ("the demonstrations' variations 5..44 (demonstrations.first_variation 5, max_attempts_per_task 40) meet "
+            "the variations 0..9 (study.episodes_per_task 10: evaluation episode e starts from variation e) at 5..9"
+            ) in output, output[-3000:]
+
+
+def test_demonstrations_between_the_evaluated_and_the_calibration_variations_are_planned(tmp_path):
+    """Variations 10..49: above the evaluated 0..9, below the calibration's 400, with the cells in the DAG."""
+    status, output = dry_run(checkout_with_records(tmp_path), "results/demonstrations/metaworld_cpu/manifest.tsv",
+                             {"demonstrations": {"first_variation": 10}}, "records_dir=", "manifest=")
+    assert status == 0, output[-3000:]
+    assert "rule demonstrations:" in output
+
+
+def test_the_refusal_names_the_calibration_range_that_meets():
+    config = yaml.safe_load((ROOT / TRAINED_CPU).read_text())
+    study = StudyConfig.from_dict(config["study"])
+    reaching = DemonstrationConfig.from_dict({**config["demonstrations"], "first_variation": 361})  # 361..400
+    with pytest.raises(UserError, match=r"meet the variations 400\.\.400 \(study\.calibration\.first_init_state 400, "
+                                        r"episodes 1\) at 400\.\.400"):
+        check_disjoint_from_evaluation(reaching, study)
+    check_disjoint_from_evaluation(DemonstrationConfig.from_dict({**config["demonstrations"], "first_variation": 360}), study)
+    # A calib_set<k> cell calibrates 2k variations further on: only the cells in the DAG say which.
+    shifted = cell_config("metaworld/metaworld_mt50/pi05/calib_set1_ah-W4A4-ah", config["study"])
+    with pytest.raises(UserError, match=r"meet the variations 402\.\.402 \(cell metaworld/metaworld_mt50/pi05/"
+                                        r"calib_set1_ah-W4A4-ah's calibration episodes\)"):
+        check_disjoint_from_evaluation(DemonstrationConfig.from_dict({**config["demonstrations"], "first_variation": 401}),
+                                       study, [shifted])
