@@ -136,3 +136,66 @@ def test_the_refusal_names_the_calibration_range_that_meets():
                                         r"calib_set1_ah-W4A4-ah's calibration episodes\)"):
         check_disjoint_from_evaluation(DemonstrationConfig.from_dict({**config["demonstrations"], "first_variation": 401}),
                                        study, [shifted])
+
+
+# --- 4. Record identity: an episode's task name and placement are the ones its task, seed and index determine --
+
+METHODS_RECORDS = ROOT / "results" / "methods_2026"
+BASELINE_CELL = "metaworld/metaworld_mt50/pi05/rtn-BASELINE-e2e"
+
+
+def records_with_changed_episode(tmp_path: Path, row: int, change) -> Path:
+    """A copy of the committed methods_2026 records whose baseline cell's episode `row` is changed by `change`
+    (a function of the episodes table and the row); the records folder."""
+    import shutil
+
+    import pandas as pd
+
+    records = tmp_path / "methods_2026"
+    shutil.copytree(METHODS_RECORDS, records)
+    episodes_file = records / BASELINE_CELL / "episodes.parquet"
+    episodes = pd.read_parquet(episodes_file)
+    change(episodes, row)
+    episodes.to_parquet(episodes_file, index=False)
+    return records
+
+
+def test_a_table_refuses_an_episode_named_after_another_task(tmp_path):
+    """Row 13 is task 18 (drawer-close-v3), episode 2: named handle-press-v3 it would move to that task's row."""
+    from vlaquantbench.manifest import sha256_file
+
+    def rename(episodes, row):
+        assert (episodes.at[row, "task_id"], episodes.at[row, "task_name"]) == (18, "drawer-close-v3")
+        episodes.at[row, "task_name"] = "handle-press-v3"
+
+    records = records_with_changed_episode(tmp_path, 12, rename)
+    recorded = sha256_file(records / BASELINE_CELL / "episodes.parquet")
+    checkout = checkout_with_records(tmp_path)
+    run = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "1", "tables/methods_2026.tex", "--configfile",
+                          TRAINED_CPU, "--config", f"records_dir={records}", "manifest="],
+                         cwd=checkout, capture_output=True, text=True, timeout=600)
+    output = run.stdout + run.stderr
+    assert run.returncode != 0
+    assert (f"{records / BASELINE_CELL / 'episodes.parquet'} row 13 (task 18, episode 2, seed 18164): task_name: "
+            "'handle-press-v3' is not task 18 of metaworld_mt50, 'drawer-close-v3'") in output, output[-3000:]
+    assert not (checkout / "tables" / "methods_2026.tex").exists()
+    assert sha256_file(records / BASELINE_CELL / "episodes.parquet") == recorded  # the refusal changed no record
+
+
+@pytest.mark.parametrize(("change", "recorded"), [
+    (lambda episodes, row: episodes.__setitem__("task_variation", [
+        episodes.at[row - 1, "task_variation"] if i == row else v for i, v in enumerate(episodes["task_variation"])]),
+     r"\[0\.0999, 0\.9000, 0\.0000\]"),  # episode 1's placement
+    (lambda episodes, row: episodes.__setitem__("task_variation", [
+        [-x for x in v] if i == row else v for i, v in enumerate(episodes["task_variation"])]),
+     r"\[-0\.0861, -0\.9000, -0\.0000\]"),
+])
+def test_a_placement_other_than_the_one_its_episode_draws_is_refused(tmp_path, change, recorded):
+    from vlaquantbench.records import read_cell
+
+    read_cell(METHODS_RECORDS / BASELINE_CELL)  # as recorded: every placement is the one Meta-World draws
+    records = records_with_changed_episode(tmp_path, 12, change)
+    with pytest.raises(UserError, match=rf"row 13 \(task 18, episode 2, seed 18164\): task_variation: {recorded} is not "
+                                        r"the placement \[0\.0861, 0\.9000, 0\.0000\] that episode 2 of drawer-close-v3 "
+                                        r"starts from \(task variation 2, drawn from seed 17155\)"):
+        read_cell(records / BASELINE_CELL)
