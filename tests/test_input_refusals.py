@@ -199,3 +199,95 @@ def test_a_placement_other_than_the_one_its_episode_draws_is_refused(tmp_path, c
                                         r"the placement \[0\.0861, 0\.9000, 0\.0000\] that episode 2 of drawer-close-v3 "
                                         r"starts from \(task variation 2, drawn from seed 17155\)"):
         read_cell(records / BASELINE_CELL)
+
+
+# --- 2. Sequential contrasts pair only cells of one model, benchmark, suite, tasks and episode seeds ----------
+
+SPATIAL_PI05 = "libero/libero_spatial/pi05"
+
+
+def test_a_baseline_given_by_reference_contrasts_only_the_cells_of_its_model_and_suite(tmp_path, capsys):
+    """On the authors' records in place: 22 other pi0.5 Spatial cells; the 42 cells of other models and suites
+    are skipped, each named with the reason, instead of being decided against pi0.5 Spatial."""
+    import csv
+
+    from vlaquantbench.cli import main
+    from vlaquantbench.records import find_cells
+
+    from paths import RECORDS
+
+    out = tmp_path / "sequential.csv"
+    assert main(["sequential", str(RECORDS), "--baseline", f"{SPATIAL_PI05}/rtn-BASELINE-e2e", "--csv", str(out)]) == 0
+    rows = list(csv.DictReader(out.open()))
+    others = [ref for ref in find_cells(RECORDS) if not ref.startswith(f"{SPATIAL_PI05}/")]
+    assert len(rows) == 22 and all(row["cell"].startswith(f"{SPATIAL_PI05}/") for row in rows)
+    skipped = [line for line in capsys.readouterr().err.splitlines() if line.startswith("skipped ")]
+    assert len(others) == 42
+    assert skipped == [f"skipped {ref}: the baseline {SPATIAL_PI05}/rtn-BASELINE-e2e is of another model or suite"
+                       for ref in others]
+
+
+def test_by_default_each_model_and_suite_is_contrasted_with_its_own_baseline(tmp_path, capsys):
+    import csv
+
+    from vlaquantbench.cli import main
+
+    from paths import RECORDS
+
+    out = tmp_path / "sequential.csv"
+    assert main(["sequential", str(RECORDS), "--csv", str(out)]) == 0
+    for row in csv.DictReader(out.open()):
+        assert row["baseline"] == row["cell"].rsplit("/", 1)[0] + "/rtn-BASELINE-e2e"
+    err = capsys.readouterr().err
+    assert (f"skipped libero/libero_object/pi05/rtn-W4A4-ah: its model and suite have no cell rtn-BASELINE-e2e in "
+            f"{RECORDS}") in err
+
+
+def test_a_cell_of_other_episode_seeds_is_skipped_naming_the_seeds(tmp_path, capsys):
+    """A cell folder of rtn-W4A4-ah's outcomes recorded under run seed 1 (every episode seed one higher)."""
+    from vlaquantbench.cli import main
+    from vlaquantbench.records import read_cell, write_cell
+
+    from paths import RECORDS
+
+    records = tmp_path / "records"
+    (records / SPATIAL_PI05).mkdir(parents=True)
+    (records / SPATIAL_PI05 / "rtn-BASELINE-e2e.jsonl").symlink_to(RECORDS / SPATIAL_PI05 / "rtn-BASELINE-e2e.jsonl")
+    source = read_cell(RECORDS / SPATIAL_PI05 / "rtn-W4A4-ah.jsonl")
+    write_cell(records / SPATIAL_PI05 / "seed1-rtn-W4A4-ah", {**source.header, "seed": 1},
+               source.episodes.assign(seed=source.episodes["seed"] + 1))
+    assert main(["sequential", str(records), "--csv", str(tmp_path / "out.csv")]) == 2
+    err = capsys.readouterr().err
+    assert (f"skipped {SPATIAL_PI05}/seed1-rtn-W4A4-ah: not comparable with {SPATIAL_PI05}/rtn-BASELINE-e2e: its "
+            "episode seeds are not the baseline's (task 0 episode 0: seed 1, the baseline's 0)") in err
+    assert f"{records} holds no cell to contrast with {SPATIAL_PI05}/rtn-BASELINE-e2e (1 skipped, above)" in err
+    assert not (tmp_path / "out.csv").exists()
+
+
+def test_a_live_sequential_cell_of_other_episode_seeds_is_refused_while_the_dag_is_built():
+    from demo_study import demo_study
+
+    study = demo_study("pi05", sequential={"against": "rtn-BASELINE-e2e"})
+    assert cell_config(f"{SPATIAL_PI05}/rtn-W4A4-e2e", study)["sequential"]["against"]["ref"] == f"{SPATIAL_PI05}/rtn-BASELINE-e2e"
+    with pytest.raises(UserError, match=rf"cell '{SPATIAL_PI05}/seed1-rtn-W4A4-e2e': study\.sequential\.against: "
+                                        r"rtn-BASELINE-e2e runs its episodes with run seed 0, this cell with run seed 1"):
+        cell_config(f"{SPATIAL_PI05}/seed1-rtn-W4A4-e2e", study)
+
+
+def test_the_sequential_table_refuses_a_contrast_of_another_models_baseline(tmp_path):
+    from paths import RECORDS
+    from vlaquantbench.tables import load_table
+    from vlaquantbench.tables.sequential import write_sequential_table
+
+    cell, baseline = "libero/libero_spatial/pi0/rtn-W4A4-e2e", f"{SPATIAL_PI05}/rtn-BASELINE-e2e"
+    definition = tmp_path / "mixed.yaml"
+    definition.write_text(yaml.safe_dump({
+        "caption": "pi0 against the pi0.5 baseline", "align": "lr", "header": [["Cell", "Delta"]],
+        "values": [{"stat": "delta", "cell": "cell", "minus": "fp"}],
+        "rows": [{"label": "pi0 W4A4", "cell": cell, "fp": baseline}]}))
+    outputs = [tmp_path / name for name in ("sequential.tex", "sequential.csv", "sequential.pdf")]
+    with pytest.raises(UserError, match=rf"tab:sequential: contrast {cell} - {baseline}: its model is pi0, the "
+                                        r"baseline's pi05; a contrast pairs only cells of one model, benchmark and suite"):
+        write_sequential_table([load_table(definition)], {ref: RECORDS / f"{ref}.jsonl" for ref in (cell, baseline)},
+                               *outputs)
+    assert not any(output.exists() for output in outputs)

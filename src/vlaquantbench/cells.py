@@ -225,7 +225,7 @@ class CellConfig(PolicyRunConfig):
             runner=runner,
             client=client.as_dict(),
             overrides=_overrides(client, runner, episodes, released_limit),
-            sequential=_sequential(ref, benchmark, suite, model, name, study),
+            sequential=_sequential(ref, benchmark, suite, model, name, study, seed),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -275,18 +275,26 @@ class CalibrationConfig(PolicyRunConfig):
         return self.model
 
 
-def _sequential(ref: str, benchmark: str, suite: str, model: str, name: str, study: StudyConfig) -> dict[str, Any] | None:
+def _sequential(ref: str, benchmark: str, suite: str, model: str, name: str, study: StudyConfig,
+                seed: int) -> dict[str, Any] | None:
     """The cell's stopping rule under study.sequential: its level, margin and the `against` cell (its
-    reference and config hash: the rollout depends on that cell's records); None for the `against` cell."""
+    reference and config hash: the rollout depends on that cell's records); None for the `against` cell.
+    The `against` cell is of the same benchmark, suite, model and tasks; a cell of other episode seeds (another
+    `seed<N>-` prefix) is refused, naming both seeds: its rounds would pair episodes of different scenes."""
     design = study.sequential
     if design is None or name == design.against:
         return None
     against = f"{benchmark}/{suite}/{model}/{design.against}"
     try:
-        against_hash = CellConfig.from_ref(against, study).config_hash
+        against_cell = CellConfig.from_ref(against, study)
     except UserError as err:
         raise UserError(f"cell {ref!r}: study.sequential.against: {err}") from None
-    return {"alpha": design.alpha, "margin_pp": design.margin_pp, "against": {"ref": against, "config_hash": against_hash}}
+    if against_cell.seed != seed:
+        raise UserError(f"cell {ref!r}: study.sequential.against: {design.against} runs its episodes with run seed "
+                        f"{against_cell.seed}, this cell with run seed {seed}: a contrast pairs only cells of the same "
+                        "episode seeds; run it without study.sequential or drop the seed prefix that differs")
+    return {"alpha": design.alpha, "margin_pp": design.margin_pp,
+            "against": {"ref": against, "config_hash": against_cell.config_hash}}
 
 
 def _runner(study: RunnerConfig, model: dict[str, Any], client, flow_steps: int | None, released_limit: int) -> RunnerConfig:
