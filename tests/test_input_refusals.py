@@ -291,3 +291,22 @@ def test_the_sequential_table_refuses_a_contrast_of_another_models_baseline(tmp_
         write_sequential_table([load_table(definition)], {ref: RECORDS / f"{ref}.jsonl" for ref in (cell, baseline)},
                                *outputs)
     assert not any(output.exists() for output in outputs)
+
+
+# --- 5. The closed-loop measurement script refuses bad arguments before it loads the policy -------------------
+
+
+@pytest.mark.parametrize(("arguments", "message"), [
+    (["--episodes", "0"], "argument --episodes: 0 is less than the minimum of 1"),
+    (["--first-variation", "500"],
+     "argument --first-variation: the demonstrations' variations 500..539 (demonstrations.first_variation 500, "
+     "max_attempts_per_task 40) meet the variations 500..504 (--first-variation 500, --episodes 5) at 500..504"),
+    (["--max-steps", "501"], "argument --max-steps: 501 steps is beyond metaworld_mt50's limit of 500"),
+])
+def test_the_closed_loop_script_refuses_an_argument_before_loading_the_policy(tmp_path, arguments, message):
+    out = tmp_path / "closed_loop.json"
+    run = subprocess.run([sys.executable, "benchmarks/trained_policy_closed_loop.py", "--home", "checkpoints/pi05_metaworld_cpu",
+                          "--out", str(out), *arguments], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 2 and message in run.stderr, run.stderr[-3000:]
+    assert "(config/trained_cpu.yaml)" in run.stderr or "--first-variation" not in arguments
+    assert not out.exists()
