@@ -17,9 +17,9 @@ from vlaquantbench.demonstrations.dataset import (
     MANIFEST_FILE,
     SUMMARY_FILE,
     DemonstrationConfig,
-    check_disjoint_from_evaluation,
     write_demonstrations,
 )
+from vlaquantbench.demonstrations.overlap import check_disjoint_from_evaluation
 
 __all__ = [
     "DATASET_DIR",

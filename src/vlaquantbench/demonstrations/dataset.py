@@ -18,9 +18,9 @@ Episodes: the experts act through the closed-loop runner (`runner.loop.run_episo
 `MetaWorldVectorEnv`, so a demonstration sees what an evaluated policy sees. Task variation v of a
 task is drawn from `variation_seed(task, v)`; closed-loop evaluation episode e starts from variation
 e (`MetaWorldSuite.episode_spec`), so the demonstrations take variations from `first_variation` on
-(default 500), and `check_disjoint_from_evaluation` refuses a study whose cells would evaluate one
-of them. Only successful episodes are kept: a task gets attempts on consecutive variations until
-`episodes_per_task` succeed (each round tries as many as are still missing), so the kept episodes
+(default 500), and `overlap.check_disjoint_from_evaluation` refuses a config that would evaluate
+or calibrate on one of them. Only successful episodes are kept: a task gets attempts on consecutive
+variations until `episodes_per_task` succeed (each round tries as many as are still missing), so the kept episodes
 are the first successes in variation order whatever the number of workers, and the dataset's
 episodes are in a fixed order (round, task, variation).
 
@@ -39,7 +39,6 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -47,8 +46,9 @@ from typing import Any
 import numpy as np
 
 from vlaquantbench.config import validate
+from vlaquantbench.envs import BENCHMARK_SUITES, check_step_limit
 from vlaquantbench.envs.episodes import SEED_STRIDE, EpisodeSpec
-from vlaquantbench.errors import UserError
+from vlaquantbench.errors import UserError, lookup
 
 log = logging.getLogger(__name__)
 
@@ -80,26 +80,14 @@ class DemonstrationConfig:
         validate(raw, "config", where, subschema=("demonstrations",))
         return cls(**{**raw, "tasks": tuple(raw["tasks"])})
 
+    def __post_init__(self):
+        # The episodes' steps fit Meta-World's: an episode past its max_path_length dies inside Meta-World.
+        suite = lookup(BENCHMARK_SUITES["metaworld"], self.suite, "Meta-World suite (demonstrations.suite)")
+        check_step_limit("demonstrations.max_steps", self.max_steps or suite.step_limit, "metaworld", self.suite)
+
     @property
     def last_variation(self) -> int:
         return self.first_variation + self.max_attempts_per_task - 1
-
-
-def check_disjoint_from_evaluation(config: DemonstrationConfig, cells: Iterable[dict[str, Any]]) -> None:
-    """UserError naming the first Meta-World cell (canonical config, `cells.CellConfig.to_dict`) that
-    evaluates or calibrates on a task variation the demonstrations may use."""
-    for cell in cells:
-        if cell["benchmark"] != "metaworld":
-            continue
-        calibration = cell.get("calibration") or {}
-        used = {"episodes_per_task": cell["episodes_per_task"] - 1,
-                "calibration init states": max(calibration.get("init_states") or [-1])}
-        for what, highest in used.items():
-            if highest >= config.first_variation:
-                raise UserError(
-                    f"demonstrations.first_variation {config.first_variation}: cell {cell['ref']} uses task "
-                    f"variations up to {highest} ({what}), which the demonstrations may record; set "
-                    f"demonstrations.first_variation above {highest}")
 
 
 def _available_rgb_encoder():

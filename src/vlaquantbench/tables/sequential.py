@@ -15,7 +15,7 @@ import pandas as pd
 from vlaquantbench.atomic import atomic_write
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import read_checked_cell
-from vlaquantbench.sequential import Design, retrospective, saved_fraction, write_csv
+from vlaquantbench.sequential import Design, contrast_mismatch, retrospective, saved_fraction, write_csv
 from vlaquantbench.tables.booktabs import Booktabs
 from vlaquantbench.tables.definition import TableDefinition
 
@@ -87,8 +87,13 @@ def write_sequential_table(definitions: list[TableDefinition], cell_paths: Mappi
     missing = sorted({ref for pair in contrasts for ref in pair} - set(cell_paths))
     if missing:
         raise UserError(f"tab:sequential needs the episode records of {', '.join(missing)}; only their summary is available")
-    episodes = {ref: read_checked_cell(ref, cell_paths[ref]).episodes for ref in dict.fromkeys(r for pair in contrasts for r in pair)}
-    table = retrospective(contrasts, episodes, design)
+    cells = {ref: read_checked_cell(ref, cell_paths[ref]) for ref in dict.fromkeys(r for pair in contrasts for r in pair)}
+    for cell, baseline in contrasts:
+        mismatch = contrast_mismatch(cells[cell], cells[baseline])
+        if mismatch:
+            raise UserError(f"tab:sequential: contrast {cell} - {baseline}: {mismatch}; a contrast pairs only cells "
+                            "of one model, benchmark and suite, on the same tasks and episode seeds")
+    table = retrospective(contrasts, {ref: cell.episodes for ref, cell in cells.items()}, design)
     write_csv(table, csv)
     plot_episodes_saved(table, figure)
     sequential_booktabs(table, design, [f"tab:{d.name}" for d in definitions], notes).write(tex)
