@@ -12,8 +12,8 @@ A cell reference is `<benchmark>/<suite>/<model>/<cell>`; the cell name follows 
     scope   ve | mp | llm | ah | e2e | ve_mp_llm
     subset  a named subset of `config/scopes.yaml` for this model (its only/exclude patterns)
 
-`seed<N>` offsets every episode seed by N; `steps<N>` sets the number of flow-matching
-integration steps. `calib_set<k>` collects calibration statistics on init states
+`seed<N>` adds N to the study's run seed (an evaluation-seed repeat, `envs.episodes.episode_seed`);
+`steps<N>` sets the number of flow-matching integration steps. `calib_set<k>` collects calibration statistics on init states
 `first + 2k, first + 2k + 1` (the paper's disjoint calibration sets). Methods that need statistics
 (`MethodConfig.statistics`: AWQ's sampled input rows, GPTQ's Hessians, FP8 static scales, per-flow-step
 scales, SmoothQuant's migration; `MethodConfig.calibration_fields` says what the cell's calibration records) collect
