@@ -5,8 +5,9 @@ import json
 
 import pytest
 
-from vlaquantbench.cells import config_hash
+from vlaquantbench.cells import calibration_config, cell_config, config_hash, hashed_config
 from vlaquantbench.envs import BENCHMARK_SUITES, make_suite
+from vlaquantbench.envs.episodes import RUN_SEED_STRIDE
 from vlaquantbench.records import find_cells, read_cell
 from paths import REFERENCE, ROOT
 
@@ -14,6 +15,8 @@ SEED_RECORDS = REFERENCE / "seed-records"
 # This project's committed cells (all of run seed 0), hashed and recorded before the protocol took the run-seed stride.
 COMMITTED = [ROOT / "results" / "methods_2026", ROOT / "results" / "trained_sequential" / "fixed",
              ROOT / "results" / "trained_sequential" / "live"]  # fmt: skip
+STUDY = {"models": {"pi05": {"variant": "demo"}}, "tasks": [0], "episodes_per_task": 2,
+         "calibration": {"tasks": 1, "episodes": 2}}  # fmt: skip
 
 
 def test_episode_specs_reproduce_the_published_seed_repeats():
@@ -63,3 +66,13 @@ def test_run_seed_0_cells_keep_their_hashes_and_episodes():
             assert cell.header["seed"] == 0 and config_hash(cell.header["config"]) == cell.header["config_hash"], ref
             headers += 1
     assert headers == 27
+
+
+def test_a_cell_or_calibration_of_another_run_seed_hashes_the_run_seed_stride():
+    """Its episodes differ from those that run seed had before the stride, so its hash, folder and statistics do."""
+    ref = "libero/libero_spatial/pi05/{}calib_ah-W4A4-ah"
+    for run_seed, prefix in ((0, ""), (1, "seed1-"), (2, "seed2-")):
+        cfg = cell_config(ref.format(prefix), STUDY)
+        expected = {"run_seed_stride": RUN_SEED_STRIDE} if run_seed else {}
+        for hashed in (hashed_config(cfg), hashed_config(calibration_config(cfg))):
+            assert {k: v for k, v in hashed.items() if k == "run_seed_stride"} == expected, run_seed
