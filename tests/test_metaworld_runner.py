@@ -142,3 +142,58 @@ def test_the_user_command_renders_success_per_task_and_the_summary(tmp_path):
     summary = pd.read_csv(checkout / "tables/summary.csv")
     assert summary[["benchmark", "suite", "model", "cell", "episodes"]].values.tolist() == [
         ["metaworld", "metaworld_easy", "metaworld_expert", "rtn-BASELINE-e2e", 28]]
+
+
+SEED_REPEATS = {run_seed: f"metaworld/metaworld_easy/metaworld_expert/{prefix}rtn-BASELINE-e2e"
+                for run_seed, prefix in ((0, ""), (1, "seed1-"), (2, "seed2-"))}  # fmt: skip
+
+
+def test_seed_repeats_run_the_same_scenes_on_their_own_seeds_through_the_workflow(tmp_path):
+    """A table of the experts at run seeds 0/1/2 and fig:scope_recovery with seeds 1 and 2 as open markers, through
+    Snakemake with no summary: the DAG runs the three cells, and both read them from their records. Each run seed
+    starts the same task variations on the protocol's seeds; the experts ignore the policy's random stream, so
+    their episodes repeat exactly."""
+    checkout = tmp_path / "checkout"
+    (checkout / "config" / "figures").mkdir(parents=True)
+    for item in ("Snakefile", "rules", "workflow", "manifests", "src"):
+        (checkout / item).symlink_to(ROOT / item)
+    for item in (ROOT / "config").iterdir():
+        if item.name != "figures":
+            (checkout / "config" / item.name).symlink_to(item)
+    baseline = SEED_REPEATS[0]
+    (checkout / "config" / "figures" / "scope_recovery.yaml").write_text(yaml.safe_dump({
+        "baseline": baseline, "isolated": [{"label": "experts", "cell": baseline}],
+        "nested": [{"label": "experts", "cell": baseline, "repeats": [SEED_REPEATS[1], SEED_REPEATS[2]]}]}))
+    tables = tmp_path / "tables"
+    tables.mkdir()
+    (tables / "expert_seeds.yaml").write_text(yaml.safe_dump({
+        "caption": "Experts at three run seeds ({episodes}).", "align": "lr", "header": [["", "seeds 0 / 1 / 2"]],
+        "values": [{"stat": "rates", "cells": ["seed0", "seed1", "seed2"]}],
+        "rows": [{"label": "experts", **{f"seed{run_seed}": ref for run_seed, ref in SEED_REPEATS.items()}}]}))
+    config = yaml.safe_load((ROOT / "config/demo/metaworld_expert.yaml").read_text())
+    config["study"].update(tasks=2, episodes_per_task=2)
+    config.update(tables=["expert_seeds"], tables_dir=str(tables))
+    path = tmp_path / "metaworld_expert.yaml"
+    path.write_text(yaml.safe_dump(config))
+    result = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "tables/expert_seeds.tex",
+                             "figures/scope_recovery.pdf", f"--configfile={path}"], cwd=checkout, capture_output=True,
+                            text=True, timeout=600)  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert (checkout / "figures" / "scope_recovery.pdf").read_bytes().startswith(b"%PDF")
+    assert "figures/scope_recovery.pdf: 3 cells from records, the rest from None" in (
+        checkout / "logs" / "figures" / "scope_recovery.log").read_text()
+
+    folders = {run_seed: checkout / "results" / "cells" / config_hash(cell_config(ref, config["study"]))
+               for run_seed, ref in SEED_REPEATS.items()}  # fmt: skip
+    assert len(set(folders.values())) == 3
+    cells = {run_seed: read_cell(folder) for run_seed, folder in folders.items()}
+    rates = " / ".join(f"{100 * cell.n_successes / cell.n_episodes:.1f}" for cell in cells.values())
+    assert f"experts & {rates}" in (checkout / "tables" / "expert_seeds.tex").read_text()
+    for run_seed, cell in cells.items():
+        episodes = cell.episodes
+        assert cell.header["seed"] == run_seed and len(episodes) == 4
+        assert episodes["seed"].tolist() == [1009 * t + e + 1_000_003 * run_seed for t, e in zip(episodes["task_id"], episodes["episode"])]
+        same = ["task_id", "episode", "init_state_id", "success", "steps"]
+        pd.testing.assert_frame_equal(episodes[same], cells[0].episodes[same])
+        assert [tuple(v) for v in episodes["task_variation"]] == [tuple(v) for v in cells[0].episodes["task_variation"]]
+    assert cells[1].episodes["seed"].tolist()[:2] == [1_000_003, 1_000_004]

@@ -12,7 +12,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from vlaquantbench.errors import UserError
-from vlaquantbench.records import read_cell, write_cell
+from vlaquantbench.records import find_cells, read_cell, write_cell
+from vlaquantbench.records.summary import read_summary
 from vlaquantbench.runner.journal import CellJournal
 from vlaquantbench.tables import load_table
 from vlaquantbench.tables.latex import read_cells
@@ -20,6 +21,7 @@ from paths import REFERENCE, ROOT, RECORDS
 
 # tab:lattice's all-167-layer row: 141 of 200 successes (70.5); one string "false" made it 71.0.
 LATTICE_CELL = "libero/libero_spatial/pi05/rtn-W4A4-ah"
+SEED_RECORDS = REFERENCE / "seed-records"
 
 
 @pytest.fixture
@@ -81,7 +83,7 @@ def test_an_episode_replaced_by_one_of_task_12_is_refused_naming_its_line(jsonl)
         ("suite", "libero_goal", r"suite: 'libero_goal' must be same as const definition: libero_spatial \(the header's suite\)"),
         ("steps", 281, r"steps: 281 must be smaller than or equal to 280 \(the step limit of pi05 on libero_spatial\)"),
         ("episode", 20, r"episode: 20 must be smaller than or equal to 19 \(the header declares 20 episodes per task\)"),
-        ("seed", 7, r"seed: 7 is not the protocol's 1009 \* task_id \+ episode \+ run seed = 2034"),
+        ("seed", 7, r"seed: 7 is not the protocol's 1009 \* task_id \+ episode \+ 1000003 \* run seed = 2034"),
         ("init_state_id", 3, r"init_state_id: 3 is not the episode index 16"),
         ("steps", 80.5, r"steps: 80\.5 must be integer"),
     ],
@@ -177,6 +179,33 @@ def test_the_reference_records_pass_unchanged():
     assert len(frames) == 65 and sum(map(len, frames)) == 12980
     assert all(frame["success"].dtype == bool for frame in frames)
     assert pd.concat(frames)["success"].sum() > 0
+
+
+def test_the_published_seed_repeats_pass_in_place_with_the_authors_counts():
+    """The authors' run seeds 1 and 2 of the pi0.5 Object baseline: every episode has the protocol's seed, and each
+    cell's counts are its row of the authors' summary."""
+    summary = read_summary(REFERENCE / "authors-summary.csv")
+    cells = find_cells(SEED_RECORDS)
+    assert list(cells) == [f"libero/libero_object/pi05/seed{run_seed}-rtn-BASELINE-e2e" for run_seed in (1, 2)]
+    for run_seed, (ref, path) in enumerate(cells.items(), start=1):
+        cell = read_cell(path)
+        assert cell.header["seed"] == run_seed and cell.n_episodes == 200
+        assert (cell.n_episodes, cell.n_successes) == (summary[ref].n_episodes, summary[ref].n_successes)
+        seeds = cell.episodes.set_index(["task_id", "episode"])["seed"]
+        assert seeds[0, 0] == 1_000_003 * run_seed and seeds[1, 0] == 1009 + 1_000_003 * run_seed
+
+
+def test_a_run_seed_1_episode_with_the_old_offset_is_refused(tmp_path):
+    """Run seed 1 used to add 1 to every episode seed: such a record names its line and the protocol's seed."""
+    source = SEED_RECORDS / "libero/libero_object/pi05/seed1-rtn-BASELINE-e2e.jsonl"
+    path = tmp_path / source.name
+    lines = lines_of(source)
+    record = json.loads(lines[22])  # task 1, episode 1
+    lines[22] = json.dumps({**record, "seed": 1009 + 1 + 1})
+    write_lines(path, lines)
+    with pytest.raises(UserError, match=rf"^{path}:23: seed: 1011 is not the protocol's 1009 \* task_id \+ episode \+ "
+                                        r"1000003 \* run seed = 1001013 \(task 1, episode 1, run seed 1\)$"):  # fmt: skip
+        read_cell(path)
 
 
 def truncated(source, tmp_path):

@@ -1,5 +1,6 @@
 """Real Snakemake runs: tables follow the records, and a frozen manifest stops the DAG first."""
 
+import re
 import shutil
 import subprocess
 import sys
@@ -16,6 +17,7 @@ from vlaquantbench.workflow import BUILT_MANIFEST
 from paths import ROOT, RECORDS, REFERENCE
 
 TABLES = ("lattice", "oft_protect_fc2", "clustered", "calibrated_subsets")
+SEED_RECORDS = REFERENCE / "seed-records"  # the authors' run-seed 1 and 2 repeats of the pi0.5 Object baseline
 FLIPPED = "libero/libero_spatial/pi05/ablate-W4A4-ah-onlyadarms"  # 187/200 successes; flipping one failure gives 188
 
 pytestmark = pytest.mark.slow
@@ -107,6 +109,27 @@ def test_flipped_episode_changes_exactly_the_affected_numbers(tmp_path):
     built = (workdir / BUILT_MANIFEST).read_text().splitlines()
     frozen = (ROOT / "manifests" / "reference.tsv").read_text().splitlines()
     assert [line.split("\t")[:3] for line in built if line not in frozen] == [[f"{FLIPPED}.jsonl", "200", "188"]]
+
+
+def test_published_seed_repeats_render_beside_their_seed_0_cell(tmp_path):
+    """records_dir at the authors' run-seed 1 and 2 records of the pi0.5 Object baseline, read in place: tab:lattice_object
+    prints them from their episodes beside seed 0 and the other cells from the summary, as the paper does."""
+    workdir = layout(tmp_path, RECORDS)
+    run = snakemake(workdir, "tables/lattice_object.tex", "tables/summary.csv", "--config", f"records_dir={SEED_RECORDS}", "manifest=")
+    assert run.returncode == 0, run.stderr[-3000:]
+    tex = (workdir / "tables" / "lattice_object.tex").read_text()
+    assert latex_rows(tex) == paper_rows("tab:lattice_object")
+    assert dict((row[0], row) for row in latex_rows(tex))["full precision"][2:] == ["99.0", "98.5", "99.5"]
+    from_summary = re.search(r"(\d+) of (\d+) cells \(([^)]*)\) come from the authors' per-cell summary", " ".join(tex.split()))
+    summarized = from_summary[3].replace("\\_", "_").split(", ")
+    assert int(from_summary[2]) - int(from_summary[1]) == 2 and "libero_object/pi05/rtn-BASELINE-e2e" in summarized
+    assert not {f"libero_object/pi05/seed{run_seed}-rtn-BASELINE-e2e" for run_seed in (1, 2)} & set(summarized)
+    # the summary this project writes from the records holds the authors' rows of both cells
+    ours = (workdir / "tables" / "summary.csv").read_bytes().split(b"\r\n")
+    authors = (REFERENCE / "authors-summary.csv").read_bytes().split(b"\r\n")
+    repeats = [line for line in authors if b"libero,libero_object,pi05,seed1-rtn-BASELINE-e2e," in line
+               or b"libero,libero_object,pi05,seed2-rtn-BASELINE-e2e," in line]  # fmt: skip
+    assert len(repeats) == 2 and ours[1:-1] == repeats
 
 
 def test_frozen_manifest_refuses_every_table(tmp_path):

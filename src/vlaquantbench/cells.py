@@ -12,8 +12,8 @@ A cell reference is `<benchmark>/<suite>/<model>/<cell>`; the cell name follows 
     scope   ve | mp | llm | ah | e2e | ve_mp_llm
     subset  a named subset of `config/scopes.yaml` for this model (its only/exclude patterns)
 
-`seed<N>` offsets every episode seed by N; `steps<N>` sets the number of flow-matching
-integration steps. `calib_set<k>` collects calibration statistics on init states
+`seed<N>` adds N to the study's run seed (an evaluation-seed repeat, `envs.episodes.episode_seed`);
+`steps<N>` sets the number of flow-matching integration steps. `calib_set<k>` collects calibration statistics on init states
 `first + 2k, first + 2k + 1` (the paper's disjoint calibration sets). Methods that need statistics
 (`MethodConfig.statistics`: AWQ's sampled input rows, GPTQ's Hessians, FP8 static scales, per-flow-step
 scales, SmoothQuant's migration; `MethodConfig.calibration_fields` says what the cell's calibration records) collect
@@ -41,6 +41,7 @@ from typing import Any
 
 from vlaquantbench.config.study import RunnerConfig, StudyConfig
 from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_step_limit
+from vlaquantbench.envs.episodes import RUN_SEED_STRIDE
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import client_conventions, step_limit
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
@@ -508,11 +509,17 @@ NAME_FIELDS = ("ref", "cell", "subset")
 
 def hashed_config(cfg: dict[str, Any]) -> dict[str, Any]:
     """What a config's hash covers: everything that changes its results, i.e. the config without its
-    names, with the cell method as the quantizer method it runs, and the quantization-semantics version."""
+    names, with the cell method as the quantizer method it runs, the quantization-semantics version and,
+    for a run seed other than 0, the episode seeds' run-seed stride."""
     kept = {k: v for k, v in cfg.items() if k not in NAME_FIELDS}
     if "method" in kept:
         kept["method"] = quantizer_method(kept["method"])
-    return {**kept, "quant_semantics": QUANT_SEMANTICS}
+    # Run seed s used to add s to every episode seed; it now adds the authors' RUN_SEED_STRIDE * s. A cell or
+    # calibration of run seed s != 0 runs other episodes than before, so it must not reuse the old folder or
+    # statistics; run seed 0's episodes, and so its hash, stay.
+    run_seed = cfg["seed"] if "seed" in cfg else cfg["calibration"]["seed"]
+    stride = {"run_seed_stride": RUN_SEED_STRIDE} if run_seed else {}
+    return {**kept, "quant_semantics": QUANT_SEMANTICS, **stride}
 
 
 def config_hash(cfg: dict[str, Any]) -> str:

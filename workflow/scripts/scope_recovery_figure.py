@@ -1,4 +1,4 @@
-"""Rule scope_recovery_figure: figures/scope_recovery.pdf from its cells' records (seed repeats from the summary)."""
+"""Rule scope_recovery_figure: figures/scope_recovery.pdf from its cells' records (cells without records, from the summary)."""
 # snakemake is injected by Snakemake's script directive.
 # ruff: noqa: F821
 

@@ -111,7 +111,7 @@ class StudyConfig:
     tasks: int | tuple[int, ...] = 10  # a count (tasks 0..N-1) or task ids
     # episode i of a task starts from init state i; None: the model's client (20, X-VLA 19)
     episodes_per_task: int | None = None
-    seed: int = 0  # run seed added to every episode seed (1009*task + episode)
+    seed: int = 0  # run seed s: episode e of task t has seed 1009*t + e + 1000003*s (envs.episodes.episode_seed)
     runner: RunnerConfig = field(default_factory=RunnerConfig)
     calibration: CalibrationProtocol = field(default_factory=CalibrationProtocol)
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)

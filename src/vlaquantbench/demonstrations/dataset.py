@@ -47,7 +47,7 @@ import numpy as np
 
 from vlaquantbench.config import validate
 from vlaquantbench.envs import BENCHMARK_SUITES, check_step_limit
-from vlaquantbench.envs.episodes import SEED_STRIDE, EpisodeSpec
+from vlaquantbench.envs.episodes import TASK_SEED_STRIDE, EpisodeSpec
 from vlaquantbench.errors import UserError, lookup
 
 log = logging.getLogger(__name__)
@@ -257,10 +257,10 @@ def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, worke
 
     suite = make_suite("metaworld", config.suite)
     task_ids = [suite.task_id(name) for name in config.tasks]
-    if config.last_variation >= SEED_STRIDE:
+    if config.last_variation >= TASK_SEED_STRIDE:
         raise UserError(f"demonstrations: first_variation {config.first_variation} + max_attempts_per_task "
                         f"{config.max_attempts_per_task} reaches variation {config.last_variation}; a task has "
-                        f"variations 0..{SEED_STRIDE - 1}")
+                        f"variations 0..{TASK_SEED_STRIDE - 1}")
     max_steps = config.max_steps or STEP_LIMIT
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -23,7 +23,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from vlaquantbench.envs.episodes import SEED_STRIDE
+from vlaquantbench.envs.episodes import TASK_SEED_STRIDE
 from vlaquantbench.errors import UserError, lookup
 
 if TYPE_CHECKING:
@@ -63,7 +63,7 @@ class SuiteSize:
 # maxima 1.80, 1.94, 1.53, 2.35 GiB; after the cycle 1.85, 2.10, 1.68, 2.86. An idle worker interpreter holds 0.1 GiB. The
 # 64-worker H200 benchmark's host held about 1.7 GB per worker (benchmarks/results/closed_loop_gpu_64_mem.log).
 # Meta-World, the same way on MT10's first task: 0.16 GiB without a camera, 0.34 GiB rendering 224 px; 0.4 allowed.
-# Its variations are seeds below SEED_STRIDE (`envs.metaworld.suite`); task counts are lerobot's groups and
+# Its variations are seeds below TASK_SEED_STRIDE (`envs.metaworld.suite`); task counts are lerobot's groups and
 # Meta-World's MT10 / MT50 lists.
 # Meta-World's `max_path_length` (its envs refuse to step further), which lerobot's
 # `MetaworldEnv._max_episode_steps` and so lerobot-eval's rollouts use.
@@ -82,7 +82,7 @@ BENCHMARK_SUITES = {
         "libero_goal": SuiteSize(tasks=10, init_states=50, worker_gib=1.7, horizon=LIBERO_HORIZON),
         "libero_10": SuiteSize(tasks=10, init_states=50, worker_gib=2.9, horizon=LIBERO_HORIZON),
     },
-    "metaworld": {suite: SuiteSize(tasks=tasks, init_states=SEED_STRIDE, worker_gib=0.4, horizon=METAWORLD_HORIZON,
+    "metaworld": {suite: SuiteSize(tasks=tasks, init_states=TASK_SEED_STRIDE, worker_gib=0.4, horizon=METAWORLD_HORIZON,
                               step_limit=METAWORLD_STEP_LIMIT)
                   for suite, tasks in _METAWORLD_TASKS.items()},
 }

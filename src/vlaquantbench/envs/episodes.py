@@ -6,8 +6,13 @@ from dataclasses import dataclass
 
 from vlaquantbench.errors import UserError
 
-# Per-episode seed = SEED_STRIDE * task_id + episode + run seed (the authors' LIBERO records).
-SEED_STRIDE = 1009
+# The authors' evaluation protocol (their LIBERO records, run seeds 0, 1 and 2): episode e of task t in run seed s
+# has seed TASK_SEED_STRIDE * t + e + RUN_SEED_STRIDE * s. Both strides are primes. A task's episodes stay below
+# the next task's seeds while e < TASK_SEED_STRIDE (Meta-World's variations are bounded so), and a run's seeds
+# stay below the next run's while TASK_SEED_STRIDE * tasks <= RUN_SEED_STRIDE (up to 991 tasks): two run seeds share
+# no episode seed, so a second run seed repeats every episode on fresh random streams.
+TASK_SEED_STRIDE = 1009
+RUN_SEED_STRIDE = 1_000_003
 
 
 @dataclass(frozen=True)
@@ -15,8 +20,9 @@ class EpisodeSpec:
     """One episode to run in a slot of a vector env.
 
     `init_state_id` picks the episode's scene: LIBERO's official init state of that index, or
-    Meta-World's task variation of that index (`envs.metaworld.suite.variation_seed`). `seed` seeds
-    the simulator and the policy's random stream."""
+    Meta-World's task variation of that index (`envs.metaworld.suite.variation_seed`), whatever the run
+    seed. `seed` (`episode_seed`) seeds the policy's random stream and, on LIBERO, the simulator's: under
+    the fixed init states a run seed varies those streams, not the scene."""
 
     task_id: int
     episode: int
@@ -25,7 +31,9 @@ class EpisodeSpec:
 
 
 def episode_seed(task_id: int, episode: int, run_seed: int = 0) -> int:
-    return SEED_STRIDE * task_id + episode + run_seed
+    """The protocol's seed of episode `episode` of task `task_id` in run seed `run_seed`: what the runner, every
+    suite's episode specs and the record check (`records.schema.EpisodeCheck`) use."""
+    return TASK_SEED_STRIDE * task_id + episode + RUN_SEED_STRIDE * run_seed
 
 
 class SuiteTasks:

@@ -40,8 +40,8 @@ def _rate(cell: Cell) -> float:
 def plot_scope_recovery(
     figure: ScopeRecoveryFigure, cell_paths: Mapping[str, str | Path], output: str | Path, summary: str | Path | None = None
 ) -> Path:
-    """Draw the figure from its cells' records (`cell_paths`); cells without records (the seed-1/2 repeats of
-    the reference data) come from `summary`."""
+    """Draw the figure from its cells' records (`cell_paths`), seed repeats included; cells without records (the
+    reference data's seed-1/2 repeats of these scopes) come from `summary`."""
     # matplotlib here, not at import: the workflow loads the figure's definition while it builds the DAG.
     import matplotlib
 

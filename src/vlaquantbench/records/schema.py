@@ -28,7 +28,7 @@ import pandas as pd
 import yaml
 
 from vlaquantbench.envs import BENCHMARK_SUITES
-from vlaquantbench.envs.episodes import SEED_STRIDE
+from vlaquantbench.envs.episodes import RUN_SEED_STRIDE, TASK_SEED_STRIDE, episode_seed
 from vlaquantbench.models.client import step_limit as model_step_limit
 from vlaquantbench.errors import UserError
 
@@ -123,13 +123,13 @@ class EpisodeCheck:
         """Refuse `episode` (a dict of its present, non-null fields) with UserError `<where>: <field>: <problem>`."""
         _checked(self.validate, episode, where)
         # The protocol relates fields of one episode, which JSON Schema cannot express (draft-07 has no
-        # $data): LIBERO episode i of a task starts from official init state i, with seed
-        # SEED_STRIDE * task + episode + the run seed.
-        task, index = episode["task_id"], episode["episode"]
-        seed = SEED_STRIDE * task + index + self.header["seed"]
+        # $data): episode i of a task starts from init state i, with the protocol's seed of its task, index and
+        # run seed (`envs.episodes.episode_seed`).
+        task, index, run_seed = episode["task_id"], episode["episode"], self.header["seed"]
+        seed = episode_seed(task, index, run_seed)
         if episode["seed"] != seed:
-            raise UserError(f"{where}: seed: {episode['seed']} is not the protocol's {SEED_STRIDE} * task_id + episode "
-                            f"+ run seed = {seed} (task {task}, episode {index}, run seed {self.header['seed']})")
+            raise UserError(f"{where}: seed: {episode['seed']} is not the protocol's {TASK_SEED_STRIDE} * task_id + episode "
+                            f"+ {RUN_SEED_STRIDE} * run seed = {seed} (task {task}, episode {index}, run seed {run_seed})")
         if "init_state_id" in episode and episode["init_state_id"] != index:
             raise UserError(f"{where}: init_state_id: {episode['init_state_id']} is not the episode index {index} "
                             "(episode i of a task starts from init state i)")

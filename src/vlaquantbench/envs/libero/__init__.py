@@ -12,8 +12,8 @@ with LiberoVectorEnv(suite, num_envs=2, camera_size=256) as env:
 
 from vlaquantbench.envs.libero.offline import assets_dir, cache_dir, config_dir, load_libero
 from vlaquantbench.envs.libero.suite import (
-    SEED_STRIDE,
     SUITES,
+    TASK_SEED_STRIDE,
     EpisodeSpec,
     LiberoSuite,
     LiberoTask,
@@ -31,9 +31,9 @@ from vlaquantbench.envs.libero.versions import PINNED_MUJOCO, simulator_versions
 __all__ = [
     "CAMERA_SIZE",
     "PINNED_MUJOCO",
-    "SEED_STRIDE",
     "SETTLE_STEPS",
     "SUITES",
+    "TASK_SEED_STRIDE",
     "EpisodeSpec",
     "LiberoSuite",
     "LiberoTask",

@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 
 from vlaquantbench.envs import BENCHMARK_SUITES
-from vlaquantbench.envs.episodes import SEED_STRIDE, EpisodeSpec, SuiteTasks, episode_seed
+from vlaquantbench.envs.episodes import TASK_SEED_STRIDE, EpisodeSpec, SuiteTasks, episode_seed
 from vlaquantbench.envs.libero.offline import load_libero
 from vlaquantbench.errors import UserError
 
 SUITES = BENCHMARK_SUITES["libero"]
 
-__all__ = ["SEED_STRIDE", "SUITES", "EpisodeSpec", "LiberoSuite", "LiberoTask", "episode_seed"]
+__all__ = ["SUITES", "TASK_SEED_STRIDE", "EpisodeSpec", "LiberoSuite", "LiberoTask", "episode_seed"]
 
 
 @dataclass(frozen=True)

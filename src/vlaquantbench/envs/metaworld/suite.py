@@ -10,7 +10,9 @@ A task variation is Meta-World's random placement of the task's objects and goal
 drawn at reset from the seeded simulator. Variation i of a task is drawn from `variation_seed(task,
 i)`, which depends on the task's name (lerobot's task id), not on the suite or the run seed: episode
 i of a task starts from the same scene in every suite and every run, as episode i of a LIBERO task
-starts from official init state i. The run seed changes the policy's random stream only.
+starts from official init state i. The run seed changes the policy's random stream only: episode i of a
+task has the LIBERO protocol's seed (`envs.episodes.episode_seed`, 1009 x task + i + 1000003 x run seed),
+which seeds the policy, never the placement.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vlaquantbench.envs import BENCHMARK_SUITES, METAWORLD_STEP_LIMIT
-from vlaquantbench.envs.episodes import SEED_STRIDE, EpisodeSpec, SuiteTasks, episode_seed
+from vlaquantbench.envs.episodes import TASK_SEED_STRIDE, EpisodeSpec, SuiteTasks, episode_seed
 from vlaquantbench.errors import UserError
 
 SUITES = BENCHMARK_SUITES["metaworld"]
@@ -45,8 +47,9 @@ def lerobot_metaworld_config() -> dict:
 
 
 def variation_seed(task_name: str, variation: int) -> int:
-    """The seed Meta-World draws variation `variation` of a task's object and goal placement from."""
-    return episode_seed(lerobot_metaworld_config()["TASK_NAME_TO_ID"][task_name], variation)
+    """The seed Meta-World draws variation `variation` of a task's object and goal placement from: the protocol's
+    run-seed-0 seed of that episode of the task's lerobot id, whatever the cell's run seed (the scene stays)."""
+    return episode_seed(lerobot_metaworld_config()["TASK_NAME_TO_ID"][task_name], variation, run_seed=0)
 
 
 def suite_task_names(name: str) -> tuple[str, ...]:
@@ -91,8 +94,8 @@ class MetaWorldSuite(SuiteTasks):
     def variation_seed(self, task_id: int, variation: int) -> int:
         if variation < 0:
             raise UserError(f"variation {variation} of {self.name} task {task_id} must not be negative")
-        if variation >= SEED_STRIDE:  # the next task's seeds would start
-            raise UserError(f"variation {variation} of {self.name} task {task_id} must be below {SEED_STRIDE}")
+        if variation >= TASK_SEED_STRIDE:  # the next task's seeds would start
+            raise UserError(f"variation {variation} of {self.name} task {task_id} must be below {TASK_SEED_STRIDE}")
         return variation_seed(self.task(task_id).name, variation)
 
     def task_variation(self, spec: EpisodeSpec) -> tuple[float, ...]:
