@@ -244,8 +244,10 @@ def test_by_default_each_model_and_suite_is_contrasted_with_its_own_baseline(tmp
 
 
 def test_a_cell_of_other_episode_seeds_is_skipped_naming_the_seeds(tmp_path, capsys):
-    """A cell folder of rtn-W4A4-ah's outcomes recorded under run seed 1 (every episode seed one higher)."""
+    """A cell folder of rtn-W4A4-ah's outcomes recorded under run seed 1 (every episode seed offset by the
+    protocol's run-seed stride)."""
     from vlaquantbench.cli import main
+    from vlaquantbench.envs.episodes import RUN_SEED_STRIDE
     from vlaquantbench.records import read_cell, write_cell
 
     from paths import RECORDS
@@ -255,11 +257,11 @@ def test_a_cell_of_other_episode_seeds_is_skipped_naming_the_seeds(tmp_path, cap
     (records / SPATIAL_PI05 / "rtn-BASELINE-e2e.jsonl").symlink_to(RECORDS / SPATIAL_PI05 / "rtn-BASELINE-e2e.jsonl")
     source = read_cell(RECORDS / SPATIAL_PI05 / "rtn-W4A4-ah.jsonl")
     write_cell(records / SPATIAL_PI05 / "seed1-rtn-W4A4-ah", {**source.header, "seed": 1},
-               source.episodes.assign(seed=source.episodes["seed"] + 1))
+               source.episodes.assign(seed=source.episodes["seed"] + RUN_SEED_STRIDE))
     assert main(["sequential", str(records), "--csv", str(tmp_path / "out.csv")]) == 2
     err = capsys.readouterr().err
     assert (f"skipped {SPATIAL_PI05}/seed1-rtn-W4A4-ah: not comparable with {SPATIAL_PI05}/rtn-BASELINE-e2e: its "
-            "episode seeds are not the baseline's (task 0 episode 0: seed 1, the baseline's 0)") in err
+            f"episode seeds are not the baseline's (task 0 episode 0: seed {RUN_SEED_STRIDE}, the baseline's 0)") in err
     assert f"{records} holds no cell to contrast with {SPATIAL_PI05}/rtn-BASELINE-e2e (1 skipped, above)" in err
     assert not (tmp_path / "out.csv").exists()
 
