@@ -1,25 +1,57 @@
 #!/bin/bash
-# Run on the GPU machine from the repository root with the worktree copied to .gpuwork/train and the
-# Meta-World stack (benchmarks/simstack.py, issue 30) in .gpuwork/demos-stack, both carried:
-#   run(command="bash .gpuwork/train/benchmarks/gpu_train_policy.sh", carry=[".gpuwork/train", ".gpuwork/demos-stack"])
-# One device call: demonstrations + training through Snakemake, then the closed-loop check; outputs under $OUT.
+# One device call: the trained policy from nothing, within the command limit (600 s). Run on the GPU machine
+# from the repository root, with the Meta-World stack (benchmarks/simstack.py pack --benchmark metaworld) in
+# .gpuwork/demos-stack, carried:
+#   run(command="bash benchmarks/gpu_train_policy.sh", carry=[".gpuwork/demos-stack"])
+# (tree and stack within the 64 MiB a call carries: leave the committed records and checkpoints out of the
+# index for the call, `git rm -r --cached` and .git/info/exclude, and `git reset` after.)
+# 1. the training step's rate by precision and batch (benchmarks/gpu_train_step.py);
+# 2. rule demonstrations through Snakemake (config/trained_study.yaml: 10 tasks x 50 episodes, 16 workers);
+# 3. rule train_policy through Snakemake, its steps sized from step 1's rate to end by TRAIN_END_S;
+# 4. the closed-loop check: 10 tasks x 20 held-out variations (0..19) at full precision
+#    (benchmarks/trained_policy_closed_loop.py), episodes recorded as they finish.
+# Under $OUT: the checkpoint (tar split in 15 MiB parts), closed_loop.json, logs.tar.gz, timings.txt.
 set -o pipefail
+TRAIN_END_S=${TRAIN_END_S:-440}  # seconds after the start by which training must be done
 S=$PWD/.gpuwork/demos-stack
-cd .gpuwork/train || exit 1
 T0=$(date +%s)
-python3 benchmarks/simstack.py unpack --from $S --target /tmp/sim > $OUT/unpack.log 2>&1 || { tail -20 $OUT/unpack.log; exit 1; }
+at() { echo "$1 at $(( $(date +%s) - T0 )) s" | tee -a $OUT/timings.txt; }
+python3 benchmarks/simstack.py unpack --from $S --target /tmp/sim > logs_unpack.txt 2>&1 || { tail -20 logs_unpack.txt; exit 1; }
 . /tmp/sim/env.sh
 export PYTHONPATH=$PWD/src:$PYTHONPATH PYTHONUNBUFFERED=1 MUJOCO_GL=egl
-nvidia-smi -L; echo "unpacked $(( $(date +%s)-T0 ))s"
-timeout $(( 505-($(date +%s)-T0) )) python3 -m snakemake --cores 16 --scheduler greedy checkpoints/pi05_metaworld/training.json \
-  --configfile config/trained_study.yaml > $OUT/snakemake.log 2>&1
-echo "snakemake rc=$? at $(( $(date +%s)-T0 ))s"; tail -4 $OUT/snakemake.log; grep -h "step \|time limit\|policy:" logs/train_policy.log | tail -30
+mkdir -p logs; nvidia-smi -L | tee -a $OUT/timings.txt; at unpacked
+python3 benchmarks/gpu_train_step.py --out logs/step_rate.json --steps 30 > logs/step_rate.log 2>&1
+at "step rate (rc $?)"; grep '^{' logs/step_rate.log
+timeout 200 python3 -m snakemake --cores 16 --scheduler greedy results/demonstrations/metaworld/manifest.tsv \
+  --configfile config/trained_study.yaml > logs/snakemake_demonstrations.log 2>&1
+at "demonstrations (rc $?)"; grep "episodes kept\|episodes tried" logs/demonstrations/metaworld.log | tail -2
+# The variant with the most samples a second at batch 128, or at 256 when that gives 1.4x the samples;
+# its steps fill the time left, less what loading the dataset takes (~30 s).
+python3 - "$(( TRAIN_END_S - ($(date +%s) - T0) - 30 ))" > logs/sized.yaml <<'PY'
+import json, sys, yaml
+budget = float(sys.argv[1])
+rows = json.load(open("logs/step_rate.json"))["variants"]
+best = {b: max((r for r in rows if r["batch_size"] == b), key=lambda r: r["samples_per_s"]) for b in (128, 256)}
+pick = best[256] if best[256]["samples_per_s"] >= 1.4 * best[128]["samples_per_s"] else best[128]
+steps = int(0.92 * pick["steps_per_s"] * budget)
+config = yaml.safe_load(open("config/trained_study.yaml"))["training"]
+print(yaml.safe_dump({"training": {"steps": steps, "batch_size": pick["batch_size"], "precision": pick["precision"],
+                                   "time_limit_s": budget + 15, "policy": {**config["policy"], "decay_steps": steps}}}))
+PY
+cat logs/sized.yaml | grep -v "^    \|^  policy"
+timeout $(( TRAIN_END_S + 40 - ($(date +%s) - T0) )) python3 -m snakemake --cores 16 --scheduler greedy \
+  checkpoints/pi05_metaworld/training.json --configfile config/trained_study.yaml logs/sized.yaml > logs/snakemake_training.log 2>&1
+at "training (rc $?)"; grep "dataset on\|policy:\|step \|time limit\|stopped" logs/train_policy.log | tail -8
 if [ -f checkpoints/pi05_metaworld/training.json ]; then
-  timeout $(( 575-($(date +%s)-T0) )) python3 benchmarks/trained_policy_closed_loop.py --device cuda --workers 16 --episodes 3 \
+  tar --exclude resume -cf - checkpoints/pi05_metaworld | split -b 15M - $OUT/ckpt.tar.part
+  timeout $(( 585 - ($(date +%s) - T0) )) python3 benchmarks/trained_policy_closed_loop.py --home checkpoints/pi05_metaworld \
+    --device cuda --workers 16 --episodes 20 --first-variation 0 --max-steps 150 \
     --tasks button-press-topdown-v3 button-press-v3 coffee-button-v3 door-open-v3 door-close-v3 drawer-open-v3 \
-    drawer-close-v3 handle-press-v3 window-open-v3 window-close-v3 --out $OUT/closed_loop.json > $OUT/eval.log 2>&1
-  echo "eval rc=$? at $(( $(date +%s)-T0 ))s"; grep -v "WARNING\|torchcodec" $OUT/eval.log | tail -30
-  tar -cf - checkpoints/pi05_metaworld | split -b 15M - $OUT/ckpt.tar.part
+    drawer-close-v3 handle-press-v3 window-open-v3 window-close-v3 --out $OUT/closed_loop.json --records logs/closed_loop.jsonl > logs/closed_loop.log 2>&1
+  at "closed loop (rc $?)"; python3 -c "
+import json, collections; rows = [json.loads(l) for l in open('logs/closed_loop.jsonl')]; c = collections.Counter()
+for r in rows: c[r['task_name']] += r['success']
+print(len(rows), 'episodes,', sum(c.values()), 'successes:', dict(c))"
 fi
 tar -czf $OUT/logs.tar.gz logs results/demonstrations/metaworld/demonstrations.json results/demonstrations/metaworld/manifest.tsv 2>/dev/null
-ls -la $OUT; echo "done $(( $(date +%s)-T0 ))s"
+ls -la $OUT; at done

@@ -14,6 +14,10 @@ predicted chunk. `--max-steps` (default: the suite's limit, 500) ends an episode
 the scripted experts finish these tasks in 32-93 steps, and a CPU run cannot afford 500 steps of a
 failing policy. `--preset` quantizes the policy first (round-to-nearest, no calibration, over the
 component scope `--scope`), as a study cell's `rtn-<preset>-<scope>` does. Writes `--out` (JSON: success per task, wall time, the checkpoint's revision).
+
+Arguments are checked before the policy loads: counts of at least 1, tasks of the suite, `--max-steps` within
+Meta-World's 500, and variations that the demonstrations never recorded (their range from the `demonstrations`
+section of the workflow config whose `training.output` is `--home`).
 """
 
 from __future__ import annotations
@@ -24,19 +28,63 @@ import time
 from pathlib import Path
 
 import torch
+import yaml
 
-from vlaquantbench.envs import make_env, make_suite
+from vlaquantbench.config import integer_option, load_workflow_config
+from vlaquantbench.demonstrations import DemonstrationConfig
+from vlaquantbench.demonstrations.overlap import VariationRange, check_disjoint, demonstrated_range
+from vlaquantbench.envs import check_step_limit, make_env, make_suite
+from vlaquantbench.errors import UserError
 from vlaquantbench.hub.cache import offline_cache, repo_folder
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.quant import QuantConfig, quantize_
 from vlaquantbench.runner.loop import run_episodes
 
 RESULTS = Path(__file__).resolve().parent / "results" / "trained_policy_closed_loop.json"
+ROOT = Path(__file__).resolve().parents[1]
+AT_LEAST_ONE, AT_LEAST_ZERO = integer_option({"minimum": 1}), integer_option({"minimum": 0})
 
+
+def training_demonstrations(home: Path) -> tuple[DemonstrationConfig, Path]:
+    """The demonstrations the checkpoint in `home` was trained on: the `demonstrations` section of the workflow
+    config (config/*.yaml) whose `training.output` is `home`, and that config."""
+    for path in sorted((ROOT / "config").glob("*.yaml")):
+        raw = yaml.safe_load(path.read_text()) or {}
+        output = (raw.get("training") or {}).get("output")
+        if output and (ROOT / output).resolve() == home.resolve() and "demonstrations" in raw:
+            config = load_workflow_config(path, ROOT / "config" / "config.yaml")
+            return DemonstrationConfig.from_dict(config["demonstrations"], where=str(path)), path.resolve()
+    raise UserError(f"no config/*.yaml trains {home} (its training.output), so the demonstrations' variations are unknown")
+
+
+def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse, before the policy loads, a task the suite lacks, steps past Meta-World's limit and variations the
+    demonstrations recorded, naming the argument (argparse's usage error)."""
+    try:
+        suite = make_suite("metaworld", args.suite)
+        for task_id in map(suite.task_id, args.tasks):
+            suite.episode_spec(task_id, args.first_variation + args.episodes - 1)
+    except UserError as err:
+        parser.error(f"argument --suite/--tasks/--first-variation: {err}")
+    if args.max_steps is not None:
+        try:
+            check_step_limit("argument --max-steps", args.max_steps, "metaworld", args.suite)
+        except UserError as err:
+            parser.error(str(err))
+    try:
+        demonstrations, config = training_demonstrations(args.home)
+    except UserError as err:
+        parser.error(f"argument --home: {err}")
+    evaluated = VariationRange(args.first_variation, args.first_variation + args.episodes - 1,
+                               f"--first-variation {args.first_variation}, --episodes {args.episodes}")
+    try:
+        check_disjoint(demonstrated_range(demonstrations), [evaluated], "--first-variation")
+    except UserError as err:
+        parser.error(f"argument --first-variation: {err} ({config.relative_to(ROOT)})")
 
 def evaluate(home: Path, suite_name: str, tasks: list[str], episodes: int, first_variation: int, workers: int,
              device: str, flow_steps: int, max_steps: int | None = None, preset: str | None = None,
-             scope: str = "e2e") -> dict:
+             scope: str = "e2e", records_file: Path | None = None) -> dict:
     if device == "cpu":
         # One intra-op thread: this policy's ops are tiny (10 x 32 matmuls), and on a loaded 2-core machine
         # each op's second OpenMP thread waits for a core, ~2 ms an op: 4.5 s a chunk against 0.25 s with
@@ -61,9 +109,16 @@ def evaluate(home: Path, suite_name: str, tasks: list[str], episodes: int, first
     specs = [suite.episode_spec(t, first_variation + e) for t in task_ids for e in range(episodes)]
     max_steps = suite.step_limit if max_steps is None else max_steps
     records: list[dict] = []
+
+    def finished(batch: list[dict]) -> None:
+        records.extend(batch)
+        if records_file is not None:  # each episode as it ends: a run cut short keeps what it finished
+            with open(records_file, "a") as f:
+                f.writelines(json.dumps(r) + "\n" for r in batch)
+
     started = time.perf_counter()
     with make_env("metaworld", suite, workers, camera_size=adapter.policy_config.image_resolution[0]) as env:
-        run_episodes(adapter, env, specs, max_steps, records.extend)
+        run_episodes(adapter, env, specs, max_steps, finished)
     per_task: dict[str, dict] = {}
     for record in records:
         outcome = per_task.setdefault(record["task_name"], {"episodes": 0, "successes": 0})
@@ -76,6 +131,8 @@ def evaluate(home: Path, suite_name: str, tasks: list[str], episodes: int, first
         "executed_chunk": adapter.executed_chunk, "flow_steps": flow_steps, "max_steps": max_steps,
         "episodes": len(records), "success_rate": round(sum(r["success"] for r in records) / len(records), 3),
         "per_task": per_task, "wall_s": round(time.perf_counter() - started, 1),
+        "outcomes": [{"task": r["task_name"], "variation": r["init_state_id"], "success": r["success"], "steps": r["steps"]}
+                     for r in sorted(records, key=lambda r: (r["task_id"], r["init_state_id"]))],
     }
 
 
@@ -84,18 +141,20 @@ def main() -> None:
     parser.add_argument("--home", type=Path, default=Path("checkpoints/pi05_metaworld"))
     parser.add_argument("--suite", default="metaworld_mt50")
     parser.add_argument("--tasks", nargs="+", default=["drawer-close-v3", "button-press-topdown-v3", "door-open-v3"])
-    parser.add_argument("--episodes", type=int, default=5)
-    parser.add_argument("--first-variation", type=int, default=0)
-    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--episodes", type=AT_LEAST_ONE, default=5)
+    parser.add_argument("--first-variation", type=AT_LEAST_ZERO, default=0)
+    parser.add_argument("--workers", type=AT_LEAST_ONE, default=2)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--flow-steps", type=int, default=10)
-    parser.add_argument("--max-steps", type=int, default=None)
+    parser.add_argument("--flow-steps", type=AT_LEAST_ONE, default=10)
+    parser.add_argument("--max-steps", type=AT_LEAST_ONE, default=None)
     parser.add_argument("--preset", default=None, help="e.g. W2, W4A4 (default: full precision)")
     parser.add_argument("--scope", default="e2e", help="component scope of --preset: e2e, ve, llm or ah")
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--records", type=Path, default=None, help="JSONL file each finished episode's record is appended to")
     args = parser.parse_args()
+    check_arguments(parser, args)
     result = evaluate(args.home, args.suite, args.tasks, args.episodes, args.first_variation, args.workers,
-                      args.device, args.flow_steps, args.max_steps, args.preset, args.scope)
+                      args.device, args.flow_steps, args.max_steps, args.preset, args.scope, args.records)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))

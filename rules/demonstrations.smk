@@ -1,8 +1,9 @@
 # Scripted-expert Meta-World demonstrations as a LeRobotDataset (issue 30): what the trained policy learns
 # from. Only with a `demonstrations` section (config/trained_study.yaml):
 #   snakemake --cores 16 results/demonstrations/metaworld/manifest.tsv --configfile config/trained_study.yaml
-# One worker process per core the job gets. A study whose Meta-World cells would evaluate a variation the
-# demonstrations may record is refused here, while the DAG is built.
+# One worker process per core the job gets. A config that would evaluate or calibrate on a variation the
+# demonstrations may record is refused here, while the DAG is built: every range its study names, whether or
+# not its cells are in the DAG, and those of the cells that are (vlaquantbench.demonstrations.overlap).
 from vlaquantbench.demonstrations import (  # noqa: E402
     DATASET_DIR,
     MANIFEST_FILE,
@@ -14,7 +15,7 @@ from vlaquantbench.demonstrations import (  # noqa: E402
 DEMONSTRATIONS = DemonstrationConfig.from_dict(config["demonstrations"]) if "demonstrations" in config else None
 
 if DEMONSTRATIONS is not None:
-    check_disjoint_from_evaluation(DEMONSTRATIONS, CELLS.values())
+    check_disjoint_from_evaluation(DEMONSTRATIONS, WF.study, CELLS.values())
 
     rule demonstrations:
         output:

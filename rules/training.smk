@@ -16,7 +16,7 @@ if "training" in config and DEMONSTRATIONS is not None:
             dataset_repo_id=DEMONSTRATIONS.repo_id,
         log:
             "logs/train_policy.log",
-        threads: max(1, TRAINING["num_workers"])
+        threads: workflow.cores  # the CPU device's intra-op threads; on a GPU, loading the dataset
         resources:
             gpu=int(TRAINING["device"].startswith("cuda")),
         script:

@@ -19,6 +19,7 @@ import pytest
 import yaml
 
 from paths import ROOT
+from vlaquantbench.config.study import StudyConfig
 from vlaquantbench.demonstrations import (
     DATASET_DIR,
     MANIFEST_FILE,
@@ -143,14 +144,18 @@ def test_demonstration_variations_are_never_evaluated(demos):
 
 def test_a_study_evaluating_a_demonstration_variation_is_refused():
     config = DemonstrationConfig.from_dict({"tasks": TASKS, "first_variation": 20})
-    cell = {"ref": "metaworld/metaworld_mt50/pi05/rtn-BASELINE-e2e", "benchmark": "metaworld", "episodes_per_task": 20}
-    check_disjoint_from_evaluation(config, [cell])  # variations 0..19
-    with pytest.raises(UserError, match=r"demonstrations.first_variation 20: cell metaworld/metaworld_mt50/pi05/"
-                                        r"rtn-BASELINE-e2e uses task variations up to 20 \(episodes_per_task\)"):
-        check_disjoint_from_evaluation(config, [{**cell, "episodes_per_task": 21}])
-    calibrated = {**cell, "calibration": {"init_states": [20, 21]}}
-    with pytest.raises(UserError, match=r"up to 21 \(calibration init states\)"):
-        check_disjoint_from_evaluation(config, [calibrated])
+
+    def study(episodes: int, first_calibration: int) -> StudyConfig:
+        return StudyConfig.from_dict({"models": {"pi05": {"variant": "demo"}}, "episodes_per_task": episodes,
+                                      "calibration": {"first_init_state": first_calibration, "episodes": 2}})
+
+    check_disjoint_from_evaluation(config, study(20, 400))  # variations 0..19 and 400..401
+    with pytest.raises(UserError, match=r"meet the variations 0\.\.20 \(study.episodes_per_task 21: evaluation "
+                                        r"episode e starts from variation e\) at 20\.\.20"):
+        check_disjoint_from_evaluation(config, study(21, 400))
+    with pytest.raises(UserError, match=r"meet the variations 118\.\.119 \(study.calibration.first_init_state 118, "
+                                        r"episodes 2\) at 118\.\.119"):
+        check_disjoint_from_evaluation(config, study(20, 118))
 
 
 @pytest.mark.parametrize(("section", "message"), [
@@ -170,7 +175,7 @@ def test_a_bad_section_is_refused_naming_the_field(section, message):
 ])
 def test_a_bad_task_or_variation_range_is_refused_before_any_worker(section, message, tmp_path):
     with pytest.raises(UserError, match=message):
-        write_demonstrations(DemonstrationConfig.from_dict(section), tmp_path / "out", num_envs=2)
+        write_demonstrations(DemonstrationConfig.from_dict(section), tmp_path / "out", workers=2)
     assert not (tmp_path / "out").exists()
 
 

@@ -17,7 +17,16 @@ from test_dag_slurm import SNAKEMAKE, jobs_by_rule, workflow_copy
 
 from vlaquantbench.envs.memory import job_memory_mb
 from vlaquantbench.errors import UserError
-from vlaquantbench.runner.gpus import Gpu, LocalGpuPlan, NoFreeGpu, device_record, gpu_slot, node_gpus
+from vlaquantbench.runner.gpus import (
+    TRUST_GPUS,
+    Gpu,
+    LocalGpuPlan,
+    NoFreeGpu,
+    device_files,
+    device_record,
+    gpu_slot,
+    node_gpus,
+)
 from vlaquantbench.runner.journal import header_differences
 from vlaquantbench.runner.provenance import host
 
@@ -75,7 +84,8 @@ def test_a_slot_is_free_again_after_its_holder_is_killed_with_sigkill(tmp_path):
 
 
 def test_more_gpu_jobs_than_devices_are_refused_naming_the_setting(monkeypatch, tmp_path):
-    monkeypatch.setenv("PATH", str(tmp_path))  # no nvidia-smi, on GPU machines too: the count is the config's
+    monkeypatch.setenv("PATH", str(tmp_path))  # no nvidia-smi, on GPU machines too: the count is the config's,
+    monkeypatch.setenv(TRUST_GPUS, "1")  # taken on trust (a node planning the jobs of others)
     with pytest.raises(UserError, match=r"--resources gpu=4 asks for 4 GPU jobs at once but this node has 2 GPU"):
         LocalGpuPlan.for_node(2, 4, cores=16)
     with pytest.raises(UserError, match=r"study\.execution\.gpus where nvidia-smi is missing"):
@@ -85,7 +95,7 @@ def test_more_gpu_jobs_than_devices_are_refused_naming_the_setting(monkeypatch, 
     assert node_gpus(2)[0] == [Gpu(0), Gpu(1)]
 
 
-def dry_run(checkout: Path, *args: str, gpus: int | None) -> subprocess.CompletedProcess:
+def dry_run(checkout: Path, *args: str, gpus: int | None, trusted: bool = True) -> subprocess.CompletedProcess:
     # A PATH without nvidia-smi, on GPU machines too: Python's and the one tool Snakemake calls (`which`).
     tools = checkout / "tools"
     if not tools.exists():
@@ -95,7 +105,8 @@ def dry_run(checkout: Path, *args: str, gpus: int | None) -> subprocess.Complete
     return subprocess.run(
         [*SNAKEMAKE, "--profile", "profiles/local-gpus", "--configfile", "config/paper.yaml", "gpus.yaml", "-n", *args],
         cwd=checkout, capture_output=True, text=True, timeout=600,
-        env={**os.environ, "PATH": f"{Path(sys.executable).parent}:{tools}"},
+        env={**{k: v for k, v in os.environ.items() if k != TRUST_GPUS}, "PATH": f"{Path(sys.executable).parent}:{tools}",
+             **({TRUST_GPUS: "1"} if trusted else {})},
     )
 
 
@@ -105,7 +116,7 @@ def test_local_gpus_profile_dry_run_states_the_plan_on_a_machine_without_gpus(tm
     output = result.stdout + result.stderr
     assert result.returncode == 0, output[-3000:]
     assert "Using profile profiles/local-gpus" in output
-    assert ("local GPUs (study.execution.gpus: 2 (nvidia-smi not found: taken on trust)): 0, 1; at most 2 "
+    assert ("local GPUs (study.execution.gpus: 2 (nvidia-smi not found: taken on trust, VQB_TRUST_GPUS=1)): 0, 1; at most 2 "
             "rollout/calibrate jobs at once (--resources gpu=2), each on a device of its own") in output
     assert "each with 4 of 8 cores and 3 LIBERO worker(s) (study.execution.num_envs: 8)" in output
     jobs = jobs_by_rule(output)
@@ -123,6 +134,21 @@ def test_local_gpus_profile_dry_run_states_the_plan_on_a_machine_without_gpus(tm
     no_gpu = dry_run(checkout, "--cores", "4", gpus=None)
     assert no_gpu.returncode == 0 and "set study.execution.gpus where nvidia-smi is missing" in no_gpu.stderr
     assert "a real run stops here" in no_gpu.stderr and len(jobs_by_rule(no_gpu.stdout + no_gpu.stderr)["rollout"]) == 22
+
+
+def test_more_gpus_than_the_node_has_are_refused_while_the_dag_is_built_naming_the_override(tmp_path):
+    """Without nvidia-smi, study.execution.gpus is checked against the node's /dev/nvidia<N> files (none here),
+    in a dry run too: before, each job died in torch ("Found no NVIDIA driver")."""
+    checkout = workflow_copy(tmp_path)
+    asked = len(device_files()) + 1
+    refused = dry_run(checkout, "--cores", "4", gpus=asked, trusted=False)
+    output = refused.stdout + refused.stderr
+    assert refused.returncode != 0
+    assert (f"study.execution.gpus: {asked} asks for more GPUs than this node has: nvidia-smi is missing and /dev holds "
+            f"{asked - 1} GPU device file(s)") in output, output[-3000:]
+    assert ("Where the jobs run on other nodes (a cluster whose login node has no GPU), submit them through the "
+            "cluster's executor (--profile profiles/slurm), or set VQB_TRUST_GPUS=1 to take the setting on trust") in output
+    assert not (checkout / "results").exists()
 
 
 def test_the_header_names_no_device_on_the_cpu_and_a_cell_resumes_on_another_gpu_of_its_model():

@@ -12,6 +12,8 @@ from paths import REFERENCE, RECORDS
 
 HEADER = {"kind": "header", "model": "pi05", "benchmark": "libero", "suite": "libero_spatial", "seed": 0, "episodes_per_task": 20,
           "preset": "W4A4", "scope": "ah", "quant_report": {"ah": {"layers": 3, "params": 9}}}
+# Task 0's name in LIBERO-Spatial: an episode's task_name must be its task id's (records.schema).
+SPATIAL_TASK_0 = "pick_up_the_black_bowl_between_the_plate_and_the_ramekin_and_place_it_on_the_plate"
 
 
 def episode(task_id, ep, success=True, **fields):
@@ -50,12 +52,12 @@ def test_quantized_layers_come_from_the_header():
 def test_optional_fields_may_be_absent(tmp_path):
     path = write_jsonl(tmp_path / "cell.jsonl", [
         HEADER,
-        episode(0, 0, task_name="pick", wall_time_s=3.5, extra={"init_state_id": 0, "subtasks_completed": 4}),
+        episode(0, 0, task_name=SPATIAL_TASK_0, wall_time_s=3.5, extra={"init_state_id": 0, "subtasks_completed": 4}),
         episode(0, 1, success=False),
         {**episode(1, 0), "extra": {}},  # no init state (CALVIN/SIMPLER style)
     ])  # fmt: skip
     episodes = read_cell(path).episodes
-    assert episodes["task_name"].tolist()[0] == "pick" and pd.isna(episodes["task_name"].tolist()[1])
+    assert episodes["task_name"].tolist()[0] == SPATIAL_TASK_0 and pd.isna(episodes["task_name"].tolist()[1])
     assert episodes["subtasks_completed"].tolist()[0] == 4.0 and pd.isna(episodes["wall_time_s"].iloc[2])
     assert pd.isna(episodes["init_state_id"].iloc[2]) and episodes["success"].tolist() == [True, False, True]
     assert "progress_score" not in episodes

@@ -58,7 +58,7 @@ def trained(tmp_path_factory):
     root = write_tiny_dataset(tmp / "dataset")
     manifest = tmp / "manifest.tsv"
     manifest.write_text("path\tsha256\n")
-    config = {"model": "pi05", "device": "cpu", "seed": 0, "steps": STEPS, "batch_size": 8, "num_workers": 0,
+    config = {"model": "pi05", "device": "cpu", "seed": 0, "steps": STEPS, "batch_size": 8,
               "log_every": 1,
               "checkpoint_repo": "vlaquantbench/pi05-tiny", "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer",
               "policy": TINY_POLICY}
@@ -156,7 +156,7 @@ def test_the_rule_trains_on_the_demonstrations_rules_dataset(tmp_path):
                       "image_writer_threads": 1}
     training = {"model": "pi05", "output": "checkpoints/tiny", "checkpoint_repo": "vlaquantbench/pi05-tiny",
                 "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer", "device": "cpu", "seed": 0, "steps": 2,
-                "batch_size": 4, "num_workers": 0, "log_every": 1, "policy": TINY_POLICY}
+                "batch_size": 4, "log_every": 1, "policy": TINY_POLICY}
     (tmp_path / "study.yaml").write_text(yaml.safe_dump({"demonstrations": demonstrations, "training": training}))
     command = [sys.executable, "-m", "snakemake", "checkpoints/tiny/training.json", "--cores", "2",
                "--snakefile", str(ROOT / "Snakefile"), "--directory", str(tmp_path),
@@ -168,3 +168,101 @@ def test_the_rule_trains_on_the_demonstrations_rules_dataset(tmp_path):
     assert record["dataset"]["episodes"] == 2 and record["dataset"]["tasks"] == ["Press a handle down"]
     snapshot = tmp_path / "checkpoints" / "tiny" / "hub" / "models--vlaquantbench--pi05-tiny" / "snapshots" / record["revision"]
     assert (snapshot / "model.safetensors").is_file() and (tmp_path / "logs" / "train_policy.log").is_file()
+
+
+def _config(**changes):
+    return {"model": "pi05", "device": "cpu", "seed": 0, "steps": STEPS, "batch_size": 8, "log_every": 1,
+            "checkpoint_repo": "vlaquantbench/pi05-tiny", "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer",
+            "policy": TINY_POLICY, **changes}
+
+
+def test_a_run_paused_at_its_time_limit_resumes_to_the_uninterrupted_runs_weights(trained, tmp_path):
+    """The same command twice: the first stops at `time_limit_s` with its state saved, the second continues
+    from it; the checkpoint is bit-equal to one run without a limit (the fixture's: same revision)."""
+    from vlaquantbench.errors import UserError
+    from vlaquantbench.training import TrainingPaused, train_policy
+
+    root = write_tiny_dataset(tmp_path / "dataset")
+    manifest = tmp_path / "manifest.tsv"
+    manifest.write_text("path\tsha256\n")
+    home, provenance = tmp_path / "hf", tmp_path / "training.json"
+    with pytest.raises(TrainingPaused, match=r"training.time_limit_s 0.5: stopped after step (\d+) of 40") as paused:
+        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, provenance, _config(time_limit_s=0.5))
+    state = home / "resume" / "state.pt"
+    assert state.is_file() and not provenance.exists()
+    assert 0 < int(str(paused.value).split("after step ")[1].split()[0]) < STEPS
+    # Settings that change what is trained are refused by name; the saved state stays.
+    with pytest.raises(UserError, match=r"saved by a run with other batch_size"):
+        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, provenance, _config(batch_size=4))
+    assert state.is_file()
+    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, home, provenance, _config())
+    assert record["revision"] == trained["record"]["revision"]
+    assert record["loss_curve"] == trained["record"]["loss_curve"] and record["steps"] == STEPS
+    assert not state.exists()
+
+
+def test_changed_weights_under_a_recorded_revision_are_refused_at_load(trained, tmp_path):
+    """A sign-flipped tensor is still a valid safetensors file: the load checks it against the training's
+    recorded hashes before lerobot reads it."""
+    import shutil
+
+    from safetensors.torch import load_file, save_file
+
+    from vlaquantbench.errors import UserError
+
+    home = tmp_path / "hf"
+    shutil.copytree(trained["home"], home, symlinks=False)
+    record = trained["record"]
+    assert len(record["weights_sha256"]) == 64
+    snapshot = home / "hub" / "models--vlaquantbench--pi05-tiny" / "snapshots" / record["revision"]
+    weights = load_file(snapshot / "model.safetensors")
+    name = sorted(weights)[0]
+    weights[name] = -weights[name]
+    (snapshot / "model.safetensors").unlink()
+    save_file(weights, snapshot / "model.safetensors")
+    with pytest.raises(UserError, match=rf"is not the weights its training recorded .*records revision {record['revision']}"):
+        _load({**trained, "home": home})
+
+
+def test_device_frames_equal_lerobots_items_through_the_preprocessor(trained, tmp_path):
+    """Every frame's tokens and normalized action chunk as lerobot's own path gives them:
+    `LeRobotDataset` with the policy's delta timestamps (`__getitem__`), then the preprocessor."""
+    import torch
+    from lerobot.datasets.factory import resolve_delta_timestamps
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from vlaquantbench.models.pi05 import task_tokenizer, trained as trained_module
+    from vlaquantbench.training.frames import DeviceFrames
+
+    root = write_tiny_dataset(tmp_path / "dataset", frames=7)
+    plain = LeRobotDataset("vlaquantbench/tiny-demos", root=root)
+    tokenizer = task_tokenizer.build_task_tokenizer(sorted(TASKS))
+    policy, preprocessor, _, _ = trained_module.build_policy(plain.meta, TINY_POLICY, "vlaquantbench/t", tokenizer, "cpu")
+    frames = DeviceFrames(plain, preprocessor, policy.config.chunk_size, torch.device("cpu"))
+    chunked = LeRobotDataset("vlaquantbench/tiny-demos", root=root,
+                             delta_timestamps=resolve_delta_timestamps(policy.config, plain.meta))
+    assert len(frames) == chunked.num_frames == 28
+    for index in range(len(frames)):
+        item = chunked[index]
+        expected = preprocessor({k: v[None] if isinstance(v, torch.Tensor) else [v] for k, v in item.items()})
+        got = frames.batch(torch.tensor([index]), shift_px=0)
+        assert torch.equal(got["observation.language.tokens"], expected["observation.language.tokens"])
+        assert torch.equal(got["observation.language.attention_mask"], expected["observation.language.attention_mask"])
+        torch.testing.assert_close(got["action"], expected["action"])
+        torch.testing.assert_close(got["observation.image"], expected["observation.image"], rtol=0, atol=0)
+
+
+def test_random_shift_crops_each_image_of_the_replicate_padded_batch():
+    import torch
+    import torchvision.transforms.v2.functional as F
+
+    from vlaquantbench.training.frames import random_shift
+
+    generator = torch.Generator().manual_seed(3)
+    images = torch.randint(0, 256, (16, 3, 12, 12), dtype=torch.uint8)
+    shifted = random_shift(images, 2, torch.Generator().manual_seed(3))
+    offsets = torch.randint(0, 5, (2, 16), generator=generator)
+    padded = F.pad(images, [2, 2, 2, 2], padding_mode="edge")
+    for i in range(16):
+        assert torch.equal(shifted[i], F.crop(padded[i], int(offsets[0, i]), int(offsets[1, i]), 12, 12))
+    assert not torch.equal(shifted, images)  # some sample moved

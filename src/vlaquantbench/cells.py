@@ -40,7 +40,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from vlaquantbench.config.study import RunnerConfig, StudyConfig
-from vlaquantbench.envs import BENCHMARK_SUITES, check_ids
+from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_step_limit
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import client_conventions, step_limit
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
@@ -196,12 +196,13 @@ class CellConfig(PolicyRunConfig):
         except UserError as err:
             raise UserError(f"cell {ref!r}: {err}") from None
         runner = _runner(study.runner, weights.runner, client, fields["flow_steps"], released_limit)
-        episodes = weights.episodes_per_task or study.episodes_per_task or client.episodes_per_task
+        episodes, _ = episodes_per_task(study, model)
         only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
         seed = study.seed + fields["seed_offset"]
         calibration = _calibration(ref, fields, study, seed)
         _check_fits_suite(ref, benchmark, suite, model, study, episodes, calibration, fields)
         _check_mujoco(ref, model, study, client, runner)
+        _check_steps(ref, benchmark, suite, model, study, runner)
         return cls(
             ref=ref,
             cell=name,
@@ -224,7 +225,7 @@ class CellConfig(PolicyRunConfig):
             runner=runner,
             client=client.as_dict(),
             overrides=_overrides(client, runner, episodes, released_limit),
-            sequential=_sequential(ref, benchmark, suite, model, name, study),
+            sequential=_sequential(ref, benchmark, suite, model, name, study, seed),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -274,18 +275,26 @@ class CalibrationConfig(PolicyRunConfig):
         return self.model
 
 
-def _sequential(ref: str, benchmark: str, suite: str, model: str, name: str, study: StudyConfig) -> dict[str, Any] | None:
+def _sequential(ref: str, benchmark: str, suite: str, model: str, name: str, study: StudyConfig,
+                seed: int) -> dict[str, Any] | None:
     """The cell's stopping rule under study.sequential: its level, margin and the `against` cell (its
-    reference and config hash: the rollout depends on that cell's records); None for the `against` cell."""
+    reference and config hash: the rollout depends on that cell's records); None for the `against` cell.
+    The `against` cell is of the same benchmark, suite, model and tasks; a cell of other episode seeds (another
+    `seed<N>-` prefix) is refused, naming both seeds: its rounds would pair episodes of different scenes."""
     design = study.sequential
     if design is None or name == design.against:
         return None
     against = f"{benchmark}/{suite}/{model}/{design.against}"
     try:
-        against_hash = CellConfig.from_ref(against, study).config_hash
+        against_cell = CellConfig.from_ref(against, study)
     except UserError as err:
         raise UserError(f"cell {ref!r}: study.sequential.against: {err}") from None
-    return {"alpha": design.alpha, "margin_pp": design.margin_pp, "against": {"ref": against, "config_hash": against_hash}}
+    if against_cell.seed != seed:
+        raise UserError(f"cell {ref!r}: study.sequential.against: {design.against} runs its episodes with run seed "
+                        f"{against_cell.seed}, this cell with run seed {seed}: a contrast pairs only cells of the same "
+                        "episode seeds; run it without study.sequential or drop the seed prefix that differs")
+    return {"alpha": design.alpha, "margin_pp": design.margin_pp,
+            "against": {"ref": against, "config_hash": against_cell.config_hash}}
 
 
 def _runner(study: RunnerConfig, model: dict[str, Any], client, flow_steps: int | None, released_limit: int) -> RunnerConfig:
@@ -338,8 +347,7 @@ def _check_fits_suite(ref: str, benchmark: str, suite: str, model: str, study: S
         else:
             check_ids("study.tasks", study.tasks, size.tasks, f"{suite} has {size.tasks} tasks")
         if episodes > size.init_states:
-            field = (f"study.models.{model}.episodes_per_task" if study.models[model].episodes_per_task
-                     else "study.episodes_per_task" if study.episodes_per_task else f"{model}'s client episodes_per_task")
+            _, field = episodes_per_task(study, model)
             raise UserError(f"{field}: {episodes} episodes per task, but {suite} has {size.init_states} official init "
                             f"states per task (episode i starts from init state i)")
         if calibration is not None:
@@ -358,11 +366,39 @@ def _check_fits_suite(ref: str, benchmark: str, suite: str, model: str, study: S
         raise UserError(f"cell {ref!r}: {err}") from None
 
 
+def episodes_per_task(study: StudyConfig, model: str) -> tuple[int, str]:
+    """The episodes per task of `model`'s cells (episode i of a task starts from init state or variation i) and
+    the config field they come from: the model's own, else the study's, else its released client's."""
+    if study.models[model].episodes_per_task:
+        return study.models[model].episodes_per_task, f"study.models.{model}.episodes_per_task"
+    if study.episodes_per_task:
+        return study.episodes_per_task, "study.episodes_per_task"
+    return client_conventions(model).episodes_per_task, f"{model}'s client episodes_per_task"
+
+
+def _runner_field(study: StudyConfig, model: str, key: str) -> str:
+    """The config field a cell's `runner.<key>` comes from: the model's own runner, else the study's, else (unset in
+    both) the model's released client."""
+    if key in study.models[model].runner:
+        return f"study.models.{model}.runner.{key}"
+    return f"study.runner.{key}" if getattr(study.runner, key) is not None else f"{model}'s client {key}"
+
+
+def _check_steps(ref: str, benchmark: str, suite: str, model: str, study: StudyConfig, runner: RunnerConfig) -> None:
+    """An episode's steps fit the simulator's horizon (`envs.SuiteSize.horizon`): one that outruns it dies inside
+    the simulator at the horizon's step, so a longer `max_steps` is refused now, naming the field."""
+    try:
+        check_step_limit(_runner_field(study, model, "max_steps"), runner.max_steps, benchmark, suite,
+                         runner.settle_steps, _runner_field(study, model, "settle_steps"))
+    except UserError as err:
+        raise UserError(f"cell {ref!r}: {err}") from None
+
+
 def _check_mujoco(ref: str, model: str, study: StudyConfig, client, runner: RunnerConfig) -> None:
     """A model's cells run in its software environment, which installs its client's MuJoCo pin; any other
     `runner.mujoco` would be refused when the simulator starts, so it is refused now."""
     if runner.mujoco != client.mujoco:
-        field = f"study.models.{model}.runner.mujoco" if "mujoco" in study.models[model].runner else "study.runner.mujoco"
+        field = _runner_field(study, model, "mujoco")
         raise UserError(f"cell {ref!r}: {field}: {runner.mujoco!r}, but {model} cells run on MuJoCo {client.mujoco}, the "
                         "pin of their software environment (vlaquantbench.software_env)")
 

@@ -1,25 +1,34 @@
-"""`vqb sequential RECORDS_DIR --baseline CELL --csv FILE`: replay the stopping rule on recorded cells.
+"""`vqb sequential RECORDS_DIR [--baseline CELL] --csv FILE`: replay the stopping rule on recorded cells.
 
-Every cell of the folder other than the baseline is contrasted with it: its episodes, in the
-task-interleaved order, go through the anytime-valid stopping rule (`vlaquantbench.sequential`), and the
-CSV gives per contrast the episodes used, the decision, A - B and A's rate at the stop with their confidence
-sequences, the study's decision under `--family`, and, for cells whose records ran in full, the full-sample
-clustered bootstrap and its decision.
+Every cell of the folder is contrasted with the baseline of its model, benchmark and suite (by default each
+`<benchmark>/<suite>/<model>/rtn-BASELINE-e2e`): its episodes, in the task-interleaved order, go through the
+anytime-valid stopping rule (`vlaquantbench.sequential`), and the CSV gives per contrast the episodes used,
+the decision, A - B and A's rate at the stop with their confidence sequences, the study's decision under
+`--family` (over the contrasts left), and, for cells whose records ran in full, the full-sample clustered
+bootstrap and its decision. A cell that has no such baseline, or whose tasks or episode seeds are not its
+baseline's (`sequential.contrast_mismatch`), is skipped, named on stderr with the reason, before any contrast
+is computed.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 from vlaquantbench.errors import UserError
+
+DEFAULT_BASELINE = "rtn-BASELINE-e2e"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("sequential", help="replay the sequential stopping rule on a folder of cell records")
     parser.add_argument("records_dir", help="folder of cell records (authors' .jsonl or cell folders)")
-    parser.add_argument("--baseline", required=True, metavar="CELL",
-                        help="the baseline cell: its reference under RECORDS_DIR (e.g. libero/libero_spatial/pi05/"
-                             "rtn-BASELINE-e2e), its file, or its name when that is unique in the folder")
+    parser.add_argument("--baseline", default=DEFAULT_BASELINE, metavar="CELL",
+                        help="a cell name: each model's and suite's cell of that name is the baseline of the others of "
+                             f"its model and suite (default {DEFAULT_BASELINE}); or one cell, by its reference under "
+                             "RECORDS_DIR (e.g. libero/libero_spatial/pi05/rtn-BASELINE-e2e) or its file: the baseline "
+                             "of the cells of its model and suite only")
     parser.add_argument("--alpha", type=float, default=0.05, help="declared level of the rule (default 0.05)")
     parser.add_argument("--margin", type=float, default=5.0, metavar="PP",
                         help="`not_worse` means not worse than the baseline by more than this many pp (default 5)")
@@ -30,40 +39,59 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def _baseline_ref(baseline: str, cells: dict, records_dir: str) -> str:
-    """The reference of `baseline` given as a reference, a record path or a unique cell name."""
-    from pathlib import Path
+def _group(ref: str) -> str:
+    """`<benchmark>/<suite>/<model>` of a cell reference: the cells one baseline serves."""
+    return ref.rsplit("/", 1)[0]
 
-    if baseline in cells:
-        return baseline
-    by_path = [ref for ref, path in cells.items() if Path(path).resolve() in {Path(baseline).resolve(),
-                                                                                 (Path(baseline) / "episodes.parquet").resolve()}]
-    by_name = [ref for ref in cells if ref.rsplit("/", 1)[-1] == baseline]
-    found = by_path or by_name
-    if len(found) != 1:
-        where = "matches several cells: " + ", ".join(found) if found else "is no cell there"
-        raise UserError(f"--baseline {baseline!r} {where} (cells in {records_dir}: {', '.join(cells)})")
-    return found[0]
+
+def _baselines(baseline: str, cells: dict, records_dir: str) -> tuple[dict[str, str], str]:
+    """The baseline of each `<benchmark>/<suite>/<model>` that has one: the cell `baseline` names (a reference
+    or a record path: that cell's group alone), or each group's cell of that name; and why a group has none."""
+    given = Path(baseline).resolve()
+    one = [ref for ref, path in cells.items() if ref == baseline or Path(path).resolve() in {given, given / "episodes.parquet"}]
+    if one:
+        return {_group(one[0]): one[0]}, f"the baseline {one[0]} is of another model or suite"
+    named = [ref for ref in cells if ref.rsplit("/", 1)[-1] == baseline]
+    if not named:
+        raise UserError(f"--baseline {baseline!r} is no cell there (cells in {records_dir}: {', '.join(cells)})")
+    return {_group(ref): ref for ref in named}, f"its model and suite have no cell {baseline} in {records_dir}"
 
 
 def run(args: argparse.Namespace) -> int:
     # pandas and the records: only when it runs
     from vlaquantbench.records import find_cells, read_cell
-    from vlaquantbench.sequential import DEFAULT_FAMILY, Design, ran_in_full, retrospective, saved_fraction, study_design, write_csv
+    from vlaquantbench.sequential import (DEFAULT_FAMILY, Design, contrast_mismatch, ran_in_full, retrospective,
+                                          saved_fraction, study_design, write_csv)
 
     design = Design(alpha=args.alpha, margin_pp=args.margin)  # refuses a bad level before any record is read
     family = args.family or DEFAULT_FAMILY
     study_design(design, family, 1)  # and a bad study-level option
     cells = find_cells(args.records_dir)
-    baseline = _baseline_ref(args.baseline, cells, args.records_dir)
-    others = [ref for ref in cells if ref != baseline]
-    if not others:
-        raise UserError(f"{args.records_dir} holds no cell besides the baseline {baseline}")
+    baselines, without_baseline = _baselines(args.baseline, cells, args.records_dir)
     records = {ref: read_cell(path) for ref, path in cells.items()}
-    table = retrospective([(ref, baseline) for ref in others], {ref: cell.episodes for ref, cell in records.items()},
-                          design, family, stopped_early={ref for ref, cell in records.items() if not ran_in_full(cell.header)})
+    contrasts, skipped = [], []
+    for ref in cells:
+        baseline = baselines.get(_group(ref))
+        if ref == baseline:
+            continue
+        if baseline is None:
+            skipped.append((ref, without_baseline))
+            continue
+        mismatch = contrast_mismatch(records[ref], records[baseline])
+        if mismatch:
+            skipped.append((ref, f"not comparable with {baseline}: {mismatch}"))
+        else:
+            contrasts.append((ref, baseline))
+    for ref, reason in skipped:
+        print(f"skipped {ref}: {reason}", file=sys.stderr)
+    if not contrasts:
+        raise UserError(f"{args.records_dir} holds no cell to contrast with {', '.join(sorted(baselines.values()))}"
+                        + (f" ({len(skipped)} skipped, above)" if skipped else ""))
+    table = retrospective(contrasts, {ref: cell.episodes for ref, cell in records.items()}, design, family,
+                          stopped_early={ref for ref, cell in records.items() if not ran_in_full(cell.header)})
     print(write_csv(table, args.csv))
-    print(f"{len(table)} contrasts with {baseline}: {int(table['episodes_used'].sum())} of "
+    print(f"{len(table)} contrasts with {len({b for _, b in contrasts})} baseline(s), "
+          f"{len(skipped)} cell(s) skipped: {int(table['episodes_used'].sum())} of "
           f"{int(table['episodes_available'].sum())} episodes ({100 * saved_fraction(table):.1f}% fewer); "
           + ", ".join(f"{(table['decision'] == d).sum()} {d}" for d in ("worse", "not_worse", "undecided"))
           + f"; {int((~table['agrees']).sum())} contradicting the full-sample decision; "

@@ -92,7 +92,8 @@ class ExecutionConfig:
     # Records are the same either way: an episode's outcome depends on its (task, episode, seed) alone.
     episode_order: str = "task_major"
     # GPUs of a local node that rollout and calibrate jobs take one each (vlaquantbench.runner.gpus): None,
-    # every device `nvidia-smi -L` lists; N, the first N (or devices 0..N-1 where nvidia-smi is missing).
+    # every device `nvidia-smi -L` lists; N, the first N (or devices 0..N-1 where nvidia-smi is missing, up to
+    # the node's /dev/nvidia<N> files; VQB_TRUST_GPUS=1 takes N on trust).
     gpus: int | None = None
 
     def as_kwargs(self) -> dict[str, Any]:

@@ -4,7 +4,7 @@
 from vlaquantbench.demonstrations import DemonstrationConfig, write_demonstrations
 
 config = DemonstrationConfig.from_dict({"tasks": ["drawer-close-v3", "door-open-v3"], "episodes_per_task": 50})
-write_demonstrations(config, "results/demonstrations/metaworld", num_envs=16)
+write_demonstrations(config, "results/demonstrations/metaworld", workers=16)
 ```
 
 The experts (`models/metaworld_expert`) run through the closed-loop runner on the project's own
@@ -17,9 +17,9 @@ from vlaquantbench.demonstrations.dataset import (
     MANIFEST_FILE,
     SUMMARY_FILE,
     DemonstrationConfig,
-    check_disjoint_from_evaluation,
     write_demonstrations,
 )
+from vlaquantbench.demonstrations.overlap import check_disjoint_from_evaluation
 
 __all__ = [
     "DATASET_DIR",

@@ -18,11 +18,16 @@ Episodes: the experts act through the closed-loop runner (`runner.loop.run_episo
 `MetaWorldVectorEnv`, so a demonstration sees what an evaluated policy sees. Task variation v of a
 task is drawn from `variation_seed(task, v)`; closed-loop evaluation episode e starts from variation
 e (`MetaWorldSuite.episode_spec`), so the demonstrations take variations from `first_variation` on
-(default 500), and `check_disjoint_from_evaluation` refuses a study whose cells would evaluate one
-of them. Only successful episodes are kept: a task gets attempts on consecutive variations until
-`episodes_per_task` succeed (each round tries as many as are still missing), so the kept episodes
+(default 500), and `overlap.check_disjoint_from_evaluation` refuses a config that would evaluate
+or calibrate on one of them. Only successful episodes are kept: a task gets attempts on consecutive
+variations until `episodes_per_task` succeed (each round tries as many as are still missing), so the kept episodes
 are the first successes in variation order whatever the number of workers, and the dataset's
 episodes are in a fixed order (round, task, variation).
+
+Writing is parallel: each worker process records blocks of one task's variations into a
+LeRobotDataset of its own (lerobot's writer encodes PNGs and computes image statistics there, beside
+its simulator), and lerobot's `aggregate_datasets` merges them in that fixed order
+(benchmarks/results/gpu_demonstrations/ measures the rate).
 """
 
 from __future__ import annotations
@@ -31,17 +36,19 @@ import importlib.metadata
 import json
 import logging
 import os
+import subprocess
+import sys
 import time
-from collections.abc import Iterable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from vlaquantbench.config import validate
+from vlaquantbench.envs import BENCHMARK_SUITES, check_step_limit
 from vlaquantbench.envs.episodes import SEED_STRIDE, EpisodeSpec
-from vlaquantbench.errors import UserError
+from vlaquantbench.errors import UserError, lookup
 
 log = logging.getLogger(__name__)
 
@@ -73,26 +80,14 @@ class DemonstrationConfig:
         validate(raw, "config", where, subschema=("demonstrations",))
         return cls(**{**raw, "tasks": tuple(raw["tasks"])})
 
+    def __post_init__(self):
+        # The episodes' steps fit Meta-World's: an episode past its max_path_length dies inside Meta-World.
+        suite = lookup(BENCHMARK_SUITES["metaworld"], self.suite, "Meta-World suite (demonstrations.suite)")
+        check_step_limit("demonstrations.max_steps", self.max_steps or suite.step_limit, "metaworld", self.suite)
+
     @property
     def last_variation(self) -> int:
         return self.first_variation + self.max_attempts_per_task - 1
-
-
-def check_disjoint_from_evaluation(config: DemonstrationConfig, cells: Iterable[dict[str, Any]]) -> None:
-    """UserError naming the first Meta-World cell (canonical config, `cells.CellConfig.to_dict`) that
-    evaluates or calibrates on a task variation the demonstrations may use."""
-    for cell in cells:
-        if cell["benchmark"] != "metaworld":
-            continue
-        calibration = cell.get("calibration") or {}
-        used = {"episodes_per_task": cell["episodes_per_task"] - 1,
-                "calibration init states": max(calibration.get("init_states") or [-1])}
-        for what, highest in used.items():
-            if highest >= config.first_variation:
-                raise UserError(
-                    f"demonstrations.first_variation {config.first_variation}: cell {cell['ref']} uses task "
-                    f"variations up to {highest} ({what}), which the demonstrations may record; set "
-                    f"demonstrations.first_variation above {highest}")
 
 
 def _available_rgb_encoder():
@@ -123,114 +118,142 @@ def _features(image_size: int) -> dict[str, dict]:
     }
 
 
-@dataclass
-class _Attempt:
-    """One expert episode: its frames until it resolves, then its outcome."""
+@dataclass(frozen=True)
+class _Shard:
+    """Consecutive variations of one task in one round, recorded by one worker process into a
+    LeRobotDataset of its own (`root`); the shards are merged in (round, task, variation) order."""
 
-    spec: EpisodeSpec
-    frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
-    record: dict | None = None
-
-
-class _EpisodeWriter:
-    """Saves episodes to the LeRobotDataset in one thread of its own, in the order they are submitted.
-
-    lerobot's `save_episode` encodes the PNGs and computes the image statistics (1-2 s a 224-px episode,
-    benchmarks/results/gpu_demonstrations_h200/): done in the run loop, it held every worker idle, so
-    it overlaps the simulation instead. One thread keeps lerobot's writer single-threaded and the
-    episodes in order; a failed save is raised at the next submit or at `close`."""
-
-    def __init__(self, dataset):
-        from concurrent.futures import ThreadPoolExecutor
-        from lerobot.utils.constants import ACTION, OBS_IMAGE, OBS_STATE
-
-        self.keys = OBS_IMAGE, OBS_STATE, ACTION
-        self.dataset = dataset
-        self.submitted = 0
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="save_episode")
-        self._saves: list = []
-
-    def submit(self, frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]], instruction: str) -> int:
-        """Queue an episode; its index in the dataset."""
-        self._raise_failed()
-        self._saves.append(self._executor.submit(self._save, frames, instruction))
-        self.submitted += 1
-        return self.submitted - 1
-
-    def _save(self, frames, instruction: str) -> None:
-        for image, state, action in frames:
-            self.dataset.add_frame(dict(zip(self.keys, (image, state, action)), task=instruction))
-        self.dataset.save_episode()
-
-    def _raise_failed(self) -> None:
-        for save in self._saves:
-            if save.done() and save.exception() is not None:
-                raise save.exception()
-        self._saves = [save for save in self._saves if not save.done()]
-
-    def close(self) -> None:
-        """Wait for every queued episode; raise the first failed save."""
-        self._executor.shutdown(wait=True)
-        self._raise_failed()
+    task_id: int
+    variations: tuple[int, ...]
+    root: Path
 
 
-class _Recorder:
-    """Collects each episode's frames as the runner sends its actions, and queues the kept episodes
-    for the dataset in the round's episode order as soon as every earlier one has resolved."""
+def _plan_shards(config: DemonstrationConfig, suite, attempts: dict[int, list[dict]], workers: int, round_dir: Path) -> list[_Shard]:
+    """The next round: per task, the next variations as many as successes are still missing, split into
+    blocks so that every worker has about two (a worker's shard costs a dataset of its own)."""
+    wanted = {}
+    for task_id, tried in attempts.items():
+        missing = config.episodes_per_task - sum(r["success"] for r in tried)
+        count = min(missing, config.max_attempts_per_task - len(tried))
+        wanted[task_id] = [config.first_variation + len(tried) + i for i in range(count)]
+    active = sum(1 for v in wanted.values() if v)
+    per_task = max(1, -(-2 * workers // max(active, 1)))
+    shards = []
+    for task_id, variations in wanted.items():
+        size = max(1, -(-len(variations) // per_task))
+        shards += [_Shard(task_id, tuple(variations[i:i + size]), round_dir / f"task{task_id:03d}-v{variations[i]:04d}")
+                   for i in range(0, len(variations), size)]
+    return shards
 
-    def __init__(self, writer: _EpisodeWriter, suite, specs: list[EpisodeSpec]):
-        self.writer = writer
-        self.suite = suite
-        self.attempts = {(s.task_id, s.init_state_id): _Attempt(s) for s in specs}
-        self.order = [(s.task_id, s.init_state_id) for s in specs]
-        self.written = 0  # attempts of `order` resolved and written (or dropped)
-        self.kept: dict[tuple[int, int], int] = {}  # (task, variation) -> dataset episode index
 
-    def on_actions(self, spec: EpisodeSpec, observation: dict, actions: np.ndarray) -> None:
+def _run_shard(config: DemonstrationConfig, shard: _Shard) -> list[dict]:
+    """`_record_shard` in a fresh interpreter (as the simulator workers are, `envs.workers`: a spawned
+    child would re-execute a Snakemake `script:`); its records, or RuntimeError naming the shard."""
+    job = json.dumps({"config": {**asdict(config), "tasks": list(config.tasks)},
+                      "shard": {"task_id": shard.task_id, "variations": list(shard.variations), "root": str(shard.root)}})
+    run = subprocess.run([sys.executable, "-c", SHARD_MAIN, job], stdout=subprocess.PIPE, stderr=None, text=True)
+    records = shard.root.parent / f"{shard.root.name}.json"
+    if run.returncode != 0 or not records.is_file():
+        raise RuntimeError(f"demonstrations: the worker recording task {shard.task_id} variations "
+                           f"{shard.variations[0]}..{shard.variations[-1]} failed (exit {run.returncode}; its "
+                           "traceback is in the log above)")
+    return json.loads(records.read_text())
+
+
+SHARD_MAIN = "import sys; from vlaquantbench.demonstrations.dataset import shard_main; shard_main(sys.argv[1])"
+
+
+def shard_main(job: str) -> None:
+    """A shard worker's entry point: `job` is `_run_shard`'s JSON; the records go to `<root>.json`."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    raw = json.loads(job)
+    config = DemonstrationConfig(**{**raw["config"], "tasks": tuple(raw["config"]["tasks"])})
+    shard = _Shard(raw["shard"]["task_id"], tuple(raw["shard"]["variations"]), Path(raw["shard"]["root"]))
+    records = _record_shard(config, shard)
+    (shard.root.parent / f"{shard.root.name}.json").write_text(json.dumps(records))
+
+
+def _record_shard(config: DemonstrationConfig, shard: _Shard) -> list[dict]:
+    """Run the expert on a shard's variations and save its successful episodes into the shard's own
+    LeRobotDataset; returns every attempt's record, with `dataset_episode` the episode's index within
+    the shard (None: not kept)."""
+    import torch
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.envs.configs import MetaworldEnv
+    from lerobot.utils.constants import ACTION, OBS_IMAGE, OBS_STATE
+
+    from vlaquantbench.envs import make_env, make_suite
+    from vlaquantbench.envs.metaworld import STEP_LIMIT
+    from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+    from vlaquantbench.runner.loop import run_episodes
+
+    torch.set_num_threads(1)  # one core a worker: the expert is arithmetic on a 39-number observation
+    suite = make_suite("metaworld", config.suite)
+    expert = make_adapter(AdapterConfig(model="metaworld_expert", variant="full"))
+    expert.load()
+    dataset = LeRobotDataset.create(
+        config.repo_id, fps=MetaworldEnv.fps, features=_features(config.image_size), root=shard.root,
+        robot_type=ROBOT_TYPE, use_videos=False, image_writer_threads=config.image_writer_threads,
+        rgb_encoder=_available_rgb_encoder())
+    instruction = suite.task(shard.task_id).instruction
+    frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    records: list[dict] = []
+
+    def on_actions(spec: EpisodeSpec, observation: dict, actions: np.ndarray) -> None:
         if len(actions) != 1:
             raise ValueError(f"a demonstration records one action per observation; the policy sent {len(actions)}")
         # The action as Meta-World applies it: the experts' position gains overshoot (xyz up to ~5, which
         # `SawyerXYZEnv.set_xyz_action` clips to [-1, 1]; the gripper effort is +-1), and a policy learns
         # targets within lerobot's action space.
-        action = np.clip(actions[0], -1, 1).astype(np.float32)
-        self.attempts[(spec.task_id, spec.init_state_id)].frames.append(
-            (observation["image"], observation["state"].astype(np.float32), action))
+        frames.append((observation["image"], observation["state"].astype(np.float32),
+                       np.clip(actions[0], -1, 1).astype(np.float32)))
 
-    def on_finished(self, records: list[dict]) -> None:
-        for record in records:
-            attempt = self.attempts[(record["task_id"], record["init_state_id"])]
-            attempt.record = record
+    def on_finished(finished: list[dict]) -> None:
+        for record in finished:
+            episode = None
+            if record["success"]:
+                if len(frames) != record["steps"]:  # one recorded frame per executed action
+                    raise RuntimeError(f"{record['task_name']} variation {record['init_state_id']}: "
+                                       f"{len(frames)} frames recorded for {record['steps']} steps")
+                for image, state, action in frames:
+                    dataset.add_frame({OBS_IMAGE: image, OBS_STATE: state, ACTION: action, "task": instruction})
+                dataset.save_episode()
+                episode = dataset.meta.total_episodes - 1
+            frames.clear()
             log.info("%s variation %d: %s after %d steps", record["task_name"], record["init_state_id"],
                      "success" if record["success"] else "FAILED (not kept)", record["steps"])
-        while self.written < len(self.order) and self.attempts[self.order[self.written]].record is not None:
-            self._write(self.attempts[self.order[self.written]])
-            self.written += 1
+            records.append({**record, "dataset_episode": episode})
 
-    def _write(self, attempt: _Attempt) -> None:
-        frames, attempt.frames = attempt.frames, []
-        if not attempt.record["success"]:
-            return
-        if len(frames) != attempt.record["steps"]:  # one recorded frame per executed action
-            raise RuntimeError(f"{attempt.record['task_name']} variation {attempt.spec.init_state_id}: "
-                               f"{len(frames)} frames recorded for {attempt.record['steps']} steps")
-        instruction = self.suite.task(attempt.spec.task_id).instruction
-        self.kept[(attempt.spec.task_id, attempt.spec.init_state_id)] = self.writer.submit(frames, instruction)
+    specs = [suite.episode_spec(shard.task_id, variation) for variation in shard.variations]
+    # One env: episodes run one after another, so `frames` holds exactly the running episode's.
+    with make_env("metaworld", suite, 1, camera_size=config.image_size) as env:
+        run_episodes(expert, env, specs, config.max_steps or STEP_LIMIT, on_finished, on_actions=on_actions)
+    dataset.finalize()
+    return records
 
 
-def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, num_envs: int) -> dict[str, Any]:
+def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, workers: int) -> dict[str, Any]:
     """Record the experts' demonstrations under `out_dir` (see the module doc); return the summary.
+
+    `workers` processes each record a shard (a block of one task's variations, with its own simulator)
+    into a LeRobotDataset of its own; lerobot's `aggregate_datasets` merges the shards in (round, task,
+    variation) order, so the dataset does not depend on the number of workers. Writing (PNG encoding,
+    image statistics) runs in every worker, beside its own simulator, instead of serially in one process.
 
     UserError, before any worker starts, for an unknown task or a variation range past the seeds of a
     task; after writing, for a task whose experts fell short of `episodes_per_task` successes within
     `max_attempts_per_task` episodes (the log lists every attempt)."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    import shutil
+    from concurrent.futures import ThreadPoolExecutor
+
+    from lerobot.datasets.aggregate import aggregate_datasets
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
     from lerobot.envs.configs import MetaworldEnv
 
-    from vlaquantbench.envs import make_env, make_suite
+    from vlaquantbench.envs import make_suite
     from vlaquantbench.envs.metaworld import STEP_LIMIT, simulator_versions
     from vlaquantbench.manifest import write_file_manifest
     from vlaquantbench.models.adapter import AdapterConfig, make_adapter
-    from vlaquantbench.runner.loop import run_episodes
 
     suite = make_suite("metaworld", config.suite)
     task_ids = [suite.task_id(name) for name in config.tasks]
@@ -241,48 +264,47 @@ def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, num_e
     max_steps = config.max_steps or STEP_LIMIT
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    dataset = LeRobotDataset.create(
-        config.repo_id, fps=MetaworldEnv.fps, features=_features(config.image_size), root=out / DATASET_DIR,
-        robot_type=ROBOT_TYPE, use_videos=False, image_writer_threads=config.image_writer_threads,
-        rgb_encoder=_available_rgb_encoder())
+    shards_dir = out / "shards"
+    shutil.rmtree(shards_dir, ignore_errors=True)
     expert = make_adapter(AdapterConfig(model="metaworld_expert", variant="full"))
-    expert.load()
+    expert.load()  # its provenance, for the summary
 
     attempts: dict[int, list[dict]] = {t: [] for t in task_ids}
-    kept: dict[tuple[int, int], int] = {}
-    writer = _EpisodeWriter(dataset)
+    merged: list[Path] = []  # shards holding kept episodes, in the dataset's order
+    kept: dict[tuple[int, int], int] = {}  # (task, variation) -> dataset episode index
     started = time.perf_counter()
-    with make_env("metaworld", suite, num_envs, camera_size=config.image_size) as env:
-        while True:
-            # Each round tries, per task, the next variations as many as successes are still missing.
-            specs = []
-            for task_id in task_ids:
-                missing = config.episodes_per_task - sum(r["success"] for r in attempts[task_id])
-                tried = len(attempts[task_id])
-                specs += [suite.episode_spec(task_id, config.first_variation + tried + i)
-                          for i in range(min(missing, config.max_attempts_per_task - tried))]
-            if not specs:
+    # Each thread waits on one worker interpreter (`_run_shard`).
+    with ThreadPoolExecutor(max(1, workers)) as pool:
+        for round_index in range(config.max_attempts_per_task):
+            shards = _plan_shards(config, suite, attempts, workers, shards_dir / f"round{round_index}")
+            if not shards:
                 break
-            recorder = _Recorder(writer, suite, specs)
-            run_episodes(expert, env, specs, max_steps, recorder.on_finished, on_actions=recorder.on_actions)
-            kept.update(recorder.kept)
-            for (task_id, variation), attempt in recorder.attempts.items():
-                attempts[task_id].append(attempt.record)
+            for shard, records in zip(shards, pool.map(_run_shard, [config] * len(shards), shards)):
+                attempts[shard.task_id] += records
+                shard_kept = [r for r in records if r["dataset_episode"] is not None]
+                for record in shard_kept:
+                    kept[(shard.task_id, record["init_state_id"])] = len(kept)
+                if shard_kept:
+                    merged.append(shard.root)
             done = sum(map(len, attempts.values()))
             log.info("%d episodes tried, %d kept, %.1f episodes/minute with %d workers",
-                     done, len(kept), done / _minutes_since(started), env.num_envs)
-    writer.close()
-    log.info("%d episodes saved, %.1f episodes/minute", writer.submitted, writer.submitted / _minutes_since(started))
-    dataset.finalize()
+                     done, len(kept), done / _minutes_since(started), workers)
+    recorded = time.perf_counter()
+    aggregate_datasets([config.repo_id] * len(merged), config.repo_id, roots=merged, aggr_root=out / DATASET_DIR)
+    shutil.rmtree(shards_dir)
+    meta = LeRobotDatasetMetadata(config.repo_id, root=out / DATASET_DIR)
+    log.info("%d episodes kept in %.1f s (%.1f a minute), merged in %.1f s", meta.total_episodes, recorded - started,
+             meta.total_episodes / _minutes_since(started), time.perf_counter() - recorded)
 
     summary = {
         "settings": {**asdict(config), "tasks": list(config.tasks), "max_steps": max_steps},
         "dataset": {"dir": DATASET_DIR, "repo_id": config.repo_id, "fps": MetaworldEnv.fps, "use_videos": False,
-                    "features": list(_features(config.image_size)), "episodes": dataset.meta.total_episodes,
-                    "frames": dataset.meta.total_frames},
+                    "features": list(_features(config.image_size)), "episodes": meta.total_episodes,
+                    "frames": meta.total_frames},
         "expert": expert.checkpoint_provenance,
         "versions": {**simulator_versions(), "lerobot": importlib.metadata.version("lerobot")},
         "renderer": os.environ.get("MUJOCO_GL", "egl"),  # what the workers set when unset
+        "workers": workers,
         "tasks": [_task_summary(suite, task_id, attempts[task_id], kept) for task_id in task_ids],
     }
     (out / SUMMARY_FILE).write_text(json.dumps(summary, indent=1) + "\n")

@@ -32,10 +32,24 @@ if TYPE_CHECKING:
 
 
 @dataclass(frozen=True)
+class Horizon:
+    """A simulator's hard limit on one episode: `steps` env steps, after which it refuses to step on (it raises
+    from inside the simulator, naming no setting), the settle steps after a reset included where
+    `counts_settle_steps` (a benchmark whose env settles, `runner.settle_steps`)."""
+
+    steps: int
+    source: str  # where the limit is set, in words
+    counts_settle_steps: bool = False
+
+
+@dataclass(frozen=True)
 class SuiteSize:
     tasks: int  # task ids 0..tasks-1, in the benchmark's task order
     init_states: int  # initial states (LIBERO) or seeded task variations (Meta-World) per task, ids 0..init_states-1
     worker_gib: float  # memory of one simulator worker process (envs.memory), measured as noted below
+    # Env steps the simulator takes in one episode before it refuses another (`Horizon`): the most steps any
+    # setting may ask of an episode.
+    horizon: Horizon
     # Policy steps before an unfinished episode counts as a failure, whatever the model (Meta-World's); None:
     # each model's client declares its own (LIBERO's, `models/<model>/client.py` STEP_LIMITS).
     step_limit: int | None = None
@@ -54,16 +68,22 @@ class SuiteSize:
 # Meta-World's `max_path_length` (its envs refuse to step further), which lerobot's
 # `MetaworldEnv._max_episode_steps` and so lerobot-eval's rollouts use.
 METAWORLD_STEP_LIMIT = 500
+# LIBERO's `OffScreenRenderEnv` (robosuite) ends an episode at its horizon, 1000 env steps after the reset, and
+# refuses any further step ("executing action in terminated episode"): the settle steps count.
+LIBERO_HORIZON = Horizon(1000, "LIBERO's env horizon, settle steps included: robosuite refuses to step on",
+                         counts_settle_steps=True)
+METAWORLD_HORIZON = Horizon(METAWORLD_STEP_LIMIT, "Meta-World's max_path_length: it refuses to step on")
 _METAWORLD_TASKS = {"metaworld_easy": 28, "metaworld_medium": 11, "metaworld_hard": 6, "metaworld_very_hard": 5,
                     "metaworld_mt10": 10, "metaworld_mt50": 50}
 BENCHMARK_SUITES = {
     "libero": {
-        "libero_spatial": SuiteSize(tasks=10, init_states=50, worker_gib=1.9),
-        "libero_object": SuiteSize(tasks=10, init_states=50, worker_gib=2.1),
-        "libero_goal": SuiteSize(tasks=10, init_states=50, worker_gib=1.7),
-        "libero_10": SuiteSize(tasks=10, init_states=50, worker_gib=2.9),
+        "libero_spatial": SuiteSize(tasks=10, init_states=50, worker_gib=1.9, horizon=LIBERO_HORIZON),
+        "libero_object": SuiteSize(tasks=10, init_states=50, worker_gib=2.1, horizon=LIBERO_HORIZON),
+        "libero_goal": SuiteSize(tasks=10, init_states=50, worker_gib=1.7, horizon=LIBERO_HORIZON),
+        "libero_10": SuiteSize(tasks=10, init_states=50, worker_gib=2.9, horizon=LIBERO_HORIZON),
     },
-    "metaworld": {suite: SuiteSize(tasks=tasks, init_states=SEED_STRIDE, worker_gib=0.4, step_limit=METAWORLD_STEP_LIMIT)
+    "metaworld": {suite: SuiteSize(tasks=tasks, init_states=SEED_STRIDE, worker_gib=0.4, horizon=METAWORLD_HORIZON,
+                              step_limit=METAWORLD_STEP_LIMIT)
                   for suite, tasks in _METAWORLD_TASKS.items()},
 }
 # Each benchmark's package exports its suite class, its vector env class and its `simulator_versions`
@@ -81,6 +101,18 @@ def check_ids(field: str, ids: Iterable[int], count: int, what: str) -> None:
         shown = ", ".join(map(str, outside[:8])) + (", ..." if len(outside) > 8 else "")
         verb = "is" if len(outside) == 1 else "are"
         raise UserError(f"{field}: {shown} {verb} outside 0..{count - 1} ({what})")
+
+
+def check_step_limit(field: str, max_steps: int, benchmark: str, suite: str, settle_steps: int = 0,
+                     settle_field: str = "settle_steps") -> None:
+    """UserError `<field>: <max_steps> ...` when an episode of `max_steps` policy steps (and `settle_steps` settle
+    steps, where the benchmark's env settles) would outrun the simulator's horizon (`SuiteSize.horizon`)."""
+    horizon = BENCHMARK_SUITES[benchmark][suite].horizon
+    settled = settle_steps if horizon.counts_settle_steps else 0
+    if max_steps + settled > horizon.steps:
+        after = f" after {settle_field} {settled}" if settled else ""
+        raise UserError(f"{field}: {max_steps} steps{after} is beyond {suite}'s limit of {horizon.steps} env steps an "
+                        f"episode ({horizon.source}); set it to at most {horizon.steps - settled}")
 
 
 def _benchmark_export(benchmark: str, which: int) -> Any:

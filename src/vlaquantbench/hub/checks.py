@@ -44,6 +44,23 @@ def check_snapshot_revision(folder: str | Path, checkpoint: str, revision: str) 
         )
 
 
+def check_trained_weights(folder: str | Path, checkpoint: str, revision: str, training_file: str) -> None:
+    """A checkpoint trained here names its revision after its weights (the SHA-1 of model.safetensors)
+    and records their SHA-256 in `training_file`: refuse weights that are neither, before they load
+    (a valid safetensors file with other values would load silently under the old revision)."""
+    import hashlib
+
+    weights = Path(folder) / "model.safetensors"
+    record = load_json(Path(folder) / training_file, "training provenance")
+    with open(weights, "rb") as f:
+        sha1 = hashlib.file_digest(f, "sha1").hexdigest()
+    recorded = record.get("weights_sha256")
+    if sha1 != revision or (recorded is not None and sha256(weights) != recorded):
+        raise UserError(f"checkpoint {checkpoint}@{revision}: {weights} is not the weights its training recorded "
+                        f"(SHA-1 {sha1}, SHA-256 {sha256(weights)}; {training_file} records revision {revision}"
+                        f"{f' and SHA-256 {recorded}' if recorded else ''}): retrain or restore the file")
+
+
 def load_json(path: Path, what: str) -> Any:
     """The JSON file `path`; UserError naming it (as `what`) when it is missing or not JSON."""
     if not path.is_file():

@@ -136,6 +136,8 @@ class PiFamilyAdapter(AdapterBase):
         if not folder:
             raise UserError(f"{self.name}: checkpoint {self.config.checkpoint} has no local snapshot; run its download rule")
         checks.check_snapshot_revision(folder, self.config.checkpoint, self.config.revision)
+        if (Path(folder) / TRAINING_FILE).exists():
+            checks.check_trained_weights(folder, self.config.checkpoint, self.config.revision, TRAINING_FILE)
         normalization = checks.check_processors(folder)
         tokenizers = [checks.load_tokenizer(name)[1] for name in checks.tokenizer_names(folder)]
         weights = Path(folder) / "model.safetensors"

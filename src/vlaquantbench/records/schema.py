@@ -133,6 +133,38 @@ class EpisodeCheck:
         if "init_state_id" in episode and episode["init_state_id"] != index:
             raise UserError(f"{where}: init_state_id: {episode['init_state_id']} is not the episode index {index} "
                             "(episode i of a task starts from init state i)")
+        if "task_name" in episode or "task_variation" in episode:
+            self._check_task(episode, where)
+
+    def _check_task(self, episode: dict[str, Any], where: str) -> None:
+        """The task an episode names is its task id's in the header's suite (a table selects a task's episodes by
+        name), and the placement it records is the one its task, seed and index start it from (Meta-World)."""
+        suite = _suite(self.header["benchmark"], self.header["suite"])
+        task = episode["task_id"]
+        if "task_name" in episode and episode["task_name"] != suite.task(task).name:
+            raise UserError(f"{where}: task_name: {episode['task_name']!r} is not task {task} of {suite.name}, "
+                            f"{suite.task(task).name!r}")
+        if "task_variation" not in episode:
+            return
+        if not hasattr(suite, "task_variation"):
+            raise UserError(f"{where}: task_variation: {self.header['benchmark']} episodes start from no seeded "
+                            "task variation")
+        spec = suite.episode_spec(task, episode["episode"], self.header["seed"])
+        drawn = suite.task_variation(spec)
+        if tuple(episode["task_variation"]) != drawn:
+            shown = lambda values: "[" + ", ".join(f"{float(x):.4f}" for x in values) + "]"  # noqa: E731
+            raise UserError(f"{where}: task_variation: {shown(episode['task_variation'])} is not the placement "
+                            f"{shown(drawn)} that episode {spec.episode} of {suite.task(task).name} starts from "
+                            f"(task variation {spec.init_state_id}, drawn from seed "
+                            f"{suite.variation_seed(task, spec.init_state_id)})")
+
+
+@functools.cache
+def _suite(benchmark: str, name: str):
+    """The suite a header names, built once per process (its task names; Meta-World's placements)."""
+    from vlaquantbench.envs import make_suite
+
+    return make_suite(benchmark, name)
 
 
 def present(row: dict[str, Any]) -> dict[str, Any]:

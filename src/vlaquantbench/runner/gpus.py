@@ -5,8 +5,10 @@ assigns no device to a job: every job would run on CUDA's default device. So eac
 calibrate job takes a slot here before torch initialises CUDA and sets `CUDA_VISIBLE_DEVICES` to it:
 
 - The slots are the node's devices as `nvidia-smi -L` lists them (within a `CUDA_VISIBLE_DEVICES`
-  the run itself was given), or, where nvidia-smi is missing, `study.execution.gpus` devices 0..N-1
-  taken on trust. `study.execution.gpus` below the listed count uses the first N.
+  the run itself was given), or, where nvidia-smi is missing, `study.execution.gpus` devices 0..N-1,
+  provided the node has that many device files `/dev/nvidia<N>` (a container without the tool); more
+  is refused while the DAG is built, unless `VQB_TRUST_GPUS=1` says the jobs run on other nodes
+  (a cluster login node without a GPU). `study.execution.gpus` below the listed count uses the first N.
 - A slot is an exclusive `fcntl.flock` on one lock file per device in the run's slot folder
   (`.snakemake/gpu-slots`), taken as `runner.lock` takes a cell's writer lock: the kernel drops it
   when its holder exits in any way, kill -9 included, so a slot is never stale and never held by two
@@ -40,6 +42,10 @@ from vlaquantbench.runner.lock import holder, release_flock, try_flock
 
 SLOTS_DIR = ".snakemake/gpu-slots"
 GPUS_SETTING = "study.execution.gpus"
+# Set to 1: take study.execution.gpus on trust where nvidia-smi is missing (the node that builds the DAG is not
+# the one the jobs run on).
+TRUST_GPUS = "VQB_TRUST_GPUS"
+_DEVICE_FILE = re.compile(r"^nvidia(\d+)$")
 # `GPU 0: NVIDIA H200 (UUID: GPU-0f6c...)`, one line per device (MIG instances, indented, are not listed).
 _SMI_LINE = re.compile(r"^GPU (\d+): (.+) \(UUID: (GPU-[0-9a-fA-F-]+)\)$")
 
@@ -81,6 +87,12 @@ def listed_gpus() -> list[Gpu] | None:
     return [g for g in gpus if str(g.index) in wanted or any(g.uuid.startswith(w) for w in wanted if w.startswith("GPU-"))]
 
 
+def device_files(dev: Path = Path("/dev")) -> list[str]:
+    """The NVIDIA device files of this node (`/dev/nvidia0`, ...): its GPUs where nvidia-smi is missing."""
+    return sorted((str(path) for path in dev.glob("nvidia*") if _DEVICE_FILE.match(path.name)),
+                  key=lambda name: int(_DEVICE_FILE.match(Path(name).name)[1]))
+
+
 def node_gpus(configured: int | None) -> tuple[list[Gpu], str]:
     """The node's GPU slots for `configured` (study.execution.gpus; None: every listed device), and where
     they come from in words; UserError naming the setting when it asks for more devices than are listed."""
@@ -88,7 +100,17 @@ def node_gpus(configured: int | None) -> tuple[list[Gpu], str]:
     if listed is None:
         if configured is None:
             return [], "nvidia-smi not found and study.execution.gpus unset"
-        return [Gpu(i) for i in range(configured)], f"{GPUS_SETTING}: {configured} (nvidia-smi not found: taken on trust)"
+        if os.environ.get(TRUST_GPUS) == "1":
+            return [Gpu(i) for i in range(configured)], f"{GPUS_SETTING}: {configured} (nvidia-smi not found: taken on trust, {TRUST_GPUS}=1)"
+        found = device_files()
+        if configured > len(found):
+            raise UserError(f"{GPUS_SETTING}: {configured} asks for more GPUs than this node has: nvidia-smi is missing and "
+                            f"/dev holds {len(found)} GPU device file(s) ({', '.join(found) or 'none'}); "
+                            + (f"set it to at most {len(found)}, or " if found else "")
+                            + "run on the CPU (study.runner.device: cpu). Where the jobs run on "
+                            "other nodes (a cluster whose login node has no GPU), submit them through the cluster's "
+                            f"executor (--profile profiles/slurm), or set {TRUST_GPUS}=1 to take the setting on trust")
+        return [Gpu(i) for i in range(configured)], f"{GPUS_SETTING}: {configured} (nvidia-smi not found; /dev holds {len(found)})"
     if configured is None:
         return listed, f"nvidia-smi -L lists {len(listed)}"
     if configured > len(listed):

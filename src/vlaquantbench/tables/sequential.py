@@ -15,8 +15,8 @@ import pandas as pd
 from vlaquantbench.atomic import atomic_write
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import read_checked_cell
-from vlaquantbench.sequential import (DEFAULT_FAMILY, Design, ran_in_full, retrospective, saved_fraction, study_guarantee,
-                                      write_csv)
+from vlaquantbench.sequential import (DEFAULT_FAMILY, Design, contrast_mismatch, ran_in_full, retrospective,
+                                      saved_fraction, study_guarantee, write_csv)
 from vlaquantbench.tables.booktabs import Booktabs
 from vlaquantbench.tables.definition import TableDefinition
 
@@ -104,6 +104,11 @@ def write_sequential_table(definitions: list[TableDefinition], cell_paths: Mappi
     if missing:
         raise UserError(f"tab:sequential needs the episode records of {', '.join(missing)}; only their summary is available")
     cells = {ref: read_checked_cell(ref, cell_paths[ref]) for ref in dict.fromkeys(r for pair in contrasts for r in pair)}
+    for cell, baseline in contrasts:
+        mismatch = contrast_mismatch(cells[cell], cells[baseline])
+        if mismatch:
+            raise UserError(f"tab:sequential: contrast {cell} - {baseline}: {mismatch}; a contrast pairs only cells "
+                            "of one model, benchmark and suite, on the same tasks and episode seeds")
     table = retrospective(contrasts, {ref: cell.episodes for ref, cell in cells.items()}, design, family,
                           stopped_early={ref for ref, cell in cells.items() if not ran_in_full(cell.header)})
     write_csv(table, csv)

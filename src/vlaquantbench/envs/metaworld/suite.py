@@ -95,7 +95,28 @@ class MetaWorldSuite(SuiteTasks):
             raise UserError(f"variation {variation} of {self.name} task {task_id} must be below {SEED_STRIDE}")
         return variation_seed(self.task(task_id).name, variation)
 
+    def task_variation(self, spec: EpisodeSpec) -> tuple[float, ...]:
+        """The placement episode `spec` starts from: what its worker reports at reset as `task_variation`,
+        drawn here as the worker draws it, without a camera (milliseconds; each task's env built once)."""
+        return _drawn_placement(self.task(spec.task_id).name, self.variation_seed(spec.task_id, spec.init_state_id))
+
     def episode_spec(self, task_id: int, episode: int, run_seed: int = 0) -> EpisodeSpec:
         """Episode i of a task starts from task variation i."""
         self.variation_seed(task_id, episode)
         return EpisodeSpec(task_id, episode, init_state_id=episode, seed=episode_seed(task_id, episode, run_seed))
+
+
+@functools.cache
+def _placement_simulator(task: str):
+    from vlaquantbench.envs.metaworld.worker import SlotSimulator
+
+    simulator = SlotSimulator(camera_size=None)
+    simulator.load(task)
+    return simulator
+
+
+@functools.cache
+def _drawn_placement(task: str, seed: int) -> tuple[float, ...]:
+    simulator = _placement_simulator(task)
+    simulator.reset(task, seed)
+    return tuple(float(x) for x in simulator.task_variation())

@@ -82,13 +82,22 @@ class SlotSimulator:
         self._env, self._task = env, task
 
     def start(self, start: EpisodeStart) -> dict:
-        self.load(start.task)
+        raw = self.reset(start.task, start.variation_seed)
         self._instruction = start.instruction
-        self._env.seed(start.variation_seed)
-        raw, _ = self._env.reset()
         observation = self._observation(raw)
-        observation["task_variation"] = np.array(self._env._last_rand_vec, dtype=np.float64)
+        observation["task_variation"] = self.task_variation()
         return observation
+
+    def reset(self, task: str, variation_seed: int) -> np.ndarray:
+        """Meta-World's observation after a reset of `task` to the placement `variation_seed` draws."""
+        self.load(task)
+        self._env.seed(variation_seed)
+        raw, _ = self._env.reset()
+        return raw
+
+    def task_variation(self) -> np.ndarray:
+        """The object and goal placement (Meta-World's `rand_vec`) the last reset drew."""
+        return np.array(self._env._last_rand_vec, dtype=np.float64)
 
     def step(self, action: np.ndarray) -> tuple[dict, bool]:
         observation, _, success = self.chunk(action[None])
