@@ -4,7 +4,7 @@
 
 from vlaquantbench.manifest import verified
 from vlaquantbench.rule_log import job_log
-from vlaquantbench.sequential import Design, live_episodes, saved_fraction
+from vlaquantbench.sequential import DEFAULT_FAMILY, Design, live_episodes, saved_fraction
 from vlaquantbench.tables.sequential import write_sequential_table
 
 sm = snakemake
@@ -14,7 +14,8 @@ with job_log(sm):
     table = write_sequential_table(sm.params.definitions, dict(zip(sm.params.refs, files)), sm.output.tex, sm.output.csv,
                                    sm.output.figure, Design(alpha=sm.params.alpha, margin_pp=sm.params.margin_pp),
                                    notes=[f"Data source: {sm.params.report['source']}.",
-                                          f"Records checked against {sm.params.report['checks']}."])
+                                          f"Records checked against {sm.params.report['checks']}."],
+                                   family=sm.params.family or DEFAULT_FAMILY)
     print(f"{sm.output.tex}: {len(table)} contrasts, {100 * saved_fraction(table):.1f}% fewer episodes, "
           f"{int((~table['agrees']).sum())} contradicting the full-sample decision")
     # Live, batches that fill a cell's workers may run past the deciding round (README "The paper's 409 runs").

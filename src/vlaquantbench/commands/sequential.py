@@ -3,9 +3,11 @@
 Every cell of the folder is contrasted with the baseline of its model, benchmark and suite (by default each
 `<benchmark>/<suite>/<model>/rtn-BASELINE-e2e`): its episodes, in the task-interleaved order, go through the
 anytime-valid stopping rule (`vlaquantbench.sequential`), and the CSV gives per contrast the episodes used,
-the decision and the full-sample clustered-bootstrap decision. A cell that has no such baseline, or whose
-tasks or episode seeds are not its baseline's (`sequential.contrast_mismatch`), is skipped, named on stderr
-with the reason.
+the decision, A - B and A's rate at the stop with their confidence sequences, the study's decision under
+`--family` (over the contrasts left), and, for cells whose records ran in full, the full-sample clustered
+bootstrap and its decision. A cell that has no such baseline, or whose tasks or episode seeds are not its
+baseline's (`sequential.contrast_mismatch`), is skipped, named on stderr with the reason, before any contrast
+is computed.
 """
 
 from __future__ import annotations
@@ -30,6 +32,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--alpha", type=float, default=0.05, help="declared level of the rule (default 0.05)")
     parser.add_argument("--margin", type=float, default=5.0, metavar="PP",
                         help="`not_worse` means not worse than the baseline by more than this many pp (default 5)")
+    parser.add_argument("--family", metavar="OPTION",
+                        help="study-level guarantee over the contrasts: e_bh, e-BH on the capitals (a false-discovery "
+                             "rate, the default); split, alpha split over them (a family-wise error rate); or none")
     parser.add_argument("--csv", required=True, metavar="FILE", help="CSV to write, one row per contrast")
     parser.set_defaults(func=run)
 
@@ -55,9 +60,12 @@ def _baselines(baseline: str, cells: dict, records_dir: str) -> tuple[dict[str, 
 def run(args: argparse.Namespace) -> int:
     # pandas and the records: only when it runs
     from vlaquantbench.records import find_cells, read_cell
-    from vlaquantbench.sequential import Design, contrast_mismatch, retrospective, saved_fraction, write_csv
+    from vlaquantbench.sequential import (DEFAULT_FAMILY, Design, contrast_mismatch, ran_in_full, retrospective,
+                                          saved_fraction, study_design, write_csv)
 
     design = Design(alpha=args.alpha, margin_pp=args.margin)  # refuses a bad level before any record is read
+    family = args.family or DEFAULT_FAMILY
+    study_design(design, family, 1)  # and a bad study-level option
     cells = find_cells(args.records_dir)
     baselines, without_baseline = _baselines(args.baseline, cells, args.records_dir)
     records = {ref: read_cell(path) for ref, path in cells.items()}
@@ -79,11 +87,13 @@ def run(args: argparse.Namespace) -> int:
     if not contrasts:
         raise UserError(f"{args.records_dir} holds no cell to contrast with {', '.join(sorted(baselines.values()))}"
                         + (f" ({len(skipped)} skipped, above)" if skipped else ""))
-    table = retrospective(contrasts, {ref: cell.episodes for ref, cell in records.items()}, design)
+    table = retrospective(contrasts, {ref: cell.episodes for ref, cell in records.items()}, design, family,
+                          stopped_early={ref for ref, cell in records.items() if not ran_in_full(cell.header)})
     print(write_csv(table, args.csv))
     print(f"{len(table)} contrasts with {len({b for _, b in contrasts})} baseline(s), "
           f"{len(skipped)} cell(s) skipped: {int(table['episodes_used'].sum())} of "
           f"{int(table['episodes_available'].sum())} episodes ({100 * saved_fraction(table):.1f}% fewer); "
           + ", ".join(f"{(table['decision'] == d).sum()} {d}" for d in ("worse", "not_worse", "undecided"))
-          + f"; {int((~table['agrees']).sum())} contradicting the full-sample decision")
+          + f"; {int((~table['agrees']).sum())} contradicting the full-sample decision; "
+          + f"{int((table['study_decision'] != table['decision']).sum())} changed by the study level ({family})")
     return 0

@@ -43,11 +43,15 @@ from vlaquantbench.stats import BOOTSTRAP_DRAWS, BOOTSTRAP_SEED
 
 STATS = {
     "rate": ("cell",),  # success rate, one decimal
-    "rate_ci": ("cell",),  # success rate with integer Wilson bounds
+    "rate_ci": ("cell",),  # success rate with integer Wilson bounds (fixed-sample: `--` bounds for a stopped cell)
     "layers": ("cell",),  # quantized layers from the header's quant_report
     "nonfinite": ("cell",),  # episodes ended by a non-finite (NaN) action of the policy
-    "delta": ("cell", "minus"),  # A - B in pp
-    "bootstrap": ("cell", "minus"),  # task-clustered bootstrap interval of A - B
+    "delta": ("cell", "minus"),  # A - B in pp; for a cell run under the stopping rule, paired over the rounds it read
+    "bootstrap": ("cell", "minus"),  # task-clustered bootstrap interval of A - B (fixed-sample: `--` for a cell the
+    # stopping rule stopped before its cap; a cell under the rule is compared with B's episodes of its rounds)
+    "delta_cs": ("cell", "minus"),  # for a cell run under the stopping rule: the anytime-valid confidence sequence
+    # of A - B, paired over the rounds the rule read, at its level (`--` for a fixed-design cell)
+    "rate_cs": ("cell",),  # likewise the confidence sequence of the cell's success rate
     "mean_subtasks": ("cell",),  # CALVIN: mean completed subtasks per chain, two decimals
     "mean_progress": ("cell",),  # VLABench: mean progress score in percent, one decimal
     "episodes": ("cell",),  # the cell's episode count, from its data

@@ -15,6 +15,7 @@ import numpy as np
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import Cell, read_checked_cell
 from vlaquantbench.records.summary import SummaryCell, read_summary
+from vlaquantbench.sequential import contrast_at_stop, ran_in_full, rate_at_stop
 from vlaquantbench.stats import task_clustered_bootstrap, task_clustered_mean, wilson_interval
 from vlaquantbench.tables.booktabs import MIDRULE, Booktabs
 from vlaquantbench.tables.definition import BootstrapSpec, ColumnSpec, TableDefinition
@@ -123,6 +124,23 @@ def _mean(cell: AnyCell, column: str, field: str, ref: str) -> float:
     return float(values.mean())
 
 
+def _sequential(cell: AnyCell) -> dict | None:
+    """The stopping rule's record of a cell that ran under it, else None."""
+    return cell.header.get("stopping") if isinstance(cell, Cell) else None
+
+
+def _stopped_early(cell: AnyCell) -> bool:
+    """A cell the stopping rule stopped before its cap: its episode count was chosen by its data."""
+    return isinstance(cell, Cell) and not ran_in_full(cell.header)
+
+
+def _same_rounds(minus: AnyCell, minus_ref: str, cell: AnyCell):
+    """B's episodes of the rounds a sequential cell A recorded (all of B's for a fixed-design A)."""
+    episodes = _episodes(minus, minus_ref, "a contrast")
+    stopping = _sequential(cell)
+    return episodes if not stopping else episodes[episodes["episode"] < stopping["rounds_run"]]
+
+
 def _episodes(cell: AnyCell, ref: str, stat: str):
     if cell.episodes is None:
         raise UserError(f"cell {ref}: {stat} needs per-episode records; only its summary row is available")
@@ -173,7 +191,7 @@ def _format(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell], bootstrap
         text = f"{_rate(cell):.1f}"
     elif spec.stat == "rate_ci":
         low, high = wilson_interval(cell.n_successes, cell.n_episodes)
-        text = f"{_rate(cell):.1f} [{low:.0f},{high:.0f}]"
+        text = f"{_rate(cell):.1f} [{MISSING}]" if _stopped_early(cell) else f"{_rate(cell):.1f} [{low:.0f},{high:.0f}]"
     elif spec.stat == "layers":  # a summary row has no run header: counted on the model's layer index
         text = str(_counted(ref)["layers"] if isinstance(cell, SummaryCell) else cell.quantized_layers)
     elif spec.stat == "params":
@@ -189,14 +207,24 @@ def _format(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell], bootstrap
         text = MISSING if not stopping else f"{_escape(stopping['decision'])}@{stopping['episodes_used']}"
     elif spec.stat == "nonfinite":
         text = MISSING if cell.n_nonfinite is None else str(cell.n_nonfinite)
+    elif spec.stat == "rate_cs" and _sequential(cell):
+        rate = rate_at_stop(_episodes(cell, ref, spec.stat), cell.header)
+        text = f"[{rate.low:.1f}, {rate.high:.1f}]"
+    elif spec.stat in ("delta", "delta_cs") and _sequential(cell):
+        contrast = contrast_at_stop(_episodes(cell, ref, spec.stat), cell.header, _episodes(minus, minus_ref, spec.stat))
+        text = _signed(contrast.estimate) if spec.stat == "delta" else f"[{_signed(contrast.low)}, {_signed(contrast.high)}]"
+    elif spec.stat in ("delta_cs", "rate_cs"):  # a fixed-design cell: its fixed-sample intervals are the other stats
+        text = MISSING
     elif spec.stat == "delta":
         text = _signed(_rate(cell) - _rate(minus))
     elif spec.stat == "mean_subtasks":
         text = f"{_mean(cell, 'mean_subtasks', 'subtasks_completed', ref):.2f}"
     elif spec.stat == "mean_progress":
         text = f"{100.0 * _mean(cell, 'mean_progress', 'progress_score', ref):.1f}"
+    elif _stopped_early(cell):  # bootstrap: a fixed-sample interval, not over a sample its data chose
+        text = MISSING
     else:
-        contrast = bootstrap(_episodes(cell, ref, "bootstrap"), _episodes(minus, minus_ref, "bootstrap"))
+        contrast = bootstrap(_episodes(cell, ref, "bootstrap"), _same_rounds(minus, minus_ref, cell))
         text = f"[{_signed(contrast.low)}, {_signed(contrast.high)}]"
     if spec.bold_below is not None and _rate(cell) < spec.bold_below:
         text = rf"\textbf{{{text}}}"
