@@ -130,10 +130,25 @@ def evaluate(home: Path, suite_name: str, tasks: list[str], episodes: int, first
         "suite": suite_name, "variations": [first_variation, first_variation + episodes - 1],
         "executed_chunk": adapter.executed_chunk, "flow_steps": flow_steps, "max_steps": max_steps,
         "episodes": len(records), "success_rate": round(sum(r["success"] for r in records) / len(records), 3),
+        "success_ci95_task_clustered": _clustered_interval(records),
         "per_task": per_task, "wall_s": round(time.perf_counter() - started, 1),
         "outcomes": [{"task": r["task_name"], "variation": r["init_state_id"], "success": r["success"], "steps": r["steps"]}
                      for r in sorted(records, key=lambda r: (r["task_id"], r["init_state_id"]))],
     }
+
+
+def _clustered_interval(records: list[dict]) -> list[float] | None:
+    """The success rate's task-clustered bootstrap 95% interval (`stats.task_clustered_mean`: tasks, then each
+    task's episodes, resampled), in percent; None for one task."""
+    import pandas as pd
+
+    from vlaquantbench.stats import task_clustered_mean
+
+    episodes = pd.DataFrame({"task_id": [r["task_id"] for r in records], "success": [float(r["success"]) for r in records]})
+    if episodes["task_id"].nunique() < 2:
+        return None
+    interval = task_clustered_mean(episodes, "success")
+    return [round(100 * interval.low, 1), round(100 * interval.high, 1)]
 
 
 def main() -> None:

@@ -266,3 +266,24 @@ def test_random_shift_crops_each_image_of_the_replicate_padded_batch():
     for i in range(16):
         assert torch.equal(shifted[i], F.crop(padded[i], int(offsets[0, i]), int(offsets[1, i]), 12, 12))
     assert not torch.equal(shifted, images)  # some sample moved
+
+
+def test_the_study_configs_training_target_plans_demonstrations_and_training_on_a_clean_checkout(tmp_path):
+    """`snakemake -n checkpoints/pi05_metaworld/training.json --configfile config/trained_study.yaml`, the command
+    benchmarks/gpu_train_policy.sh runs, in a checkout without the checkpoint: the DAG holds the two jobs."""
+    import re
+    import subprocess
+    import sys
+
+    from paths import ROOT
+
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    for item in ("Snakefile", "rules", "workflow", "config", "src"):
+        (checkout / item).symlink_to(ROOT / item)
+    run = subprocess.run([sys.executable, "-m", "snakemake", "-n", "checkpoints/pi05_metaworld/training.json",
+                          "--configfile", "config/trained_study.yaml"], cwd=checkout, capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    jobs = {job: int(count) for job, count in re.findall(r"^(\w+) +(\d+)$", run.stdout, re.MULTILINE)}
+    assert jobs == {"demonstrations": 1, "train_policy": 1, "total": 2}, run.stdout[-2000:]
