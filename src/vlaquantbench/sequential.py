@@ -51,7 +51,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Collection, Mapping
+from typing import Collection, Mapping
 
 import numpy as np
 import pandas as pd
@@ -60,9 +60,6 @@ from vlaquantbench.atomic import write_text
 from vlaquantbench.confidence_sequence import AnytimeInterval, contrast_interval, mean_sequence, rate_interval
 from vlaquantbench.errors import UserError
 from vlaquantbench.stats import task_clustered_bootstrap
-
-if TYPE_CHECKING:
-    from vlaquantbench.records import Cell
 
 DECISIONS = ("worse", "not_worse", "undecided")
 DEFAULT_ALPHA = 0.05
@@ -109,25 +106,6 @@ class SequentialResult:
     def episodes_used(self) -> int:
         """Episodes of each cell the rule consumed (the baseline's are paired with them)."""
         return self.rounds_used * self.tasks
-
-
-def contrast_mismatch(cell: Cell, baseline: Cell) -> str | None:
-    """Why the records `cell` cannot be contrasted with `baseline`'s, None when they can: a contrast pairs only
-    cells of one model, benchmark and suite, recorded on the same tasks, whose paired episodes (same task and
-    index) ran with the same seeds, hence from the same scenes."""
-    for field in ("model", "benchmark", "suite"):
-        if cell.header.get(field) != baseline.header.get(field):
-            return f"its {field} is {cell.header.get(field)}, the baseline's {baseline.header.get(field)}"
-    tasks, baseline_tasks = (sorted(int(t) for t in c.episodes["task_id"].unique()) for c in (cell, baseline))
-    if tasks != baseline_tasks:
-        return f"it records tasks {tasks}, the baseline {baseline_tasks}"
-    paired = cell.episodes.merge(baseline.episodes, on=["task_id", "episode"], suffixes=("", "_baseline"))
-    differing = paired[paired["seed"] != paired["seed_baseline"]]
-    if len(differing):
-        first = differing.iloc[0]
-        return (f"its episode seeds are not the baseline's (task {first['task_id']} episode {first['episode']}: "
-                f"seed {first['seed']}, the baseline's {first['seed_baseline']})")
-    return None
 
 
 def interleaved_order(episodes: pd.DataFrame) -> pd.DataFrame:

@@ -6,7 +6,7 @@ anytime-valid stopping rule (`vlaquantbench.sequential`), and the CSV gives per 
 the decision, A - B and A's rate at the stop with their confidence sequences, the study's decision under
 `--family` (over the contrasts left), and, for cells whose records ran in full, the full-sample clustered
 bootstrap and its decision. A cell that has no such baseline, or whose tasks or episode seeds are not its
-baseline's (`sequential.contrast_mismatch`), is skipped, named on stderr with the reason, before any contrast
+baseline's (`records.contrast_mismatch`), is skipped, named on stderr with the reason, before any contrast
 is computed.
 """
 
@@ -59,8 +59,8 @@ def _baselines(baseline: str, cells: dict, records_dir: str) -> tuple[dict[str, 
 
 def run(args: argparse.Namespace) -> int:
     # pandas and the records: only when it runs
-    from vlaquantbench.records import find_cells, read_cell
-    from vlaquantbench.sequential import (DEFAULT_FAMILY, Design, contrast_mismatch, ran_in_full, retrospective,
+    from vlaquantbench.records import contrast_mismatch, find_cells, read_cell
+    from vlaquantbench.sequential import (DEFAULT_FAMILY, Design, ran_in_full, retrospective,
                                           saved_fraction, study_design, write_csv)
 
     design = Design(alpha=args.alpha, margin_pp=args.margin)  # refuses a bad level before any record is read

@@ -252,3 +252,22 @@ def find_cells(records_dir: str | Path) -> dict[str, Path]:
             raise UserError(f"{root}: cell {ref} is recorded twice ({cells[ref]} and {episodes})")
         cells[ref] = episodes
     return dict(sorted(cells.items()))
+
+
+def contrast_mismatch(cell: Cell, baseline: Cell) -> str | None:
+    """Why the records `cell` cannot be contrasted with `baseline`'s, None when they can: a contrast pairs only
+    cells of one model, benchmark and suite, recorded on the same tasks, whose paired episodes (same task and
+    index) ran with the same seeds, hence from the same scenes."""
+    for field in ("model", "benchmark", "suite"):
+        if cell.header.get(field) != baseline.header.get(field):
+            return f"its {field} is {cell.header.get(field)}, the baseline's {baseline.header.get(field)}"
+    tasks, baseline_tasks = (sorted(int(t) for t in c.episodes["task_id"].unique()) for c in (cell, baseline))
+    if tasks != baseline_tasks:
+        return f"it records tasks {tasks}, the baseline {baseline_tasks}"
+    paired = cell.episodes.merge(baseline.episodes, on=["task_id", "episode"], suffixes=("", "_baseline"))
+    differing = paired[paired["seed"] != paired["seed_baseline"]]
+    if len(differing):
+        first = differing.iloc[0]
+        return (f"its episode seeds are not the baseline's (task {first['task_id']} episode {first['episode']}: "
+                f"seed {first['seed']}, the baseline's {first['seed_baseline']})")
+    return None

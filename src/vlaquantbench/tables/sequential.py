@@ -14,8 +14,8 @@ import pandas as pd
 
 from vlaquantbench.atomic import atomic_write
 from vlaquantbench.errors import UserError
-from vlaquantbench.records import read_checked_cell
-from vlaquantbench.sequential import (DEFAULT_FAMILY, Design, contrast_mismatch, ran_in_full, retrospective,
+from vlaquantbench.records import contrast_mismatch, read_checked_cell
+from vlaquantbench.sequential import (DEFAULT_FAMILY, Design, ran_in_full, retrospective,
                                       saved_fraction, study_guarantee, write_csv)
 from vlaquantbench.tables.booktabs import Booktabs
 from vlaquantbench.tables.definition import TableDefinition
