@@ -32,11 +32,11 @@ STUDY_TABLES = (
     ("Quantization methods on the pi0.5 trained here (Meta-World)",
      "config/methods_2026/tables/methods_2026.yaml",
      "snakemake --cores 2 tables/methods_2026.tex --configfile config/trained_cpu.yaml",
-     "results/methods_2026, manifests/methods_2026.tsv"),
+     "results/methods_2026", "manifests/methods_2026.tsv"),
     ("Live sequential stopping rule on the trained policy",
      "config/trained_sequential/tables/trained_sequential.yaml",
      "snakemake --cores 2 tables/trained_sequential.tex --configfile config/trained_sequential.yaml",
-     "results/trained_sequential/live, manifests/trained_sequential_live.tsv"),
+     "results/trained_sequential/live", "manifests/trained_sequential_live.tsv"),
 )
 
 
@@ -225,12 +225,26 @@ def results_page() -> str:
             out.append(_value(entry))
         out.append("")
     out += ["## Study tables", "",
-            "Rendered from committed records; the table definition and the records are named with each.", ""]
-    for title, definition, command, records in STUDY_TABLES:
-        table = yaml.safe_load((ROOT / definition).read_text())
-        out += [f"### {title}", "", f"Definition `{definition}`; records {', '.join(f'`{r}`' for r in records.split(', '))}.",
-                "", f"    {command}", "", _cell(table.get("caption", "")), ""]
+            "Rendered here from the committed records, checked against their manifest, by the code that renders",
+            "the tables in the workflow; the definition, records and manifest are named with each.", ""]
+    for title, definition, command, records, manifest in STUDY_TABLES:
+        out += [f"### {title}", "", f"Definition `{definition}`; records `{records}`, checked against `{manifest}`;",
+                f"the workflow renders it with `{command}`.", "", study_table(definition, records, manifest), ""]
     return "\n".join(out)
+
+
+def study_table(definition: str, records: str, manifest: str) -> str:
+    """The table `definition` rendered from the cell folders under `records` (one per reference), as HTML."""
+    from vlaquantbench.manifest import verified
+    from vlaquantbench.tables import load_table
+    from vlaquantbench.tables.latex import booktabs, read_cells
+
+    table = load_table(ROOT / definition)
+    refs = table.refs()
+    folders = [str(ROOT / records / ref) for ref in refs]
+    checked = verified([str(ROOT / manifest)], str(ROOT / records), folders)
+    page = booktabs(table, read_cells(refs, dict(zip(refs, checked)))).html()
+    return page[page.index("<table"):page.index("</table>") + len("</table>")]
 
 
 PAGES = {"configuration.md": configuration_page, "results.md": results_page}

@@ -72,6 +72,9 @@ def test_the_results_page_names_the_files_its_figures_come_from():
     import json
     for key in json.loads((ROOT / "benchmarks/results/summary.json").read_text()):
         assert f"### `{key}`" in page
+    # The study tables are rendered from their committed records, not typed in.
+    assert '<table id="tab:methods_2026">' in page and '<table id="tab:trained_sequential">' in page
+    assert "`results/methods_2026`" in page and "`manifests/trained_sequential_live.tsv`" in page
 
 
 def test_mkdocs_builds_the_site_strictly(tmp_path):
