@@ -39,6 +39,22 @@ def test_user_documentation_names_no_issue_and_no_dated_investigation(path):
         assert not re.search(r"\b20\d\d-[01]\d-[0-3]\d\b", text), "dates belong in the results files"
 
 
+COMMITTED = ("src/", "benchmarks/", "config/", "tests/", "manifests/", "checkpoints/", "scripts/", "profiles/",
+             "envs/", "workflow/", "rules/", "docs/")
+
+
+@pytest.mark.parametrize("path", USER_DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_committed_file_the_documentation_names_exists(path):
+    """Paths of the checkout in code spans (outputs under results/ and placeholders aside) exist."""
+    missing = []
+    for token in re.findall(r"`([^`\s]+)`", path.read_text()):
+        token = token.rstrip(".,;:)").split("::")[0]
+        if token.startswith(COMMITTED) and not any(c in token for c in "<>{}*[]…") and "..." not in token:
+            if not (ROOT / token).exists():
+                missing.append(token)
+    assert not missing, f"{path.name} names files that do not exist: {missing}"
+
+
 def test_the_generated_pages_are_committed_as_generated():
     module = gen_pages()
     for name, make in module.PAGES.items():
