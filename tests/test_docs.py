@@ -110,3 +110,18 @@ def test_mkdocs_builds_the_site_strictly(tmp_path):
     for page in ("configuration", "results", "getting-started", "sequential", "cluster", "checkpoints",
                  "simulators", "extending", "cells"):
         assert (tmp_path / "site" / page / "index.html").exists(), page
+
+
+def test_every_benchmark_script_has_a_row_with_its_command_in_benchmarks_readme():
+    readme = (ROOT / "benchmarks" / "README.md").read_text()
+    rows = [line for line in readme.splitlines() if line.startswith("| `")]
+    scripts = [p for p in sorted((ROOT / "benchmarks").iterdir()) if p.suffix in (".py", ".sh")]
+    for script in scripts:
+        if script.name == "simstack.py":  # the packer the GPU scripts run on; its own paragraph and test
+            assert "benchmarks/simstack.py" in readme
+            continue
+        row = next((line for line in rows if f"`{script.name}`" in line.split("|")[1]), None)
+        assert row is not None, f"benchmarks/{script.name} has no row in benchmarks/README.md"
+        command = row.split("|")[3]
+        runner = "gpu_train_policy.sh" if script.name == "gpu_train_step.py" else script.name  # the call runs it
+        assert runner in command, f"benchmarks/{script.name}: its row gives no command that runs it"
