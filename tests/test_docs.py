@@ -106,6 +106,8 @@ def test_mkdocs_builds_the_site_strictly(tmp_path):
     assert result.returncode == 0, result.stdout + result.stderr
     assert "WARNING" not in result.stderr, result.stderr
     api = (tmp_path / "site" / "api" / "index.html").read_text()
+    for page in (tmp_path / "site").rglob("*.html"):  # the API reference's docstrings included
+        assert not re.search(r"\bissues? #?\d+", page.read_text(), re.IGNORECASE), page
     assert "sequential" in api and "doc-" in api  # mkdocstrings rendered the modules' docstrings
     for page in ("configuration", "results", "getting-started", "sequential", "cluster", "checkpoints",
                  "simulators", "extending", "cells"):
