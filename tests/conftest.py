@@ -7,7 +7,7 @@ import yaml
 
 from paths import ROOT
 
-TRAINED_HOME = ROOT / "checkpoints" / "pi05_metaworld_cpu"  # HF_HOME layout, committed (README, "Trained on the CPU")
+TRAINED_HOME = ROOT / "checkpoints" / "pi05_metaworld_cpu"  # HF_HOME layout, committed (docs/checkpoints.md, "Trained on the CPU")
 
 
 @pytest.fixture(scope="session")

@@ -160,6 +160,7 @@ def records_with_changed_episode(tmp_path: Path, row: int, change) -> Path:
     return records
 
 
+@pytest.mark.slow
 def test_a_table_refuses_an_episode_named_after_another_task(tmp_path):
     """Row 13 is task 18 (drawer-close-v3), episode 2: named handle-press-v3 it would move to that task's row."""
     from vlaquantbench.manifest import sha256_file

@@ -22,7 +22,7 @@ from vlaquantbench.runner.calibration import calibrate
 pytestmark = pytest.mark.slow
 
 SUITE = "metaworld_mt50"
-TASK = "drawer-close-v3"  # trained on; 5 of 5 never-demonstrated variations succeed (README, "Trained on the CPU")
+TASK = "drawer-close-v3"  # trained on; 5 of 5 never-demonstrated variations succeed (docs/checkpoints.md, "Trained on the CPU")
 VARIATIONS = (0, 1)  # never demonstrated (the demonstrations used 500-519)
 OBSERVED_CHUNKS = 3  # observations per variation for the rotation check: the first chunks' starts
 CALIBRATION_STEPS = 20  # per calibration episode: 4 chunks of 5 executed actions, 10 flow steps each

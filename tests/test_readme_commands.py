@@ -23,7 +23,8 @@ PLACEHOLDERS = ("DIR", "FILE", "CELL")
 
 def table_commands() -> list[str]:
     readme = (ROOT / "README.md").read_text()
-    section = readme[readme.index("## What you can do with it"):readme.index("## The paper's tables and figures")]
+    start = readme.index("## What you can do with it")
+    section = readme[start:readme.index("\n## ", start)]
     commands = []
     for row in section.splitlines():
         if row.startswith("| ") and "`" in row:

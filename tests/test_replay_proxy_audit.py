@@ -120,6 +120,7 @@ def test_count_mismatch_and_missing_inputs_are_user_errors(tmp_path):
         write_proxy_audit(diagnostics_files(load_cohort(), DIAG), None, tmp_path / "t.tex")
 
 
+@pytest.mark.slow
 def test_snakemake_renders_proxy_audit_from_authors_files(tmp_path):
     for item in ("Snakefile", "rules", "workflow", "config", "src", "manifests"):
         if (ROOT / item).exists():

@@ -77,6 +77,7 @@ def test_bad_inputs_name_the_file(tmp_path):
         load_study("nope")
 
 
+@pytest.mark.slow
 def test_snakemake_renders_replay_targets_from_reference_config(tmp_path):
     """Real Snakemake run of the replay table/figure rules on the reference config."""
     for item in ("Snakefile", "rules", "workflow", "config", "src", "manifests"):
@@ -94,6 +95,7 @@ def test_snakemake_renders_replay_targets_from_reference_config(tmp_path):
     assert (tmp_path / targets[3]).read_bytes().startswith(b"%PDF")
 
 
+@pytest.mark.slow
 def test_success_column_from_the_records_in_reference_mode(tmp_path):
     """With success_summary emptied, SR comes from this project's tables/summary.csv, built from the
     authors' records: the five W4A4 cells have records, the W4/W4A8 cells do not."""

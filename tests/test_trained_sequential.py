@@ -59,6 +59,7 @@ def test_the_destructive_cell_stops_early_and_the_near_baseline_cell_runs_to_its
     assert near["decision"] == "undecided" and near["rounds_run"] == CAP
 
 
+@pytest.mark.slow
 def test_snakemake_renders_the_live_table_and_the_retrospective_from_the_committed_records(tmp_path):
     """No episode runs: the live table's `stopped` column prints each cell's decision@episodes, and
     tables/sequential.csv (the rule on the full records) makes the same decisions."""

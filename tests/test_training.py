@@ -66,6 +66,7 @@ def trained(tmp_path_factory):
     return {"home": tmp / "hf", "record": record, "provenance": tmp / "training.json"}
 
 
+@pytest.mark.slow
 def test_provenance_records_the_run(trained):
     record = json.loads(trained["provenance"].read_text())
     assert record == trained["record"]
@@ -78,6 +79,7 @@ def test_provenance_records_the_run(trained):
     assert len(record["dataset"]["manifest_sha256"]) == 64
 
 
+@pytest.mark.slow
 def test_checkpoint_is_in_hub_layout_at_its_weights_hash(trained):
     from vlaquantbench.training import weights_revision
 
@@ -107,6 +109,7 @@ def _load(trained, device="cpu"):
     return adapter
 
 
+@pytest.mark.slow
 def test_the_rollout_path_loads_it_as_a_released_checkpoint_and_acts_on_the_envs_observation(trained):
     import torch
 
@@ -128,6 +131,7 @@ def test_the_rollout_path_loads_it_as_a_released_checkpoint_and_acts_on_the_envs
     assert not bool((tokens == unknown).any()) and tokens.dtype == torch.long
 
 
+@pytest.mark.slow
 def test_an_observation_without_the_checkpoints_camera_or_state_size_is_refused(trained):
     from vlaquantbench.errors import UserError
 
@@ -176,6 +180,7 @@ def _config(**changes):
             "policy": TINY_POLICY, **changes}
 
 
+@pytest.mark.slow
 def test_a_run_paused_at_its_time_limit_resumes_to_the_uninterrupted_runs_weights(trained, tmp_path):
     """The same command twice: the first stops at `time_limit_s` with its state saved, the second continues
     from it; the checkpoint is bit-equal to one run without a limit (the fixture's: same revision)."""
@@ -201,6 +206,7 @@ def test_a_run_paused_at_its_time_limit_resumes_to_the_uninterrupted_runs_weight
     assert not state.exists()
 
 
+@pytest.mark.slow
 def test_changed_weights_under_a_recorded_revision_are_refused_at_load(trained, tmp_path):
     """A sign-flipped tensor is still a valid safetensors file: the load checks it against the training's
     recorded hashes before lerobot reads it."""
@@ -224,6 +230,7 @@ def test_changed_weights_under_a_recorded_revision_are_refused_at_load(trained, 
         _load({**trained, "home": home})
 
 
+@pytest.mark.slow
 def test_device_frames_equal_lerobots_items_through_the_preprocessor(trained, tmp_path):
     """Every frame's tokens and normalized action chunk as lerobot's own path gives them:
     `LeRobotDataset` with the policy's delta timestamps (`__getitem__`), then the preprocessor."""

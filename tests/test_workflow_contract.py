@@ -57,6 +57,7 @@ if sm.rule == "sneaky":
 """
 
 
+@pytest.mark.slow
 def test_the_audit_names_every_file_a_job_touches_undeclared(tmp_path):
     """The check below can fail: a job that writes, reads or lists what its rule does not declare is caught."""
     workdir = tmp_path / "work"
@@ -73,6 +74,7 @@ def test_the_audit_names_every_file_a_job_touches_undeclared(tmp_path):
     }
 
 
+@pytest.mark.slow
 def test_reference_rules_touch_exactly_their_declared_files(tmp_path):
     """Every rule the reference config runs (records and authors' files, no GPU) in a real Snakemake run;
     paper_table's jobs are audited in the refused-run test below."""
@@ -116,6 +118,7 @@ def test_dry_run_imports_no_torch(tmp_path, configfile, planned):
     assert planned in run.stdout
 
 
+@pytest.mark.slow
 def test_refused_run_leads_with_its_cause_and_removes_the_stale_table(tmp_path):
     workdir = reference_checkout(tmp_path)
     config = f"--configfile={ROOT / 'config' / 'reference.yaml'}"

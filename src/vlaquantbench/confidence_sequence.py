@@ -1,4 +1,4 @@
-"""Anytime-valid confidence sequences by betting for the stopping rule's estimands (issue 47).
+"""Anytime-valid confidence sequences by betting for the stopping rule's estimands.
 
 A cell the stopping rule stopped recorded as many episodes as its data chose, so a fixed-sample interval
 (Wilson, the task-clustered bootstrap) over them loses its coverage. What holds at a data-chosen round is

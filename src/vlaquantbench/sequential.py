@@ -27,7 +27,7 @@ expected capital of a round is at most (1 + lambda (mean of the round's means - 
 H0, because every round visits every task once. `simulate_false_decisions` checks the rate on the
 authors' records under their task heterogeneity.
 
-Estimates at the stop (issue 47). A cell's interval at the round the rule stopped is a confidence sequence
+Estimates at the stop. A cell's interval at the round the rule stopped is a confidence sequence
 (`vlaquantbench.confidence_sequence`), time-uniform and so valid at that data-chosen round, for A - B paired
 over the rounds the rule read (never against the baseline's other episodes) and for A's own success rate.
 Fixed-sample intervals (the task-clustered bootstrap, Wilson) are printed only over records that ran in full.
