@@ -146,37 +146,43 @@ def _plan_shards(config: DemonstrationConfig, suite, attempts: dict[int, list[di
     return shards
 
 
-def _run_shard(config: DemonstrationConfig, shard: _Shard) -> list[dict]:
-    """`_record_shard` in a fresh interpreter (as the simulator workers are, `envs.workers`: a spawned
-    child would re-execute a Snakemake `script:`); its records, or RuntimeError naming the shard."""
+def _run_worker(config: DemonstrationConfig, shards: list[_Shard]) -> list[list[dict]]:
+    """`_record_shards` in a fresh interpreter (as the simulator workers are, `envs.workers`: a spawned child
+    would re-execute a Snakemake `script:`): each shard's records, or RuntimeError naming the shards."""
+    if not shards:
+        return []
     job = json.dumps({"config": {**asdict(config), "tasks": list(config.tasks)},
-                      "shard": {"task_id": shard.task_id, "variations": list(shard.variations), "root": str(shard.root)}})
-    run = subprocess.run([sys.executable, "-c", SHARD_MAIN, job], stdout=subprocess.PIPE, stderr=None, text=True)
-    records = shard.root.parent / f"{shard.root.name}.json"
-    if run.returncode != 0 or not records.is_file():
-        raise RuntimeError(f"demonstrations: the worker recording task {shard.task_id} variations "
-                           f"{shard.variations[0]}..{shard.variations[-1]} failed (exit {run.returncode}; its "
+                      "shards": [{"task_id": s.task_id, "variations": list(s.variations), "root": str(s.root)} for s in shards]})
+    run = subprocess.run([sys.executable, "-c", WORKER_MAIN, job], stdout=subprocess.PIPE, stderr=None, text=True)
+    files = [_records_file(shard) for shard in shards]
+    if run.returncode != 0 or not all(f.is_file() for f in files):
+        recording = ", ".join(f"task {s.task_id} variations {s.variations[0]}..{s.variations[-1]}" for s in shards)
+        raise RuntimeError(f"demonstrations: the worker recording {recording} failed (exit {run.returncode}; its "
                            "traceback is in the log above)")
-    return json.loads(records.read_text())
+    return [json.loads(f.read_text()) for f in files]
 
 
-SHARD_MAIN = "import sys; from vlaquantbench.demonstrations.dataset import shard_main; shard_main(sys.argv[1])"
+WORKER_MAIN = "import sys; from vlaquantbench.demonstrations.dataset import worker_main; worker_main(sys.argv[1])"
 
 
-def shard_main(job: str) -> None:
-    """A shard worker's entry point: `job` is `_run_shard`'s JSON; the records go to `<root>.json`."""
+def _records_file(shard: _Shard) -> Path:
+    return shard.root.parent / f"{shard.root.name}.json"
+
+
+def worker_main(job: str) -> None:
+    """A demonstration worker's entry point: `job` is `_run_worker`'s JSON; each shard's records go to
+    `_records_file(shard)`."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     raw = json.loads(job)
     config = DemonstrationConfig(**{**raw["config"], "tasks": tuple(raw["config"]["tasks"])})
-    shard = _Shard(raw["shard"]["task_id"], tuple(raw["shard"]["variations"]), Path(raw["shard"]["root"]))
-    records = _record_shard(config, shard)
-    (shard.root.parent / f"{shard.root.name}.json").write_text(json.dumps(records))
+    shards = [_Shard(s["task_id"], tuple(s["variations"]), Path(s["root"])) for s in raw["shards"]]
+    _record_shards(config, shards)
 
 
-def _record_shard(config: DemonstrationConfig, shard: _Shard) -> list[dict]:
-    """Run the expert on a shard's variations and save its successful episodes into the shard's own
-    LeRobotDataset; returns every attempt's record, with `dataset_episode` the episode's index within
-    the shard (None: not kept)."""
+def _record_shards(config: DemonstrationConfig, shards: list[_Shard]) -> None:
+    """Run the expert on each shard's variations, one simulator for all, and save each shard's successful
+    episodes into its own LeRobotDataset; write every attempt's record to `_records_file(shard)`, with
+    `dataset_episode` the episode's index within the shard (None: not kept)."""
     import torch
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from lerobot.envs.configs import MetaworldEnv
@@ -191,13 +197,7 @@ def _record_shard(config: DemonstrationConfig, shard: _Shard) -> list[dict]:
     suite = make_suite("metaworld", config.suite)
     expert = make_adapter(AdapterConfig(model="metaworld_expert", variant="full"))
     expert.load()
-    dataset = LeRobotDataset.create(
-        config.repo_id, fps=MetaworldEnv.fps, features=_features(config.image_size), root=shard.root,
-        robot_type=ROBOT_TYPE, use_videos=False, image_writer_threads=config.image_writer_threads,
-        rgb_encoder=_available_rgb_encoder())
-    instruction = suite.task(shard.task_id).instruction
     frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    records: list[dict] = []
 
     def on_actions(spec: EpisodeSpec, observation: dict, actions: np.ndarray) -> None:
         if len(actions) != 1:
@@ -208,28 +208,36 @@ def _record_shard(config: DemonstrationConfig, shard: _Shard) -> list[dict]:
         frames.append((observation["image"], observation["state"].astype(np.float32),
                        np.clip(actions[0], -1, 1).astype(np.float32)))
 
-    def on_finished(finished: list[dict]) -> None:
-        for record in finished:
-            episode = None
-            if record["success"]:
-                if len(frames) != record["steps"]:  # one recorded frame per executed action
-                    raise RuntimeError(f"{record['task_name']} variation {record['init_state_id']}: "
-                                       f"{len(frames)} frames recorded for {record['steps']} steps")
-                for image, state, action in frames:
-                    dataset.add_frame({OBS_IMAGE: image, OBS_STATE: state, ACTION: action, "task": instruction})
-                dataset.save_episode()
-                episode = dataset.meta.total_episodes - 1
-            frames.clear()
-            log.info("%s variation %d: %s after %d steps", record["task_name"], record["init_state_id"],
-                     "success" if record["success"] else "FAILED (not kept)", record["steps"])
-            records.append({**record, "dataset_episode": episode})
-
-    specs = [suite.episode_spec(shard.task_id, variation) for variation in shard.variations]
     # One env: episodes run one after another, so `frames` holds exactly the running episode's.
     with make_env("metaworld", suite, 1, camera_size=config.image_size) as env:
-        run_episodes(expert, env, specs, config.max_steps or STEP_LIMIT, on_finished, on_actions=on_actions)
-    dataset.finalize()
-    return records
+        for shard in shards:
+            dataset = LeRobotDataset.create(
+                config.repo_id, fps=MetaworldEnv.fps, features=_features(config.image_size), root=shard.root,
+                robot_type=ROBOT_TYPE, use_videos=False, image_writer_threads=config.image_writer_threads,
+                rgb_encoder=_available_rgb_encoder())
+            instruction = suite.task(shard.task_id).instruction
+            records: list[dict] = []
+
+            def on_finished(finished: list[dict]) -> None:
+                for record in finished:
+                    episode = None
+                    if record["success"]:
+                        if len(frames) != record["steps"]:  # one recorded frame per executed action
+                            raise RuntimeError(f"{record['task_name']} variation {record['init_state_id']}: "
+                                               f"{len(frames)} frames recorded for {record['steps']} steps")
+                        for image, state, action in frames:
+                            dataset.add_frame({OBS_IMAGE: image, OBS_STATE: state, ACTION: action, "task": instruction})
+                        dataset.save_episode()
+                        episode = dataset.meta.total_episodes - 1
+                    frames.clear()
+                    log.info("%s variation %d: %s after %d steps", record["task_name"], record["init_state_id"],
+                             "success" if record["success"] else "FAILED (not kept)", record["steps"])
+                    records.append({**record, "dataset_episode": episode})
+
+            specs = [suite.episode_spec(shard.task_id, variation) for variation in shard.variations]
+            run_episodes(expert, env, specs, config.max_steps or STEP_LIMIT, on_finished, on_actions=on_actions)
+            dataset.finalize()
+            _records_file(shard).write_text(json.dumps(records))
 
 
 def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, workers: int) -> dict[str, Any]:
@@ -273,13 +281,18 @@ def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, worke
     merged: list[Path] = []  # shards holding kept episodes, in the dataset's order
     kept: dict[tuple[int, int], int] = {}  # (task, variation) -> dataset episode index
     started = time.perf_counter()
-    # Each thread waits on one worker interpreter (`_run_shard`).
+    # Each thread waits on one worker interpreter (`_run_worker`).
     with ThreadPoolExecutor(max(1, workers)) as pool:
         for round_index in range(config.max_attempts_per_task):
             shards = _plan_shards(config, suite, attempts, workers, shards_dir / f"round{round_index}")
             if not shards:
                 break
-            for shard, records in zip(shards, pool.map(_run_shard, [config] * len(shards), shards)):
+            # Worker w records shards w, w + workers, ...: each interpreter and simulator starts once a round.
+            assigned = [shards[w::workers] for w in range(workers)]
+            results = pool.map(_run_worker, [config] * workers, assigned)
+            by_shard = {shard: records for mine, theirs in zip(assigned, results) for shard, records in zip(mine, theirs)}
+            for shard in shards:  # the dataset takes the shards in the round's order
+                records = by_shard[shard]
                 attempts[shard.task_id] += records
                 shard_kept = [r for r in records if r["dataset_episode"] is not None]
                 for record in shard_kept:
@@ -289,12 +302,12 @@ def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, worke
             done = sum(map(len, attempts.values()))
             log.info("%d episodes tried, %d kept, %.1f episodes/minute with %d workers",
                      done, len(kept), done / _minutes_since(started), workers)
-    recorded = time.perf_counter()
+    merging = time.perf_counter()
     aggregate_datasets([config.repo_id] * len(merged), config.repo_id, roots=merged, aggr_root=out / DATASET_DIR)
     shutil.rmtree(shards_dir)
     meta = LeRobotDatasetMetadata(config.repo_id, root=out / DATASET_DIR)
-    log.info("%d episodes kept in %.1f s (%.1f a minute), merged in %.1f s", meta.total_episodes, recorded - started,
-             meta.total_episodes / _minutes_since(started), time.perf_counter() - recorded)
+    log.info("%d episodes kept in %.1f s (%.1f a minute), merged in %.1f s", meta.total_episodes, merging - started,
+             meta.total_episodes / _minutes_since(started), time.perf_counter() - merging)
 
     summary = {
         "settings": {**asdict(config), "tasks": list(config.tasks), "max_steps": max_steps},

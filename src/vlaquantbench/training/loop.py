@@ -48,6 +48,7 @@ RESUME_DIR = "resume"
 STATE_FILE = "state.pt"
 # Settings a saved state must share with the run that resumes it (time_limit_s and log_every may change).
 STATE_BINDING = ("model", "seed", "steps", "batch_size", "precision", "random_shift_px", "policy")
+# `compile_mode` may change between a run and its resumption: it computes the same function.
 
 
 def weights_revision(weights: Path) -> str:
@@ -112,6 +113,18 @@ def _dataset_digest(frames) -> str:
     return digest.hexdigest()
 
 
+def compile_policy(policy, mode: str | None) -> None:
+    """`torch.compile` the policy's loss computation (`PI05Pytorch.forward`; its backward through AOTAutograd)
+    as lerobot's own `compile_model` switch does at construction, with `mode` (None: eager). Applied to the
+    built policy so that the saved config keeps `compile_model` off for the rollouts that load it."""
+    import torch
+
+    if mode is None:
+        return
+    torch.set_float32_matmul_precision("high")  # as lerobot's switch sets it
+    policy.model.forward = torch.compile(policy.model.forward, mode=mode)
+
+
 def _policy_loss(policy, batch, autocast_dtype):
     """`PI05Policy.forward`'s loss without its host reads (it copies the per-dimension loss to the CPU
     and calls `.item()` every step, which waits for the device)."""
@@ -163,6 +176,7 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
     tokenizer = tokenizers.build_task_tokenizer(descriptions)
     policy, preprocessor, postprocessor, widths = trained.build_policy(
         meta, training["policy"], training["tokenizer_repo"], tokenizer, str(device))
+    compile_policy(policy, training.get("compile_mode"))
     dataset = LeRobotDataset(dataset_repo_id, root=dataset_root)
     frames = DeviceFrames(dataset, preprocessor, policy.config.chunk_size, device)
     if len(frames) < batch_size:
@@ -272,7 +286,7 @@ def _provenance(training, revision, folder, n_params, tokenizer, tokenizer_revis
                     "frames": dataset.num_frames, "episodes": dataset.num_episodes, "tasks": descriptions},
         "steps": len(losses), "planned_steps": training["steps"], "batch_size": training["batch_size"],
         "seed": training["seed"], "precision": training.get("precision", "float32"),
-        "random_shift_px": training.get("random_shift_px", 0),
+        "random_shift_px": training.get("random_shift_px", 0), "compile_mode": training.get("compile_mode"),
         "steps_per_s": round(len(losses) / wall_s, 2) if wall_s else None,
         "policy": training["policy"],
         "loss_curve": {"span_steps": span,
