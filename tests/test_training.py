@@ -58,11 +58,7 @@ def trained(tmp_path_factory):
     root = write_tiny_dataset(tmp / "dataset")
     manifest = tmp / "manifest.tsv"
     manifest.write_text("path\tsha256\n")
-    config = {"model": "pi05", "device": "cpu", "seed": 0, "steps": STEPS, "batch_size": 8,
-              "log_every": 1,
-              "checkpoint_repo": "vlaquantbench/pi05-tiny", "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer",
-              "policy": TINY_POLICY}
-    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, tmp / "hf", tmp / "training.json", config)
+    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, tmp / "hf", tmp / "training.json", _config())
     return {"home": tmp / "hf", "record": record, "provenance": tmp / "training.json"}
 
 

@@ -128,7 +128,7 @@ class _Shard:
     root: Path
 
 
-def _plan_shards(config: DemonstrationConfig, suite, attempts: dict[int, list[dict]], workers: int, round_dir: Path) -> list[_Shard]:
+def _plan_shards(config: DemonstrationConfig, attempts: dict[int, list[dict]], workers: int, round_dir: Path) -> list[_Shard]:
     """The next round: per task, the next variations as many as successes are still missing, split into
     blocks so that every worker has about two (a worker's shard costs a dataset of its own)."""
     wanted = {}
@@ -284,7 +284,7 @@ def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, worke
     # Each thread waits on one worker interpreter (`_run_worker`).
     with ThreadPoolExecutor(max(1, workers)) as pool:
         for round_index in range(config.max_attempts_per_task):
-            shards = _plan_shards(config, suite, attempts, workers, shards_dir / f"round{round_index}")
+            shards = _plan_shards(config, attempts, workers, shards_dir / f"round{round_index}")
             if not shards:
                 break
             # Worker w records shards w, w + workers, ...: each interpreter and simulator starts once a round.

@@ -52,12 +52,12 @@ def check_trained_weights(folder: str | Path, checkpoint: str, revision: str, tr
 
     weights = Path(folder) / "model.safetensors"
     record = load_json(Path(folder) / training_file, "training provenance")
-    with open(weights, "rb") as f:
-        sha1 = hashlib.file_digest(f, "sha1").hexdigest()
+    data = weights.read_bytes()  # one read for both hashes
+    sha1, found_sha256 = hashlib.sha1(data).hexdigest(), hashlib.sha256(data).hexdigest()
     recorded = record.get("weights_sha256")
-    if sha1 != revision or (recorded is not None and sha256(weights) != recorded):
+    if sha1 != revision or (recorded is not None and found_sha256 != recorded):
         raise UserError(f"checkpoint {checkpoint}@{revision}: {weights} is not the weights its training recorded "
-                        f"(SHA-1 {sha1}, SHA-256 {sha256(weights)}; {training_file} records revision {revision}"
+                        f"(SHA-1 {sha1}, SHA-256 {found_sha256}; {training_file} records revision {revision}"
                         f"{f' and SHA-256 {recorded}' if recorded else ''}): retrain or restore the file")
 
 

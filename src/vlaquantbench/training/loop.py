@@ -176,12 +176,11 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
     tokenizer = tokenizers.build_task_tokenizer(descriptions)
     policy, preprocessor, postprocessor, widths = trained.build_policy(
         meta, training["policy"], training["tokenizer_repo"], tokenizer, str(device))
+    if meta.total_frames < batch_size:  # before the dataset is loaded onto the device
+        raise UserError(f"training.batch_size {batch_size} is larger than the dataset's {meta.total_frames} frames")
     compile_policy(policy, training.get("compile_mode"))
     dataset = LeRobotDataset(dataset_repo_id, root=dataset_root)
     frames = DeviceFrames(dataset, preprocessor, policy.config.chunk_size, device)
-    if len(frames) < batch_size:
-        raise UserError(f"training.batch_size {batch_size} is larger than the dataset's {len(frames)} frames")
-    digest = _dataset_digest(frames)
     LOG.info("dataset on %s in %.1f s: %d frames, %d episodes, %s images", device, time.monotonic() - loading,
              len(frames), dataset.num_episodes, tuple(frames.images.shape[1:]))
     optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
@@ -194,8 +193,9 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
     step, losses, wall_s = 0, [], 0.0
     if state_file.is_file():
         state = torch.load(state_file, map_location=device, weights_only=False)
-        if state["binding"] != _binding(training, digest):
-            changed = sorted(k for k in state["binding"] if state["binding"][k] != _binding(training, digest)[k])
+        binding = _binding(training, _dataset_digest(frames))  # hashing the frames costs a copy: only to resume
+        if state["binding"] != binding:
+            changed = sorted(k for k in state["binding"] if state["binding"][k] != binding[k])
             raise UserError(f"{state_file}: saved by a run with other {', '.join(changed)}; delete it to start over")
         policy.load_state_dict(state["policy"])
         optimizer.load_state_dict(state["optimizer"])
@@ -217,7 +217,7 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
             wall_s += time.monotonic() - started
             losses += [float(x) for x in torch.stack(pending).tolist()] if pending else []
             state_file.parent.mkdir(parents=True, exist_ok=True)
-            torch.save({"binding": _binding(training, digest), "policy": policy.state_dict(),
+            torch.save({"binding": _binding(training, _dataset_digest(frames)), "policy": policy.state_dict(),
                         "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "step": step,
                         "losses": losses, "wall_s": wall_s, "rng": _rng_state(device)}, state_file)
             raise TrainingPaused(f"training.time_limit_s {time_limit_s}: stopped after step {step} of "
