@@ -1,13 +1,17 @@
-"""Training step rate of the trained pi0.5 (config/trained_study.yaml's `training` section) by precision and
-batch size, on the step `vlaquantbench.training` runs: a batch gathered from `DeviceFrames` with the
-random shift, `_policy_loss`, backward, clipping, AdamW and the scheduler.
+"""Training step rate of the trained pi0.5 (config/trained_study.yaml's `training` section) by precision,
+batch size and how the step runs (eager, captured as a CUDA graph, compiled), on the step
+`vlaquantbench.training` runs (`TrainingStep`): a batch gathered from `DeviceFrames` with the random
+shift, the flow-matching loss, backward, clipping, AdamW and the scheduler.
 
     python benchmarks/gpu_train_step.py --out FILE.json [--config config/trained_study.yaml] [--device cuda]
-        [--image-size 112] [--batches 128 256] [--precisions float32 bfloat16] [--compile-modes none default] [--steps 30]
+        [--image-size 112] [--batches 128 256] [--precisions float32 bfloat16] [--graphs off on]
+        [--compile-modes none default] [--check-graph-steps 8] [--steps 30]
 
-The frames come from a small LeRobotDataset written here (random images at the demonstrations' size);
-the step costs the same whatever the pixels. Prints one line a variant and writes `--out` (steps a
-second, samples a second, peak memory, and for a compiled step the seconds its first steps took, compiling);
+`--check-graph-steps N` first runs N captured steps beside N eager ones from one initialization on the
+same inputs and records their losses and weights (`graph_check`). The frames come from a small
+LeRobotDataset written here (random images at the demonstrations' size); the step costs the same
+whatever the pixels. Prints one line a variant and writes `--out` (steps a second, samples a second,
+peak memory, and the seconds the first 5 steps took: capturing or compiling);
 benchmarks/gpu_train_policy.sh reads it to size the run.
 """
 
@@ -44,61 +48,98 @@ def tiny_dataset(root: Path, image_size: int, tasks: list[str], frames: int = 40
     return dataset
 
 
-def measure(training: dict, image_size: int, device: torch.device, batches: list[int], precisions: list[str],
-            steps: int, compile_modes: list[str | None] = (None,)) -> list[dict]:
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    from vlaquantbench.models.pi05 import task_tokenizer, trained
+def _build(training: dict, dataset, tokenizer, device: torch.device, compile_mode: str | None = None):
+    from vlaquantbench.models.pi05 import trained
     from vlaquantbench.training.frames import DeviceFrames
-    from vlaquantbench.training.loop import _policy_loss, compile_policy
+    from vlaquantbench.training.loop import compile_policy
 
-    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
-    tasks = ["Press a button from the top", "Push and close a drawer"]
+    torch.manual_seed(0)
+    policy, preprocessor, _, _ = trained.build_policy(dataset.meta, training["policy"], training["tokenizer_repo"],
+                                                      tokenizer, str(device))
+    compile_policy(policy, compile_mode)
+    frames = DeviceFrames(dataset, preprocessor, policy.config.chunk_size, device)
+    optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
+    scheduler = policy.config.get_scheduler_preset().build(optimizer, 10_000)
+    policy.train()
+    return policy, frames, optimizer, scheduler, policy.config.get_optimizer_preset().grad_clip_norm
+
+
+def measure(training: dict, dataset, tokenizer, device: torch.device, batches: list[int], precisions: list[str],
+            steps: int, compile_modes: list[str | None] = (None,), graphs: list[bool] = (False,)) -> list[dict]:
+    from vlaquantbench.training.loop import TrainingStep
+
     results = []
-    with tempfile.TemporaryDirectory() as tmp:
-        tiny_dataset(Path(tmp) / "data", image_size, tasks)
-        dataset = LeRobotDataset("vlaquantbench/step-rate", root=Path(tmp) / "data")
-        tokenizer = task_tokenizer.build_task_tokenizer(tasks)
-        variants = [(mode, precision, batch) for mode in compile_modes for precision in precisions for batch in batches]
-        for compile_mode, precision, batch_size in variants:
-            torch.manual_seed(0)
-            policy, preprocessor, _, _ = trained.build_policy(dataset.meta, training["policy"], training["tokenizer_repo"],
-                                                              tokenizer, str(device))
-            compile_policy(policy, compile_mode)
-            frames = DeviceFrames(dataset, preprocessor, policy.config.chunk_size, device)
-            optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
-            scheduler = policy.config.get_scheduler_preset().build(optimizer, 10_000)
-            autocast = {"float32": None, "bfloat16": torch.bfloat16}[precision]
-            policy.train()
+    variants = [(mode, graph, precision, batch) for mode in compile_modes for graph in graphs
+                for precision in precisions for batch in batches if not (mode and graph)]
+    for compile_mode, graph, precision, batch_size in variants:
+        policy, frames, optimizer, scheduler, clip = _build(training, dataset, tokenizer, device, compile_mode)
+        autocast = {"float32": None, "bfloat16": torch.bfloat16}[precision]
+        step = TrainingStep(policy, optimizer, scheduler, clip, autocast, cuda_graph=graph)
+        shift = training.get("random_shift_px", 0)
 
-            def step():
-                rows = torch.randint(0, len(frames), (batch_size,), device=device)
-                loss = _policy_loss(policy, frames.batch(rows, training.get("random_shift_px", 0)), autocast)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
-                optimizer.step()
-                optimizer.zero_grad(set_to_none=True)
-                scheduler.step()
-                return loss.detach()
+        def one_step():
+            return step(frames.batch(torch.randint(0, len(frames), (batch_size,), device=device), shift))
 
-            warming = time.perf_counter()
-            torch.stack([step() for _ in range(5)]).sum().item()
-            warmup_s = time.perf_counter() - warming
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-                torch.cuda.reset_peak_memory_stats(device)
-            began = time.perf_counter()
-            losses = [step() for _ in range(steps)]
-            torch.stack(losses).sum().item()  # waits for the device
-            seconds = time.perf_counter() - began
-            row = {"compile_mode": compile_mode, "precision": precision, "batch_size": batch_size, "steps": steps,
-                   "first_5_steps_s": round(warmup_s, 1),
-                   "steps_per_s": round(steps / seconds, 2), "samples_per_s": round(steps * batch_size / seconds),
-                   "peak_gib": round(torch.cuda.max_memory_allocated(device) / 2**30, 2) if device.type == "cuda" else None}
-            print(json.dumps(row), flush=True)
-            results.append(row)
-            del policy, optimizer, frames
+        warming = time.perf_counter()
+        torch.stack([one_step() for _ in range(5)]).sum().item()
+        warmup_s = time.perf_counter() - warming
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+            torch.cuda.reset_peak_memory_stats(device)
+        began = time.perf_counter()
+        losses = [one_step() for _ in range(steps)]
+        torch.stack(losses).sum().item()  # waits for the device
+        seconds = time.perf_counter() - began
+        row = {"compile_mode": compile_mode, "cuda_graph": graph, "precision": precision, "batch_size": batch_size,
+               "steps": steps, "first_5_steps_s": round(warmup_s, 1),
+               "steps_per_s": round(steps / seconds, 2), "samples_per_s": round(steps * batch_size / seconds),
+               "peak_gib": round(torch.cuda.max_memory_allocated(device) / 2**30, 2) if device.type == "cuda" else None}
+        print(json.dumps(row), flush=True)
+        results.append(row)
+        del policy, optimizer, frames, step
     return results
+
+
+def graph_check(training: dict, dataset, tokenizer, device: torch.device, batch_size: int, steps: int) -> dict:
+    """The captured step against the eager one: two policies from one initialization take `steps` steps on the
+    same batches, noise and time (drawn once, before either runs); their losses and final weights, compared."""
+    from vlaquantbench.training.captured import CapturedLoss
+    from vlaquantbench.training.loop import _flow_loss, _flow_sample
+
+    runs, inputs = [], []
+    for graph in (False, True):
+        policy, frames, optimizer, scheduler, clip = _build(training, dataset, tokenizer, device)
+        initial = torch.cat([p.detach().flatten() for p in policy.parameters()])
+        if not inputs:
+            torch.manual_seed(1)
+            for _ in range(steps):
+                batch = frames.batch(torch.randint(0, len(frames), (batch_size,), device=device),
+                                     training.get("random_shift_px", 0))
+                inputs.append((batch, *_flow_sample(policy, batch)))
+        captured = CapturedLoss(policy, lambda p, b, n, t: _flow_loss(p, b, n, t, None)) if graph else None
+        losses = []
+        for batch, noise, time_ in inputs:
+            if graph:
+                loss = captured(batch, noise, time_)
+            else:
+                loss = _flow_loss(policy, batch, noise, time_, None)
+                loss.backward()
+            torch.nn.utils.clip_grad_norm_(policy.parameters(), clip)
+            optimizer.step()
+            if not graph:
+                optimizer.zero_grad(set_to_none=True)
+            scheduler.step()
+            losses.append(loss.detach())
+        final = torch.cat([p.detach().flatten() for p in policy.parameters()])
+        runs.append((torch.stack(losses).tolist(), final, (final - initial).abs().max().item()))
+        del policy, optimizer, frames, captured
+    (eager_losses, eager_weights, moved), (graph_losses, graph_weights, _) = runs
+    check = {"batch_size": batch_size, "steps": steps, "eager_losses": eager_losses, "graph_losses": graph_losses,
+             "max_rel_loss_diff": max(abs(a - b) / abs(a) for a, b in zip(eager_losses, graph_losses)),
+             "max_abs_weight_diff": (eager_weights - graph_weights).abs().max().item(),
+             "max_abs_weight_change_eager": moved}
+    print(json.dumps(check), flush=True)
+    return check
 
 
 def main() -> None:
@@ -110,16 +151,35 @@ def main() -> None:
     parser.add_argument("--precisions", nargs="+", default=["float32", "bfloat16"], choices=["float32", "bfloat16"])
     parser.add_argument("--compile-modes", nargs="+", default=["none"],
                         help="torch.compile modes of the loss (training.compile_mode); none: eager")
+    parser.add_argument("--graphs", nargs="+", default=["off"], choices=["off", "on"],
+                        help="the step's loss and gradients captured as a CUDA graph (training.cuda_graph)")
+    parser.add_argument("--check-graph-steps", type=int, default=0,
+                        help="first compare this many captured steps with eager ones (0: no check)")
     parser.add_argument("--steps", type=int, default=30)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from vlaquantbench.models.pi05 import task_tokenizer
+
     config = yaml.safe_load(args.config.read_text())
     device = torch.device(args.device)
     image_size = args.image_size or config["demonstrations"]["image_size"]
     modes = [None if mode == "none" else mode for mode in args.compile_modes]
-    rows = measure(config["training"], image_size, device, args.batches, args.precisions, args.steps, modes)
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
+    tasks = ["Press a button from the top", "Push and close a drawer"]
     record = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu", "image_size": image_size,
-              "torch": torch.__version__, "widths": config["training"]["policy"]["widths"], "variants": rows}
+              "torch": torch.__version__, "widths": config["training"]["policy"]["widths"]}
+    with tempfile.TemporaryDirectory() as tmp:
+        tiny_dataset(Path(tmp) / "data", image_size, tasks)
+        dataset = LeRobotDataset("vlaquantbench/step-rate", root=Path(tmp) / "data")
+        tokenizer = task_tokenizer.build_task_tokenizer(tasks)
+        if args.check_graph_steps:
+            record["graph_check"] = graph_check(config["training"], dataset, tokenizer, device, min(args.batches),
+                                                args.check_graph_steps)
+            args.out.write_text(json.dumps(record, indent=1) + "\n")
+        record["variants"] = measure(config["training"], dataset, tokenizer, device, args.batches, args.precisions,
+                                     args.steps, modes, [graph == "on" for graph in args.graphs])
     args.out.write_text(json.dumps(record, indent=1) + "\n")
 
 

@@ -18,6 +18,10 @@ SLOW_CALLS = {
 }
 # Tests that reach a slow call only to see it refused before anything starts (seconds): file -> test -> why.
 FAST_REFUSALS = {
+    "test_training.py": {
+        "test_a_captured_step_is_refused_where_it_cannot_run_before_the_dataset_loads":
+            "train_policy refuses the settings before it reads the dataset",
+    },
     "test_libero_suite.py": {
         "test_bad_names_and_indices_are_user_errors": "LiberoVectorEnv(num_envs=0) is refused before a worker starts",
         "test_other_mujoco_versions_are_refused_unless_overridden": "the MuJoCo pin is checked before a worker starts",

@@ -290,3 +290,52 @@ def test_the_study_configs_training_target_plans_demonstrations_and_training_on_
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
     jobs = {job: int(count) for job, count in re.findall(r"^(\w+) +(\d+)$", run.stdout, re.MULTILINE)}
     assert jobs == {"demonstrations": 1, "train_policy": 1, "total": 2}, run.stdout[-2000:]
+
+
+@pytest.mark.slow
+def test_a_paused_run_ended_where_its_state_stands_is_a_checkpoint_of_the_saved_weights(tmp_path):
+    """`checkpoint_from_saved_state`: the checkpoint holds the weights the paused run saved, its provenance
+    says where it stopped, why and after how many of the planned steps, and the rollout path loads it."""
+    import torch
+    from safetensors.torch import load_file
+
+    from vlaquantbench.errors import UserError
+    from vlaquantbench.training import TrainingPaused, checkpoint_from_saved_state, train_policy
+
+    root = write_tiny_dataset(tmp_path / "dataset")
+    manifest = tmp_path / "manifest.tsv"
+    manifest.write_text("path\tsha256\n")
+    home, provenance = tmp_path / "hf", tmp_path / "training.json"
+    with pytest.raises(TrainingPaused):
+        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, provenance, _config(time_limit_s=0.5))
+    saved = torch.load(home / "resume" / "state.pt", weights_only=False)
+    with pytest.raises(UserError, match=r"saved by a run with other seed than this training section"):
+        checkpoint_from_saved_state(root, "vlaquantbench/tiny-demos", manifest, home, provenance, _config(seed=1), "a test")
+    record = checkpoint_from_saved_state(root, "vlaquantbench/tiny-demos", manifest, home, provenance, _config(),
+                                         "the test stops it here", {"type": "cpu"})
+    assert record["stopped_early"]["at_step"] == saved["step"] == record["steps"] < STEPS
+    assert record["stopped_early"]["why"] == "the test stops it here" and record["planned_steps"] == STEPS
+    assert not (home / "resume" / "state.pt").exists()
+    adapter = _load({"home": home, "record": record})
+    assert adapter.checkpoint_provenance["training"]["stopped_early"]["at_step"] == saved["step"]
+    weights = load_file(home / "hub" / "models--vlaquantbench--pi05-tiny" / "snapshots" / record["revision"]
+                        / "model.safetensors")
+    assert weights and set(weights) <= set(saved["policy"])  # save_pretrained drops tied copies only
+    for name, value in weights.items():
+        assert torch.equal(value, saved["policy"][name]), name
+
+
+@pytest.mark.parametrize("settings, refusal", [
+    ({"cuda_graph": True}, r"training.cuda_graph: true needs a CUDA device; training.device is 'cpu'"),
+    ({"cuda_graph": True, "compile_mode": "default", "device": "cuda"},
+     r"training.cuda_graph and training.compile_mode each speed the step up: set one of them"),
+])
+def test_a_captured_step_is_refused_where_it_cannot_run_before_the_dataset_loads(tmp_path, settings, refusal):
+    from vlaquantbench.errors import UserError
+    from vlaquantbench.training import train_policy
+
+    (tmp_path / "dataset" / "meta").mkdir(parents=True)
+    (tmp_path / "dataset" / "meta" / "info.json").write_text("{}")  # the refusal comes before it is read
+    with pytest.raises(UserError, match=refusal):
+        train_policy(tmp_path / "dataset", "vlaquantbench/tiny-demos", tmp_path / "manifest.tsv", tmp_path / "hf",
+                     tmp_path / "training.json", _config(**settings))

@@ -177,7 +177,9 @@ class PiFamilyAdapter(AdapterBase):
             return {"widths": "reduced (trained here)",
                     "training": {"file": TRAINING_FILE, "sha256": sha256(folder / TRAINING_FILE),
                                  "dataset_manifest_sha256": record["dataset"]["manifest_sha256"],
-                                 "steps": record["steps"], "batch_size": record["batch_size"]}}
+                                 "steps": record["steps"], "batch_size": record["batch_size"],
+                                 # a run ended before its planned steps says where and why
+                                 **({"stopped_early": record["stopped_early"]} if "stopped_early" in record else {})}}
         return {"widths": "reduced (offline hub fixture)" if (folder / REDUCED_WIDTHS_FILE).exists() else "released"}
 
     @staticmethod

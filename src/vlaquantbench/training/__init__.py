@@ -1,6 +1,7 @@
 """Training a policy from scratch on the demonstrations (rule train_policy): `loop.train_policy`,
-on the dataset held on the device (`frames.DeviceFrames`)."""
+on the dataset held on the device (`frames.DeviceFrames`); `loop.checkpoint_from_saved_state` ends a
+paused run where its saved state stands."""
 
-from vlaquantbench.training.loop import TrainingPaused, train_policy, weights_revision
+from vlaquantbench.training.loop import TrainingPaused, checkpoint_from_saved_state, train_policy, weights_revision
 
-__all__ = ["TrainingPaused", "train_policy", "weights_revision"]
+__all__ = ["TrainingPaused", "checkpoint_from_saved_state", "train_policy", "weights_revision"]

@@ -48,7 +48,7 @@ RESUME_DIR = "resume"
 STATE_FILE = "state.pt"
 # Settings a saved state must share with the run that resumes it (time_limit_s and log_every may change).
 STATE_BINDING = ("model", "seed", "steps", "batch_size", "precision", "random_shift_px", "policy")
-# `compile_mode` may change between a run and its resumption: it computes the same function.
+# `compile_mode` and `cuda_graph` may change between a run and its resumption: they compute the same function.
 
 
 def weights_revision(weights: Path) -> str:
@@ -125,22 +125,69 @@ def compile_policy(policy, mode: str | None) -> None:
     policy.model.forward = torch.compile(policy.model.forward, mode=mode)
 
 
-def _policy_loss(policy, batch, autocast_dtype):
+def _flow_sample(policy, batch):
+    """The flow-matching noise and time of a batch, from the policy's own samplers (lerobot draws the
+    time on the host: outside a captured graph)."""
+    from lerobot.utils.constants import ACTION
+
+    batch_size, chunk = batch[ACTION].shape[:2]
+    device = batch[ACTION].device
+    return (policy.model.sample_noise((batch_size, chunk, policy.config.max_action_dim), device),
+            policy.model.sample_time(batch_size, device))
+
+
+def _flow_loss(policy, batch, noise, time_, autocast_dtype):
     """`PI05Policy.forward`'s loss without its host reads (it copies the per-dimension loss to the CPU
     and calls `.item()` every step, which waits for the device)."""
     import torch
     from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
 
     device_type = batch[OBS_LANGUAGE_TOKENS].device.type
-    with torch.autocast(device_type, dtype=autocast_dtype, enabled=autocast_dtype is not None):
+    # No autocast weight cache: a captured graph must not keep casts made outside it.
+    with torch.autocast(device_type, dtype=autocast_dtype, enabled=autocast_dtype is not None, cache_enabled=False):
         images, img_masks = policy._preprocess_images(batch)
         actions = policy.prepare_action(batch)
-        noise = policy.model.sample_noise(actions.shape, actions.device)
-        time_ = policy.model.sample_time(actions.shape[0], actions.device)
         losses = policy.model.forward(images, img_masks, batch[OBS_LANGUAGE_TOKENS], batch[OBS_LANGUAGE_ATTENTION_MASK],
                                       actions, noise, time_)
     dims = policy.config.output_features["action"].shape[0]
     return losses[:, :, :dims].float().mean()
+
+
+def _policy_loss(policy, batch, autocast_dtype):
+    """The eager step's loss: noise and time drawn, then `_flow_loss`."""
+    return _flow_loss(policy, batch, *_flow_sample(policy, batch), autocast_dtype)
+
+
+class TrainingStep:
+    """One optimization step as `lerobot_train.update_policy` takes it (loss, backward, clipping at the
+    preset's norm, optimizer, scheduler), eager or with the loss and gradients replayed from a CUDA
+    graph (`captured.CapturedLoss`); returns the loss, left on the device."""
+
+    def __init__(self, policy, optimizer, scheduler, clip_norm: float, autocast_dtype, cuda_graph: bool = False):
+        import functools
+
+        from vlaquantbench.training.captured import CapturedLoss
+
+        self.policy, self.optimizer, self.scheduler, self.clip_norm = policy, optimizer, scheduler, clip_norm
+        self.autocast_dtype = autocast_dtype
+        loss_fn = functools.partial(_flow_loss, autocast_dtype=autocast_dtype)
+        self.captured = CapturedLoss(policy, loss_fn) if cuda_graph else None
+
+    def __call__(self, batch):
+        import torch
+
+        noise, time_ = _flow_sample(self.policy, batch)
+        if self.captured is None:
+            loss = _flow_loss(self.policy, batch, noise, time_, self.autocast_dtype)
+            loss.backward()
+        else:
+            loss = self.captured(batch, noise, time_)  # the replay wrote the gradients
+        torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.clip_norm)
+        self.optimizer.step()
+        if self.captured is None:  # a captured backward writes its gradients anew at each replay
+            self.optimizer.zero_grad(set_to_none=True)
+        self.scheduler.step()
+        return loss.detach()
 
 
 def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifest: str | Path, output: str | Path,
@@ -151,8 +198,6 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
     import torch
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 
-    from vlaquantbench.hub.cache import tree_revision, write_snapshot
-    from vlaquantbench.models.paligemma_family import TRAINING_FILE
     from vlaquantbench.training.frames import DeviceFrames
 
     dataset_root, output = Path(dataset_root), Path(output)
@@ -160,7 +205,12 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
         raise UserError(f"training dataset {dataset_root} is not a LeRobotDataset (no meta/info.json)")
     trained = importlib.import_module(f"vlaquantbench.models.{training['model']}.trained")
     tokenizers = importlib.import_module(f"vlaquantbench.models.{training['model']}.task_tokenizer")
+    cuda_graph = training.get("cuda_graph", False)
+    if cuda_graph and training.get("compile_mode"):
+        raise UserError("training.cuda_graph and training.compile_mode each speed the step up: set one of them")
     device = torch.device(training["device"])
+    if cuda_graph and device.type != "cuda":
+        raise UserError(f"training.cuda_graph: true needs a CUDA device; training.device is {training['device']!r}")
     if device.type == "cuda" and not torch.cuda.is_available():
         raise UserError(f"training.device: {training['device']!r}, but torch finds no CUDA device on this machine")
     precision = training.get("precision", "float32")
@@ -192,7 +242,10 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
     state_file = output / RESUME_DIR / STATE_FILE
     step, losses, wall_s = 0, [], 0.0
     if state_file.is_file():
-        state = torch.load(state_file, map_location=device, weights_only=False)
+        # On the CPU: generator states must stay CPU byte tensors, and AdamW's step counts CPU scalars (on the
+        # device, each step of the non-capturable AdamW reads them back: 16 instead of 23.6 steps a second).
+        # load_state_dict moves weights and moments to the parameters' device.
+        state = torch.load(state_file, map_location="cpu", weights_only=False)
         binding = _binding(training, _dataset_digest(frames))  # hashing the frames costs a copy: only to resume
         if state["binding"] != binding:
             changed = sorted(k for k in state["binding"] if state["binding"][k] != binding[k])
@@ -205,6 +258,7 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
         LOG.info("resuming at step %d of %d from %s", step, training["steps"], state_file)
 
     policy.train()
+    train_step = TrainingStep(policy, optimizer, scheduler, clip, autocast_dtype, cuda_graph)
     per_epoch = len(frames) // batch_size  # the last incomplete batch of an epoch is dropped
     shift_px = training.get("random_shift_px", 0)
     pending: list = []  # this span's losses, still on the device
@@ -227,14 +281,8 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
         if epoch != order_epoch:
             order, order_epoch = _epoch_order(len(frames), seed, epoch, device), epoch
         batch = frames.batch(order[position * batch_size:(position + 1) * batch_size], shift_px)
-        loss = _policy_loss(policy, batch, autocast_dtype)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), clip)
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
-        scheduler.step()
+        pending.append(train_step(batch))
         step += 1
-        pending.append(loss.detach())
         if step % training["log_every"] == 0 or step == training["steps"]:
             span = torch.stack(pending).tolist()  # the one wait for the device in `log_every` steps
             pending = []
@@ -247,22 +295,79 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
             logged = now
     wall_s += time.monotonic() - started
 
+    record = _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, descriptions, training, output,
+                               provenance, {"root": str(dataset_root), "repo_id": dataset_repo_id, "manifest": dataset_manifest,
+                                            "frames": dataset.num_frames, "episodes": dataset.num_episodes},
+                               losses, wall_s, _device_record(device))
+    if state_file.is_file():
+        state_file.unlink()
+    return record
+
+
+def checkpoint_from_saved_state(dataset_root: str | Path, dataset_repo_id: str, dataset_manifest: str | Path,
+                                output: str | Path, provenance: str | Path, training: dict[str, Any], why: str,
+                                device_record: dict[str, Any] | None = None) -> dict[str, Any]:
+    """End a paused run where its saved state stands (`<output>/resume/state.pt`): write the checkpoint of
+    its weights as `train_policy` writes a finished run's, with `stopped_early` (the step reached, the
+    planned steps, `why`) in the provenance; for when the time to resume is not there. Needs the dataset's
+    metadata only (its statistics make the processors); the state must have been saved under `training`'s
+    settings. `device_record`: the device the state was trained on (default: recorded as unknown)."""
+    import torch
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    dataset_root, output = Path(dataset_root), Path(output)
+    state_file = output / RESUME_DIR / STATE_FILE
+    if not state_file.is_file():
+        raise UserError(f"{state_file}: no saved state to write a checkpoint from")
+    state = torch.load(state_file, map_location="cpu", weights_only=False)
+    changed = sorted(k for k in STATE_BINDING if state["binding"].get(k) != training.get(k))
+    if changed:
+        raise UserError(f"{state_file}: saved by a run with other {', '.join(changed)} than this training section")
+    trained = importlib.import_module(f"vlaquantbench.models.{training['model']}.trained")
+    tokenizers = importlib.import_module(f"vlaquantbench.models.{training['model']}.task_tokenizer")
+    meta = LeRobotDatasetMetadata(dataset_repo_id, root=dataset_root)
+    descriptions = sorted(meta.tasks.index) if hasattr(meta.tasks, "index") else sorted(meta.tasks)
+    tokenizer = tokenizers.build_task_tokenizer(descriptions)
+    policy, preprocessor, postprocessor, widths = trained.build_policy(
+        meta, training["policy"], training["tokenizer_repo"], tokenizer, "cpu")
+    policy.load_state_dict(state["policy"])
+    stopped = {"at_step": state["step"], "planned_steps": training["steps"], "why": why,
+               "dataset_digest": state["binding"]["dataset"]}
+    record = _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, descriptions, training, output,
+                               provenance, {"root": str(dataset_root), "repo_id": dataset_repo_id,
+                                            "manifest": dataset_manifest, "frames": meta.total_frames,
+                                            "episodes": meta.total_episodes},
+                               state["losses"], state["wall_s"], device_record or {"type": "unknown"},
+                               stopped_early=stopped)
+    state_file.unlink()
+    return record
+
+
+def _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, descriptions, training, output,
+                      provenance, dataset: dict[str, Any], losses, wall_s, device_record,
+                      stopped_early: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The HF_HOME folder `output` (checkpoint at its weights' revision, tokenizer) and the provenance JSON."""
+    from vlaquantbench.hub.cache import tree_revision, write_snapshot
+    from vlaquantbench.models.paligemma_family import TRAINING_FILE
+
+    tokenizers = importlib.import_module(f"vlaquantbench.models.{training['model']}.task_tokenizer")
+    trained = importlib.import_module(f"vlaquantbench.models.{training['model']}.trained")
     policy.eval()
-    hub = output / "hub"
+    hub = Path(output) / "hub"
     with tempfile.TemporaryDirectory() as scratch:
         tokenizer_folder = tokenizers.write_task_tokenizer(Path(scratch) / "tokenizer", descriptions)
         tokenizer_revision = tree_revision(tokenizer_folder)
         write_snapshot(hub, training["tokenizer_repo"], tokenizer_revision, tokenizer_folder)
         folder = trained.save(Path(scratch) / "checkpoint", policy.to("cpu"), preprocessor, postprocessor, widths)
         revision = weights_revision(folder / "model.safetensors")
-        record = _provenance(training, revision, folder, n_params, tokenizer, tokenizer_revision, descriptions,
-                             dataset_root, dataset_repo_id, dataset_manifest, dataset, losses, wall_s, device)
+        record = _provenance(training, revision, folder, sum(p.numel() for p in policy.parameters()), tokenizer,
+                             tokenizer_revision, descriptions, dataset, losses, wall_s, device_record)
+        if stopped_early is not None:
+            record["stopped_early"] = stopped_early
         # The snapshot carries it too: the rollout path's headers cite it (PiFamilyAdapter).
         write_text(folder / TRAINING_FILE, json.dumps(record, indent=2) + "\n")
         write_snapshot(hub, training["checkpoint_repo"], revision, folder)
     write_text(provenance, json.dumps(record, indent=2) + "\n")
-    if state_file.is_file():
-        state_file.unlink()
     return record
 
 
@@ -270,8 +375,8 @@ def _finite(value: float) -> bool:
     return value == value and abs(value) != float("inf")
 
 
-def _provenance(training, revision, folder, n_params, tokenizer, tokenizer_revision, descriptions, dataset_root,
-                dataset_repo_id, dataset_manifest, dataset, losses, wall_s, device) -> dict[str, Any]:
+def _provenance(training, revision, folder, n_params, tokenizer, tokenizer_revision, descriptions, dataset,
+                losses, wall_s, device_record) -> dict[str, Any]:
     from vlaquantbench.hub.checks import sha256
 
     span = max(1, len(losses) // LOSS_CURVE_POINTS)
@@ -282,15 +387,16 @@ def _provenance(training, revision, folder, n_params, tokenizer, tokenizer_revis
         "tokenizer": {"repo": training["tokenizer_repo"], "revision": tokenizer_revision, "vocabulary": len(tokenizer),
                       "source": "word-level tokenizer built from the dataset's task descriptions "
                                 "(vlaquantbench.models.pi05.task_tokenizer)"},
-        "dataset": {"root": str(dataset_root), "repo_id": dataset_repo_id, "manifest_sha256": sha256(dataset_manifest),
-                    "frames": dataset.num_frames, "episodes": dataset.num_episodes, "tasks": descriptions},
+        "dataset": {"root": dataset["root"], "repo_id": dataset["repo_id"], "manifest_sha256": sha256(dataset["manifest"]),
+                    "frames": dataset["frames"], "episodes": dataset["episodes"], "tasks": descriptions},
         "steps": len(losses), "planned_steps": training["steps"], "batch_size": training["batch_size"],
         "seed": training["seed"], "precision": training.get("precision", "float32"),
         "random_shift_px": training.get("random_shift_px", 0), "compile_mode": training.get("compile_mode"),
+        "cuda_graph": training.get("cuda_graph", False),
         "steps_per_s": round(len(losses) / wall_s, 2) if wall_s else None,
         "policy": training["policy"],
         "loss_curve": {"span_steps": span,
                        "mean_loss": [round(sum(losses[i:i + span]) / len(losses[i:i + span]), 5)
                                      for i in range(0, len(losses), span)]},
-        "wall_s": round(wall_s, 1), "device": _device_record(device),
+        "wall_s": round(wall_s, 1), "device": device_record,
     }
