@@ -228,7 +228,7 @@ def resolve_sampler(cfg: PolicyRun, policy_class: type) -> str:
 # 3.3e-4 (BASELINE), 1.6e-3 (W4A8), 2.3e-2 (W4A4 e2e). The bound, 0.05, leaves 2x headroom over the
 # worst of them and still catches a fast path computing with stale weights (`tests/test_pi05_probe.py`:
 # stale action-expert q/k/v copies are off by more than twice the bound). Random weights, not a
-# checkpoint: benchmarks/gpu_compile_vs_captured.py re-measures it.
+# checkpoint: benchmarks/gpu_policy_inference.py re-measures it.
 CUDA_PROBE_BOUND = {"rel_l2": 0.05}
 # CPU: the fast path runs the eager policy's float32 operations, but in other shapes (cameras in one
 # batch, all flow steps' conditioning in one product, heads folded). IEEE 754 fixes the rounding of
