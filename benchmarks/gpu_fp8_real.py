@@ -100,8 +100,10 @@ def _kernel_checks(device, layer_class, dtype, prefix: str) -> dict:
     return out
 
 
-def build(spec, device, preset: str, method: str):
-    model = spec.build(variant="full", device=device, seed=0).eval()
+def build(spec, device, preset: str, method: str, variant: str = "full"):
+    """The model quantized by `quantize_` (scope e2e) with the fused hooks (the Triton per-token kernel
+    for the layers outside the sampler's groups, on CUDA): (model, report)."""
+    model = spec.build(variant=variant, device=device, seed=0).eval()
     config = QuantConfig.from_preset(preset, scope="e2e", method=method)
     report = quantize_(model, config, config.select(model, spec.components))
     fuse_activation_hooks(report)

@@ -32,24 +32,14 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from gpu_fp8_real import groups_summary, rel_l2  # noqa: E402
+from gpu_fp8_real import build, groups_summary, rel_l2  # noqa: E402
 from gpu_policy_inference import alternate, chunk_inputs, machine  # noqa: E402
 
 from vlaquantbench.models import get_model_spec  # noqa: E402
 from vlaquantbench.models.pi05.fast import CapturedSampler  # noqa: E402
-from vlaquantbench.quant import QuantConfig, quantize_  # noqa: E402
-from vlaquantbench.quant.fused_kernel import fuse_activation_hooks  # noqa: E402
 from vlaquantbench.quant.hooks import Rotated  # noqa: E402
 
 CELLS = {"baseline": ("BASELINE", "rtn"), "w4a4": ("W4A4", "rtn"), "w4a4_hadamard": ("W4A4", "hadamard")}
-
-
-def build(spec, device, variant: str, preset: str, method: str):
-    model = spec.build(variant=variant, device=device, seed=0).eval()
-    config = QuantConfig.from_preset(preset, scope="e2e", method=method)
-    report = quantize_(model, config, config.select(model, spec.components))
-    fuse_activation_hooks(report)  # the Triton per-token kernel for the layers outside the groups (CUDA)
-    return model, report
 
 
 def rotated_groups(sampler: CapturedSampler) -> int:
@@ -85,7 +75,7 @@ def main() -> None:
     samplers, cells, reports = {}, {}, {}
     for name, (preset, method) in CELLS.items():
         t0 = time.perf_counter()
-        model, report = build(spec, device, variant, preset, method)
+        model, report = build(spec, device, preset, method, variant)
         # graph per timed batch; on the CPU the captured code runs eagerly with its ops compiled
         sampler = CapturedSampler(model, num_steps=args.steps, graph_sizes=args.batches, fuse_elementwise=True)
         cells[name] = {"preset": preset, "method": method, "format": report.result.format,
