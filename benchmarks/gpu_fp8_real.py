@@ -1,5 +1,5 @@
 """pi0.5 with real FP8, INT8 and INT4 kernels against BF16 and fake quantization, side by side in one
-process (issue 33): captured chunk time at batch 1, 8 and 32 with 2 cameras, weight memory, and the
+process: captured chunk time at batch 1, 8 and 32 with 2 cameras, weight memory, and the
 actions' relative L2 of each form against the others on the same inputs.
 
 Cells (all captured, `CapturedSampler`; lerobot 0.6.1 `PI05Pytorch` at full size, random weights
@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from gpu_policy_inference import alternate, chunk_inputs, kernel_profile, machine, uncaptured_chunk  # noqa: E402
+from gpu_policy_inference import alternate, chunk_inputs, machine  # noqa: E402
 
 from vlaquantbench.models import get_model_spec  # noqa: E402
 from vlaquantbench.models.pi05.fast import CapturedSampler  # noqa: E402
@@ -100,8 +100,10 @@ def _kernel_checks(device, layer_class, dtype, prefix: str) -> dict:
     return out
 
 
-def build(spec, device, preset: str, method: str):
-    model = spec.build(variant="full", device=device, seed=0).eval()
+def build(spec, device, preset: str, method: str, variant: str = "full"):
+    """The model quantized by `quantize_` (scope e2e) with the fused hooks (the Triton per-token kernel
+    for the layers outside the sampler's groups, on CUDA): (model, report)."""
+    model = spec.build(variant=variant, device=device, seed=0).eval()
     config = QuantConfig.from_preset(preset, scope="e2e", method=method)
     report = quantize_(model, config, config.select(model, spec.components))
     fuse_activation_hooks(report)
@@ -134,8 +136,6 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--cameras", type=int, default=2)
     parser.add_argument("--checks-only", action="store_true", help="only the kernel checks (no model)")
-    parser.add_argument("--no-profile", action="store_true", help="skip the batch-1 kernel profiles")
-    parser.add_argument("--profile-cells", nargs="+", default=["bf16", "fp8real"], choices=list(CELLS))
     args = parser.parse_args()
     device = torch.device("cuda")
     results = {"machine": machine(), "cameras": args.cameras, "steps": STEPS, "batches": args.batches}
@@ -200,16 +200,6 @@ def main() -> None:
     results["rounds"], results["repeats_per_round"] = args.rounds, args.repeats
     print("chunk ms:", ms, "\nvs bf16:", results["vs_bf16"], flush=True)
     write()
-
-    if not args.no_profile:
-        results["profiles_b1"] = {}
-        for name in args.profile_cells:
-            sampler = samplers[name]
-            sampler(*inputs[1])
-            with sampler._kernel_choices():
-                results["profiles_b1"][name] = kernel_profile(uncaptured_chunk(sampler.model, sampler, inputs[1]))
-            sampler.reset()
-            print(name, "profile:", {k: v for k, v in results["profiles_b1"][name].items() if k != "top"}, flush=True)
 
     for name, cell in cells.items():
         report = cell.pop("report")

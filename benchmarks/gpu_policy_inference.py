@@ -52,25 +52,6 @@ def time_chunks(fn, warmup: int, repeats: int) -> list[float]:
     return times
 
 
-def kernel_profile(fn, top_n: int = 25) -> dict:
-    """GPU kernel count and summed kernel time of one chunk run without graphs (the floor a graph
-    replay approaches once launch gaps are gone), with the costliest kernel names."""
-    from torch.profiler import ProfilerActivity, profile
-
-    torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CUDA]) as prof:
-        fn()
-        torch.cuda.synchronize()
-    events = [e for e in prof.key_averages() if e.device_time_total > 0]
-    total_us = sum(e.self_device_time_total for e in events)
-    top = sorted(events, key=lambda e: e.self_device_time_total, reverse=True)[:top_n]
-    return {
-        "kernels": int(sum(e.count for e in events if e.self_device_time_total > 0)),
-        "kernel_time_ms": total_us / 1e3,
-        "top": [{"name": e.key[:80], "ms": e.self_device_time_total / 1e3, "count": e.count} for e in top],
-    }
-
-
 def fused_kernel_check(device) -> dict:
     """Fraction of elements where the fused kernel equals the reference transform (expected: all)."""
     from vlaquantbench.quant.fused_kernel import fused_fake_quant
@@ -171,19 +152,6 @@ def alternate(samplers: dict, inputs, batches, repeats: int, rounds: int) -> dic
     return {name: {b: 1e3 * statistics.median(t) for b, t in by_b.items()} for name, by_b in times.items()}
 
 
-def whole_row_ab(model, sampler, inputs, batches, steps, repeats, rounds, options) -> dict:
-    """Captured chunk time with inductor's own reduction choice (`Inductor(whole_row_limit=0)`: rows
-    over 1,024 values reduced in two passes) against the default one-pass rows, same quantized model."""
-    from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
-
-    samplers = {"inductor_choice": CapturedSampler(model, num_steps=steps, compiler=pi05_static.Inductor(0),
-                                                   graph_sizes=batches, **options),
-                "whole_rows": sampler}
-    ms = alternate(samplers, inputs, batches, repeats, rounds)
-    return {"median_ms": ms, "whole_rows_vs_inductor_choice": {b: ms["whole_rows"][b] / ms["inductor_choice"][b] for b in batches},
-            "rounds": rounds, "repeats_per_round": repeats}
-
-
 def released_weights(model, spec) -> dict:
     """Copies of the weights of every layer a preset may round in place (scope e2e)."""
     return {n: m.weight.detach().clone() for n, m in select_layers(model, spec.components, "e2e", None, None).flat().items()}
@@ -211,16 +179,6 @@ def quantized_model(spec, device, preset: str):
     report = _quantize(model, spec, preset)
     fuse_activation_hooks(report)
     return model, report
-
-
-def uncaptured_chunk(model, sampler: CapturedSampler, inputs):
-    """One chunk of the captured form's code without its graph (for kernel profiles): call it
-    inside `sampler._kernel_choices()`, after one captured call has compiled everything."""
-    from vlaquantbench.models.pi05.fast import static_sampling as pi05_static
-
-    images, img_masks, tokens, masks, noise = inputs
-    return lambda: pi05_static.sample_actions(model, images, img_masks, tokens, masks, noise, sampler.times,
-                                              sampler.ops, sampler._groups, sampler.prefix_sdpa)
 
 
 def preset_ab(spec, device, presets, inputs, batches, steps, repeats, rounds) -> dict:
@@ -264,14 +222,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--cameras", type=int, default=3, help="camera images per observation (LIBERO: 2)")
     parser.add_argument("--eager-repeats-large", type=int, default=5, help="repeats for eager at batch >= 8")
-    parser.add_argument("--no-sweep", action="store_true",
-                        help="skip the kernel-choice sweep; use the sampler's defaults (the sweep's winner so far)")
-    parser.add_argument("--whole-row-ab", type=int, default=0, metavar="ROUNDS",
-                        help="per preset, captured time with inductor's own reduction choice against one-pass rows, "
-                             "alternating ROUNDS times")
     parser.add_argument("--preset-ab", type=int, default=0, metavar="ROUNDS",
-                        help="only this: one captured model per preset, taking turns ROUNDS times (no eager timings, "
-                             "checks or profiles)")
+                        help="only this: one captured model per preset, taking turns ROUNDS times (no eager timings "
+                             "or checks)")
     args = parser.parse_args()
 
     device = torch.device("cuda")
@@ -293,46 +246,10 @@ def main() -> None:
     build_s = time.perf_counter() - t0
     inputs = {b: chunk_inputs(b, device, cameras=args.cameras) for b in args.batches}
     originals = released_weights(model, spec)  # each cell rounds weights in place
-    results = {"cells": [], "checks": {"fused_equal_fraction": fused_kernel_check(device)}, "profiles": {}}
+    results = {"cells": [], "checks": {"fused_equal_fraction": fused_kernel_check(device)}}
     print("fused kernel == reference:", results["checks"]["fused_equal_fraction"], flush=True)
     results["checks"]["fused_norm_quant_equal_fraction"] = fused_norm_quant_check(device)
     print("norm-fused quantization == reference:", results["checks"]["fused_norm_quant_equal_fraction"], flush=True)
-
-    # Kernel choices for the captured form, timed on the baseline at batch 1; the fastest is used below.
-    from torch.nn.attention import SDPBackend
-
-    backend_sets = {"efficient": [SDPBackend.EFFICIENT_ATTENTION], "cudnn": [SDPBackend.CUDNN_ATTENTION,
-                    SDPBackend.EFFICIENT_ATTENTION]}
-    # (TF32, fused elementwise ops, prefix attention): first the steps of the captured form one by
-    # one, then the prefix attention kernels with everything else on ("folded": one batched product
-    # over the query heads; else SDPA with that kernel first; the vision tower's SDPA follows it).
-    choices = [(False, False, "efficient"), (True, False, "efficient"), (True, True, "efficient"),
-               (True, True, "cudnn"), (True, True, "folded")]
-    sweep = {}
-    b1 = chunk_inputs(1, device, cameras=args.cameras)
-    for tf32, fuse, prefix in [] if args.no_sweep else choices:
-        t0 = time.perf_counter()
-        options = {"tf32": tf32, "fuse_elementwise": fuse, "prefix_sdpa": prefix != "folded",
-                   "attention_backends": backend_sets.get(prefix, backend_sets["efficient"])}
-        sampler = CapturedSampler(model, num_steps=steps, **options)
-        key = f"tf32={tf32}_fuse={fuse}_prefix={prefix}"
-        try:
-            ms = 1e3 * statistics.median(time_chunks(lambda: sampler(*b1), warmup=2, repeats=args.repeats))
-        except RuntimeError as err:  # a backend that rejects these shapes
-            ms = float("nan")
-            print(f"sweep {key}: {err}"[:200], flush=True)
-        sweep[key] = (ms, options)
-        print(f"sweep captured b1 {key}: {ms:.2f} ms (first call incl. compile {time.perf_counter() - t0:.1f} s)",
-              flush=True)
-        del sampler
-    results["kernel_choice_sweep_b1_ms"] = {k: ms for k, (ms, _) in sweep.items()}
-    if sweep:
-        best = min((k for k in sweep if sweep[k][0] == sweep[k][0]), key=lambda k: sweep[k][0])
-        captured_options = sweep[best][1]
-        results["captured_kernel_choice"] = best
-    else:
-        captured_options, results["captured_kernel_choice"] = {}, "defaults (no sweep)"
-    torch.cuda.empty_cache()
 
     for preset in args.presets:
         report = requantize(model, spec, originals, preset)
@@ -347,13 +264,10 @@ def main() -> None:
             cell["eager"][b] = {"median_ms": 1e3 * statistics.median(times), "chunks_per_s": b / statistics.median(times)}
             print(f"[{preset}] eager b{b}: {1e3 * statistics.median(times):.1f} ms", flush=True)
         eager_hook_calls = sum(report.hook_calls().values())
-        images, img_masks, tokens, masks, noise = inputs[min(args.batches)]
-        results["profiles"][preset] = {"eager_lerobot": kernel_profile(lambda: model.sample_actions(
-            images, img_masks, tokens, masks, noise=noise.clone(), num_steps=steps))}
 
         fused = fuse_activation_hooks(report)
         # One graph per measured batch size (not the closed loop's plans): a batch-32 chunk is one graph.
-        sampler = CapturedSampler(model, num_steps=steps, graph_sizes=args.batches, **captured_options)
+        sampler = CapturedSampler(model, num_steps=steps, graph_sizes=args.batches)
         for b in args.batches:
             images, img_masks, tokens, masks, noise = inputs[b]
             torch.cuda.synchronize()
@@ -383,43 +297,18 @@ def main() -> None:
             rel = ((captured.float() - eager.float()).norm() / eager.float().norm()).item()
             cell["captured_vs_eager_rel_l2_b1"] = rel
             print(f"[{preset}] captured vs eager actions, relative L2: {rel:.2e}", flush=True)
-            with sampler._kernel_choices():
-                results["profiles"][preset]["captured_form_without_graph"] = kernel_profile(
-                    uncaptured_chunk(model, sampler, inputs[b_check]))
-        if args.whole_row_ab:
-            cell["whole_row_ab"] = whole_row_ab(model, sampler, inputs, args.batches, steps, args.repeats,
-                                                args.whole_row_ab, captured_options)
-            print(f"[{preset}] whole rows / inductor's choice:", cell["whole_row_ab"]["whole_rows_vs_inductor_choice"],
-                  flush=True)
         report.remove_hooks()
         results["cells"].append(cell)
         del sampler
         torch.cuda.empty_cache()
 
-    base = {c["preset"]: c for c in results["cells"]}
-    ratios = {}
-    for preset, cell in base.items():
-        for b in args.batches:
-            ratios[f"{preset}_b{b}"] = {
-                "eager_ms": cell["eager"][b]["median_ms"],
-                "captured_ms": cell["captured"][b]["median_ms"],
-                "captured_speedup_vs_eager": cell["eager"][b]["median_ms"] / cell["captured"][b]["median_ms"],
-                "eager_overhead_vs_baseline": cell["eager"][b]["median_ms"] / base["BASELINE"]["eager"][b]["median_ms"],
-                "captured_overhead_vs_baseline": cell["captured"][b]["median_ms"] / base["BASELINE"]["captured"][b]["median_ms"],
-            }
-    results["ratios"] = ratios
     results["machine"] = machine()
     results["model_build_s"] = build_s
     results["inductor_cache_files_at_start"] = cache_files_at_start
     results["setup"] = setup
     with open(args.out, "w") as f:
         json.dump(results, f, indent=1)
-    print(f"\n{'cell':<14}{'eager ms':>10}{'captured ms':>13}{'speedup':>9}{'eager/base':>11}{'capt/base':>10}{'chunks/s':>10}")
-    for key, r in ratios.items():
-        preset, b = key.rsplit("_b", 1)
-        cps = base[preset]["captured"][int(b)]["chunks_per_s"]
-        print(f"{key:<14}{r['eager_ms']:>10.1f}{r['captured_ms']:>13.2f}{r['captured_speedup_vs_eager']:>9.1f}"
-              f"{r['eager_overhead_vs_baseline']:>11.2f}{r['captured_overhead_vs_baseline']:>10.2f}{cps:>10.1f}")
+    print("wrote", args.out)
 
 
 if __name__ == "__main__":

@@ -73,11 +73,11 @@ def test_the_records_do_not_depend_on_how_many_workers_ran_them(runs):
 
 
 def test_a_kill_9_in_the_middle_of_the_episodes_resumes_exactly(tmp_path):
-    """benchmarks/soak_kill9.py kills the running cell's process group right after its first journaled
+    """tests/soak_kill9.py kills the running cell's process group right after its first journaled
     episodes, lets it resume, and compares with an uninterrupted run: nothing lost, nothing run twice."""
     out = tmp_path / "soak.json"
     soak = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "soak_kill9.py"), "--ref", REF, "--max-steps", "suite", "--tasks",
+        [sys.executable, str(ROOT / "tests" / "soak_kill9.py"), "--ref", REF, "--max-steps", "suite", "--tasks",
          "0", "1", "2", "3", "--episodes-per-task", "3", "--kills", "1", "--write-kills", "0", "--anchor-p", "0", "0", "1",
          "--window", "0.2", "--seed", "1", "--out", str(out)],
         timeout=600,

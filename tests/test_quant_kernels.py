@@ -1,7 +1,7 @@
 """Real-kernel quantization methods behind `quantize_` (vlaquantbench.quant.kernels), on a small
 real `transformers` LlamaModel on the CPU: int8 W8A8 through `torch._int_mm`, FP8 with tensor-wise
-scales through `torch._scaled_mm` (row-wise FP8, int4 and bitsandbytes need a GPU and are measured
-by benchmarks/gpu_real_kernels.py), eager and compiled by inductor layer by layer as that benchmark does."""
+scales through `torch._scaled_mm` (row-wise FP8, int4 and bitsandbytes need a GPU; benchmarks/gpu_fp8_real.py
+times FP8, INT8 and INT4 in pi0.5 on one), eager and compiled by inductor layer by layer."""
 
 import importlib.util
 

@@ -1,4 +1,4 @@
-"""CI's short soak (benchmarks/soak_kill9.py): a seeded kill -9 of a running real-LIBERO cell after it
+"""CI's short soak (tests/soak_kill9.py): a seeded kill -9 of a running real-LIBERO cell after it
 journaled an episode and one while it writes its records, then the resumed cell equals an uninterrupted one: nothing lost, nothing
 run twice, the same records, no partial or stray record file."""
 
@@ -16,7 +16,7 @@ pytestmark = pytest.mark.slow
 def test_kill_9s_while_running_and_while_writing_lose_and_duplicate_nothing_and_resume_exactly(tmp_path):
     out = tmp_path / "soak.json"
     soak = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "soak_kill9.py"), "--kills", "2", "--write-kills", "1", "--tasks", "0",
+        [sys.executable, str(ROOT / "tests" / "soak_kill9.py"), "--kills", "2", "--write-kills", "1", "--tasks", "0",
          "--episodes-per-task", "3", "--max-steps", "10", "--window", "4", "--startup-window", "8",
          "--anchor-p", "0", "0", "1", "--seed", "1", "--out", str(out)],
         timeout=1500,

@@ -27,7 +27,7 @@ episodes are in a fixed order (round, task, variation).
 Writing is parallel: each worker process records blocks of one task's variations into a
 LeRobotDataset of its own (lerobot's writer encodes PNGs and computes image statistics there, beside
 its simulator), and lerobot's `aggregate_datasets` merges them in that fixed order
-(benchmarks/results/gpu_demonstrations/ measures the rate).
+(benchmarks/results/gpu_demonstrations_h200/ holds a measured rate).
 """
 
 from __future__ import annotations

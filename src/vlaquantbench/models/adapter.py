@@ -224,11 +224,11 @@ def resolve_sampler(cfg: PolicyRun, policy_class: type) -> str:
 # CUDA: bf16 operation order, TF32 products in lerobot's float32 vision tower and fused kernels move
 # the last bits, and a 4-bit activation rounding that flips on such a difference moves a value by a
 # whole grid step, which later layers amplify. Measured for pi0.5's captured sampler at full size on
-# an H100 (benchmarks/results/gpu_policy_inference.json, `captured_vs_eager_rel_l2_b1`): relative L2
-# 3.3e-4 (BASELINE), 1.6e-3 (W4A8), 2.3e-2 (W4A4 e2e). The bound, 0.05, leaves 2x headroom over the
+# an H200 (benchmarks/results/gpu_policy_inference_cameras*.json, `captured_vs_eager_rel_l2_b1`):
+# relative L2 3.3e-4 (BASELINE), 2.4e-2 (W4A4 e2e). The bound, 0.05, leaves 2x headroom over the
 # worst of them and still catches a fast path computing with stale weights (`tests/test_pi05_probe.py`:
 # stale action-expert q/k/v copies are off by more than twice the bound). Random weights, not a
-# checkpoint: benchmarks/gpu_compile_vs_captured.py re-measures it.
+# checkpoint: benchmarks/gpu_policy_inference.py re-measures it.
 CUDA_PROBE_BOUND = {"rel_l2": 0.05}
 # CPU: the fast path runs the eager policy's float32 operations, but in other shapes (cameras in one
 # batch, all flow steps' conditioning in one product, heads folded). IEEE 754 fixes the rounding of

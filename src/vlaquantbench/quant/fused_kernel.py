@@ -221,8 +221,8 @@ def rotation_tile(n_cols: int, rotation: BlockHadamard, n_tokens: int = 1, token
     `tokens_per_program` (a power of two, the tile at most `MAX_SHARED_TILE_ROWS` rows) several share
     one, reading the Hadamard factors once and multiplying taller tiles -- for many rows (the
     expert's 1,600 x 1,024 at batch 32 took 13 us at one token per program, against 2.5 unrotated);
-    `benchmarks/gpu_hadamard_captured.py` times it, not yet run on a GPU. `num_warps` overrides the
-    warps chosen from the tile's size."""
+    on an H200 that helped only SigLIP's float32 rows (`benchmarks/results/gpu_hadamard_captured_run4.json`,
+    `rotation_kernel_us`). `num_warps` overrides the warps chosen from the tile's size."""
     blocks = n_cols // rotation.block
     outer = rotation.outer_order
     tile_rows = max(16, triton.next_power_of_2(blocks) * outer)  # tl.dot's smallest dimension is 16

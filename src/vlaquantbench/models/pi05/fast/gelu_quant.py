@@ -114,7 +114,7 @@ if triton is not None:  # Triton ships with torch's CUDA wheels; without it the 
 
 # Warps of a rotated GELU program (at least what `rotation_tile` picks, which is at most 8): on an
 # H200 the expert's 50 x 4,096 took 5.5 us with 8 warps, 6.8 with 4, and 1,600 x 4,096 (batch 32)
-# 30.9 against 34.2 (`gpu_hadamard_captured.py`, calls in a CUDA graph).
+# 30.9 against 34.2 (calls in a CUDA graph; `benchmarks/results/gpu_hadamard_captured_run4.json`).
 GELU_WARPS = 8
 # Chunked programs (`_gelu_fake_quant_row_chunks`): values per chunk, warps per program.
 CHUNK, CHUNK_WARPS = 2048, 8
@@ -125,7 +125,7 @@ WHOLE_ROW_COLS = 4096
 
 
 def _launch(rows: int, n_cols: int, device: torch.device) -> tuple[int, int]:
-    """(chunk, warps), chunk 0 for a row held whole; measured on an H200 (`gpu_gelu_quant.py`).
+    """(chunk, warps), chunk 0 for a row held whole; measured on an H200 (`benchmarks/results/gpu_gelu_quant*.json`).
     While there are no more rows than about two per multiprocessor, a call's time is one row's
     latency: the row is held whole with as many warps as it can use (32; the action expert's 50
     rows at batch 1: 2.7 us, 4.9 with 8 warps). With more rows, rows up to `WHOLE_ROW_COLS` are still

@@ -1,10 +1,10 @@
 """Soak: `kill -9` a running demo cell again and again at seeded random moments, then let it finish;
 count lost and duplicated episodes and check the resumed records against an uninterrupted run.
 
-    .venv/bin/python benchmarks/soak_kill9.py --kills 20 --out benchmarks/results/soak_kill9_cpu.json
-    .venv/bin/python benchmarks/soak_kill9.py --kills 2 --write-kills 1 --tasks 0 --episodes-per-task 3 \
+    .venv/bin/python tests/soak_kill9.py --kills 20 --out benchmarks/results/soak_kill9_cpu.json
+    .venv/bin/python tests/soak_kill9.py --kills 2 --write-kills 1 --tasks 0 --episodes-per-task 3 \
         --max-steps 10 --window 4 --startup-window 8 --anchor-p 0 0 1  # CI's (tests/test_runner_soak.py)
-    .venv/bin/python benchmarks/soak_kill9.py --ref metaworld/metaworld_easy/metaworld_expert/rtn-BASELINE-e2e \
+    .venv/bin/python tests/soak_kill9.py --ref metaworld/metaworld_easy/metaworld_expert/rtn-BASELINE-e2e \
         --max-steps suite --kills 2 --write-kills 1  # Meta-World's scripted experts (tests/test_metaworld_runner.py)
 
 The cell first runs uninterrupted in one folder (the reference), then, in another, through the
