@@ -166,3 +166,26 @@ def sequential_refs():
     tables_dir lacks those tables builds its DAG without them)."""
     refs = sorted({ref for name in SEQUENTIAL_TABLES for pair in WF.table(name).contrasts() for ref in pair})
     return WF.checked_refs(WF.record_refs(refs, SEQUENTIAL_TARGET), SEQUENTIAL_TARGET)
+
+
+# --- Precision search (rules/search.smk) ----------------------------------------------------------
+SEARCH = config.get("search") or {}
+SEARCH_TARGET = "tables/search.csv"
+
+
+def search_cells():
+    """The baseline and the candidates of the search: the cells of `search.table` of the baseline's benchmark,
+    suite and model (read when the target is asked for)."""
+    from vlaquantbench.errors import UserError
+
+    if not SEARCH:
+        raise UserError(f"{SEARCH_TARGET} needs a `search` section in the config (its table, baseline, alpha, margin_pp)")
+    refs = list(dict.fromkeys(WF.table(SEARCH["table"]).refs()))
+    baseline = SEARCH.get("baseline", "rtn-BASELINE-e2e")
+    named = [ref for ref in refs if baseline in (ref, ref.rsplit("/", 1)[-1])]
+    if len(named) != 1:
+        raise UserError(f"search.baseline {baseline!r}: {len(named)} such cells in table {SEARCH['table']} "
+                        f"({', '.join(named) or 'none'}); the search needs exactly one")
+    group = named[0].rsplit("/", 1)[0]
+    space = [ref for ref in refs if ref.rsplit("/", 1)[0] == group]
+    return named[0], WF.checked_refs(WF.record_refs(space, SEARCH_TARGET), SEARCH_TARGET)

@@ -3,8 +3,12 @@ search over recorded cells (the authors' LIBERO lattice, the pi0.5 trained here)
 and `vqb search`'s refusals."""
 
 import csv
+import subprocess
+import sys
 
+import pandas as pd
 import pytest
+from test_dag_trained_checkpoint import workflow_with_tables
 
 from vlaquantbench.cli import main
 from vlaquantbench.models.layer_index import selected_counts
@@ -137,3 +141,32 @@ def test_live_stopped_records_are_searched_only_at_their_level(tmp_path, capsys)
     assert [r["decision"] for r in csv.DictReader(out.open())][1:] == ["worse"]
     assert main(["search", str(TRAINED_LIVE), "--csv", str(out)]) == 2
     assert "rtn-W2A2-e2e: its records were stopped by a live rule at alpha 0.05" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_snakemake_searches_the_trained_policy_from_its_committed_records(tmp_path):
+    """tables/search.csv and figures/search_pareto.pdf through Snakemake from the committed records (no episode
+    runs): the same choice as `vqb search` on the folder and as deciding every candidate; a config without a
+    `search` section is refused naming it."""
+    checkout, _ = workflow_with_tables(tmp_path)
+    (checkout / "results").mkdir()
+    (checkout / "results/trained_sequential").symlink_to(ROOT / "results/trained_sequential")
+    (checkout / "manifests").mkdir()
+    (checkout / "manifests/trained_sequential_fixed.tsv").symlink_to(ROOT / "manifests/trained_sequential_fixed.tsv")
+    configs = ["config/trained_sequential.yaml", "config/trained_sequential_fixed.yaml"]
+
+    def snakemake(*configs):
+        return subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "tables/search.csv", "--configfile",
+                               *configs], cwd=checkout, capture_output=True, text=True, timeout=600)
+
+    refused = snakemake(*configs)
+    assert refused.returncode != 0 and "needs a `search` section" in refused.stderr
+    result = snakemake(*configs, "config/trained_search.yaml")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "rule rollout" not in result.stdout + result.stderr
+    log = (checkout / "logs/tables/search.log").read_text()
+    assert f"chosen: {TRAINED}/rtn-W4A8-e2e" in log and "(the same)" in log
+    table = pd.read_csv(checkout / "tables/search.csv").set_index("cell")
+    assert table.at[f"{TRAINED}/rtn-W2A2-e2e", "decision"] == "worse"
+    assert table.at[f"{TRAINED}/rtn-W4A8-e2e", "status"] == "chosen"
+    assert (checkout / "figures/search_pareto.pdf").read_bytes().startswith(b"%PDF")

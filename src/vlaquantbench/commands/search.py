@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import fnmatch
-import sys
 
 from vlaquantbench.errors import UserError
 
@@ -37,23 +36,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--exhaustive", action="store_true",
                         help="also decide every candidate and say whether the search chose the same")
     parser.add_argument("--csv", required=True, metavar="FILE", help="CSV to write, one row per candidate")
+    parser.add_argument("--figure", metavar="PDF", help="also plot success against weight memory (the Pareto front)")
     parser.set_defaults(func=run)
 
 
-def _proxy(header: dict) -> float | None:
-    """The sum over components of the header's mean relative output error (None where it reports none)."""
-    errors = [v["mean_rel_mse"] for v in (header.get("quant_report") or {}).values()
-              if isinstance(v, dict) and v.get("mean_rel_mse") is not None]
-    return sum(errors) if errors else None
-
-
 def run(args: argparse.Namespace) -> int:
-    import pandas as pd
-
-    from vlaquantbench.records import contrast_mismatch, find_cells, read_cell
-    from vlaquantbench.search import (Candidate, SearchDesign, exhaustive, pareto_front, precision_search,
-                                      records_decider)
-    from vlaquantbench.atomic import write_text
+    from vlaquantbench.records import find_cells, read_cell
+    from vlaquantbench.search import SearchDesign
+    from vlaquantbench.tables.search import write_search
 
     design = SearchDesign(args.alpha, args.margin)
     design.per_candidate(1)  # a bad level or margin is refused before any record is read
@@ -64,36 +54,13 @@ def run(args: argparse.Namespace) -> int:
                         f"({', '.join(baselines) or 'none'}); the search needs exactly one")
     baseline = baselines[0]
     group = baseline.rsplit("/", 1)[0]
-    names = {ref: ref.rsplit("/", 1)[-1] for ref in cells if ref.rsplit("/", 1)[0] == group and ref != baseline}
+    names = [ref for ref in cells if ref.rsplit("/", 1)[0] == group and ref != baseline]
     if args.cells:
-        names = {ref: name for ref, name in names.items() if any(fnmatch.fnmatchcase(name, p) for p in args.cells)}
+        names = [ref for ref in names if any(fnmatch.fnmatchcase(ref.rsplit("/", 1)[-1], p) for p in args.cells)]
     if not names:
         raise UserError(f"no candidate cell of {group} in {args.records_dir}"
                         + (f" matches --cells {' '.join(args.cells)}" if args.cells else ""))
-    records = {ref: read_cell(cells[ref]) for ref in [baseline, *names]}
-    for ref in names:
-        mismatch = contrast_mismatch(records[ref], records[baseline])
-        if mismatch:
-            raise UserError(f"cell {ref} cannot be contrasted with {baseline}: {mismatch}")
-    candidates = [Candidate.from_ref(ref, _proxy(records[ref].header)) for ref in names]
-    decide = records_decider({ref: c.episodes for ref, c in records.items()},
-                             {ref: c.header for ref, c in records.items()}, baseline)
-    result = precision_search(candidates, decide, design)
-    rows = result.rows()
-    rows.insert(0, {"order": 0, "cell": baseline, "cost_ratio": 1.0, "status": "baseline (runs in full)",
-                    "episodes_used": len(records[baseline].episodes),
-                    "rate_at_stop": 100.0 * records[baseline].episodes["success"].mean()})
-    front = pareto_front(rows)
-    table = pd.DataFrame(rows).assign(pareto=lambda t: t["cell"].isin(front))
-    summary = [f"{design.guarantee(len(candidates))}.",
-               f"chosen: {result.chosen.ref if result.chosen else 'none (no candidate decided not_worse)'}"
-               + (f" at {result.chosen.cost_ratio:.3f} x the BF16 weight memory" if result.chosen else ""),
-               f"episodes: {result.episodes_spent} of {result.episodes_exhaustive} that every candidate run in full "
-               f"would need ({len(result.verdicts)} visited, {len(result.pruned_by)} pruned)"]
-    if args.exhaustive:
-        chosen, _ = exhaustive(candidates, decide, design)
-        same = (chosen.ref if chosen else None) == (result.chosen.ref if result.chosen else None)
-        summary.append(f"exhaustive: {chosen.ref if chosen else 'none'} ({'the same' if same else 'NOT the same'})")
-    write_text(args.csv, table.to_csv(index=False, float_format="%.4f"))
-    print("\n".join(summary))
+    report = write_search({ref: read_cell(cells[ref]) for ref in [baseline, *names]}, baseline, design, args.csv,
+                          args.figure, args.exhaustive)
+    print("\n".join(report.summary()))
     return 0

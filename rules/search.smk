@@ -1,0 +1,23 @@
+# Precision search (issue 52): the cheapest cell of a table's space decided not worse than its baseline.
+# `search` in the config: the table, the baseline, alpha (over the whole search) and margin_pp.
+
+
+rule search_table:
+    input:
+        manifest=FROZEN_MANIFEST,
+        cells=lambda wc: records_of(search_cells()[1]),
+        headers=lambda wc: headers_of(search_cells()[1]),
+    output:
+        csv=SEARCH_TARGET,
+        figure=report("figures/search_pareto.pdf", caption="../workflow/report/search.rst", category="Figures"),
+    log:
+        "logs/tables/search.log",
+    params:
+        records_root=str(WF.records_root),
+        baseline=lambda wc: search_cells()[0],
+        refs=lambda wc: search_cells()[1],
+        alpha=SEARCH.get("alpha", 0.05),
+        margin_pp=SEARCH.get("margin_pp", 5.0),
+        report=lambda wc: report_params(SEARCH_TARGET),
+    script:
+        "../workflow/scripts/search_table.py"
