@@ -188,4 +188,25 @@ def search_cells():
                         f"({', '.join(named) or 'none'}); the search needs exactly one")
     group = named[0].rsplit("/", 1)[0]
     space = [ref for ref in refs if ref.rsplit("/", 1)[0] == group]
+    live = WF.study.sequential
+    if WF.records_dir is None and live is not None:  # the DAG runs the candidates under the live rule
+        from vlaquantbench.search import SearchDesign, check_live_design
+
+        check_live_design(SearchDesign(SEARCH.get("alpha", 0.05), SEARCH.get("margin_pp", 5.0)), len(space) - 1,
+                          named[0], live.alpha, live.margin_pp, live.against)
     return named[0], WF.checked_refs(WF.record_refs(space, SEARCH_TARGET), SEARCH_TARGET)
+
+
+def search_held_out():
+    """The confirmation's records (search.confirm): the run-seed cells of the space in its records_dir, by
+    reference; which one the search chooses is known only when it has run."""
+    from vlaquantbench.records import find_cells
+
+    confirm = SEARCH.get("confirm")
+    if not confirm:
+        return {}
+    baseline, space = search_cells()
+    found = find_cells(confirm["records_dir"])
+    prefix = f"seed{confirm['seed']}-"
+    wanted = {f"{ref.rsplit('/', 1)[0]}/{prefix}{ref.rsplit('/', 1)[-1]}" for ref in space}
+    return {ref: str(path) for ref, path in found.items() if ref in wanted}

@@ -7,6 +7,7 @@ rule search_table:
         manifest=FROZEN_MANIFEST,
         cells=lambda wc: records_of(search_cells()[1]),
         headers=lambda wc: headers_of(search_cells()[1]),
+        held_out=lambda wc: list(search_held_out().values()),
     output:
         csv=SEARCH_TARGET,
         figure=report("figures/search_pareto.pdf", caption="../workflow/report/search.rst", category="Figures"),
@@ -16,6 +17,8 @@ rule search_table:
         records_root=str(WF.records_root),
         baseline=lambda wc: search_cells()[0],
         refs=lambda wc: search_cells()[1],
+        held_out_refs=lambda wc: list(search_held_out()),
+        confirm_seed=(SEARCH.get("confirm") or {}).get("seed"),
         alpha=SEARCH.get("alpha", 0.05),
         margin_pp=SEARCH.get("margin_pp", 5.0),
         report=lambda wc: report_params(SEARCH_TARGET),

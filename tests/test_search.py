@@ -170,3 +170,33 @@ def test_snakemake_searches_the_trained_policy_from_its_committed_records(tmp_pa
     assert table.at[f"{TRAINED}/rtn-W2A2-e2e", "decision"] == "worse"
     assert table.at[f"{TRAINED}/rtn-W4A8-e2e", "status"] == "chosen"
     assert (checkout / "figures/search_pareto.pdf").read_bytes().startswith(b"%PDF")
+
+
+def test_confirmation_needs_the_held_out_records_and_a_new_seed(tmp_path, capsys):
+    out = tmp_path / "s.csv"
+    assert main(["search", str(TRAINED_FIXED), "--margin", "20", "--confirm-seed", "1", "--csv", str(out)]) == 2
+    assert (f"the confirmation needs the records of {TRAINED}/seed1-rtn-W4A8-e2e, {TRAINED}/seed1-rtn-BASELINE-e2e"
+            in capsys.readouterr().err)
+    assert main(["search", str(TRAINED_FIXED), "--confirm-seed", "0", "--csv", str(out)]) == 2
+    assert "the confirmation's run seed must be 1 or more" in capsys.readouterr().err
+
+
+def _dry_run(checkout, *configs):
+    return subprocess.run([sys.executable, "-m", "snakemake", "-n", "--cores", "2", "tables/search.csv", "--configfile",
+                           "config/trained_sequential.yaml", "config/trained_search.yaml", *map(str, configs),
+                           "--config", "records_dir=", "manifest="],
+                          cwd=checkout, capture_output=True, text=True, timeout=600)
+
+
+def test_a_dag_that_runs_the_candidates_live_must_run_the_searchs_rule(tmp_path):
+    """Without records the DAG runs the space's cells under study.sequential: at alpha 0.05 for 2 candidates it is
+    refused while the DAG is built, naming the level to set; at 0.025 it plans the baseline and both candidates."""
+    checkout, _ = workflow_with_tables(tmp_path)
+    refused = _dry_run(checkout)
+    assert refused.returncode != 0
+    assert "set alpha 0.025 (search.alpha 0.05 / 2 candidates) and margin_pp 20" in refused.stdout + refused.stderr
+    level = tmp_path / "level.yaml"
+    level.write_text("study: {sequential: {alpha: 0.025, margin_pp: 20, against: rtn-BASELINE-e2e}}\n")
+    planned = _dry_run(checkout, level)
+    assert planned.returncode == 0, planned.stderr[-3000:]
+    assert planned.stdout.count("rule rollout:") == 3 and "rule search_table:" in planned.stdout

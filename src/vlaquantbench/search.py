@@ -286,3 +286,18 @@ def pareto_front(rows: list[dict]) -> set[str]:
     return {r["cell"] for r in decided
             if not any(o["cost_ratio"] <= r["cost_ratio"] and o["rate_at_stop"] >= r["rate_at_stop"]
                        and (o["cost_ratio"], o["rate_at_stop"]) != (r["cost_ratio"], r["rate_at_stop"]) for o in decided)}
+
+
+def check_live_design(design: SearchDesign, candidates: int, baseline: str, alpha: float, margin_pp: float,
+                      against: str) -> None:
+    """Cells that a study's live stopping rule (study.sequential: `alpha`, `margin_pp`, `against`) runs are searched
+    only when that rule is the search's per-candidate rule: alpha / K, the same margin, against the baseline.
+    UserError naming the fields otherwise, before any episode runs."""
+    per_candidate = design.per_candidate(candidates)
+    if against != baseline.rsplit("/", 1)[-1]:
+        raise UserError(f"study.sequential.against is {against}, the search's baseline {baseline}: the candidates "
+                        "must stop against the search's baseline")
+    if abs(alpha - per_candidate.alpha) > 1e-12 * per_candidate.alpha or margin_pp != design.margin_pp:
+        raise UserError(f"study.sequential (alpha {alpha:g}, margin_pp {margin_pp:g}) is not the search's per-candidate "
+                        f"rule: set alpha {per_candidate.alpha:.6g} (search.alpha {design.alpha:g} / {candidates} "
+                        f"candidates) and margin_pp {design.margin_pp:g}")
