@@ -201,12 +201,12 @@ def search_held_out():
     """The confirmation's records (search.confirm): the run-seed cells of the space in its records_dir, by
     reference; which one the search chooses is known only when it has run."""
     from vlaquantbench.records import find_cells
+    from vlaquantbench.tables.search import held_out
 
     confirm = SEARCH.get("confirm")
     if not confirm:
         return {}
-    baseline, space = search_cells()
+    _, space = search_cells()
     found = find_cells(confirm["records_dir"])
-    prefix = f"seed{confirm['seed']}-"
-    wanted = {f"{ref.rsplit('/', 1)[0]}/{prefix}{ref.rsplit('/', 1)[-1]}" for ref in space}
+    wanted = {held_out(ref, confirm["seed"]) for ref in space}
     return {ref: str(path) for ref, path in found.items() if ref in wanted}
