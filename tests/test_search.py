@@ -8,6 +8,7 @@ import sys
 
 import pandas as pd
 import pytest
+from file_audit import audited_env, job_audits, undeclared
 from test_dag_trained_checkpoint import workflow_with_tables
 
 from vlaquantbench.cli import main
@@ -155,9 +156,12 @@ def test_snakemake_searches_the_trained_policy_from_its_committed_records(tmp_pa
     (checkout / "manifests/trained_sequential_fixed.tsv").symlink_to(ROOT / "manifests/trained_sequential_fixed.tsv")
     configs = ["config/trained_sequential.yaml", "config/trained_sequential_fixed.yaml"]
 
+    audit = tmp_path / "audit"
+
     def snakemake(*configs):
         return subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "tables/search.csv", "--configfile",
-                               *configs], cwd=checkout, capture_output=True, text=True, timeout=600)
+                               *configs], cwd=checkout, capture_output=True, text=True, timeout=600,
+                              env=audited_env(audit))
 
     refused = snakemake(*configs)
     assert refused.returncode != 0 and "needs a `search` section" in refused.stderr
@@ -170,6 +174,8 @@ def test_snakemake_searches_the_trained_policy_from_its_committed_records(tmp_pa
     assert table.at[f"{TRAINED}/rtn-W2A2-e2e", "decision"] == "worse"
     assert table.at[f"{TRAINED}/rtn-W4A8-e2e", "status"] == "chosen"
     assert (checkout / "figures/search_pareto.pdf").read_bytes().startswith(b"%PDF")
+    assert [job["rule"] for job in job_audits(audit)] == ["search_table"]
+    assert undeclared(audit, checkout) == {}  # the job touched only the files its rule declares
 
 
 def test_confirmation_needs_the_held_out_records_and_a_new_seed(tmp_path, capsys):
