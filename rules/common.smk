@@ -200,6 +200,7 @@ def search_cells():
 def search_held_out():
     """The confirmation's records (search.confirm): the run-seed cells of the space in its records_dir, by
     reference; which one the search chooses is known only when it has run."""
+    from vlaquantbench.errors import UserError
     from vlaquantbench.records import find_cells
     from vlaquantbench.tables.search import held_out
 
@@ -207,6 +208,9 @@ def search_held_out():
     if not confirm:
         return {}
     _, space = search_cells()
+    if not Path(confirm["records_dir"]).is_dir():
+        raise UserError(f"search.confirm.records_dir {confirm['records_dir']} is not a folder: record the chosen cell "
+                        f"and the baseline on run seed {confirm['seed']} there first (vqb rollout seed{confirm['seed']}-<cell>)")
     found = find_cells(confirm["records_dir"])
     wanted = {held_out(ref, confirm["seed"]) for ref in space}
     return {ref: str(path) for ref, path in found.items() if ref in wanted}

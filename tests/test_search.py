@@ -23,6 +23,7 @@ SPATIAL = "libero/libero_spatial/pi05"
 TRAINED = "metaworld/metaworld_mt50/pi05"
 TRAINED_FIXED = ROOT / "results" / "trained_sequential" / "fixed"
 TRAINED_LIVE = ROOT / "results" / "trained_sequential" / "live"
+CONFIRM = ROOT / "results" / "trained_search" / "confirm"
 
 
 def _space(records_dir, group):
@@ -154,6 +155,7 @@ def test_snakemake_searches_the_trained_policy_from_its_committed_records(tmp_pa
     (checkout / "results/trained_sequential").symlink_to(ROOT / "results/trained_sequential")
     (checkout / "manifests").mkdir()
     (checkout / "manifests/trained_sequential_fixed.tsv").symlink_to(ROOT / "manifests/trained_sequential_fixed.tsv")
+    (checkout / "results/trained_search").symlink_to(ROOT / "results/trained_search")
     configs = ["config/trained_sequential.yaml", "config/trained_sequential_fixed.yaml"]
 
     audit = tmp_path / "audit"
@@ -169,13 +171,29 @@ def test_snakemake_searches_the_trained_policy_from_its_committed_records(tmp_pa
     assert result.returncode == 0, result.stderr[-3000:]
     assert "rule rollout" not in result.stdout + result.stderr
     log = (checkout / "logs/tables/search.log").read_text()
-    assert f"chosen: {TRAINED}/rtn-W4A8-e2e" in log and "(the same)" in log
+    assert f"chosen: {TRAINED}/rtn-W4A8-e2e" in log and "(the same)" in log and "confirmed_not_worse" in log
     table = pd.read_csv(checkout / "tables/search.csv").set_index("cell")
     assert table.at[f"{TRAINED}/rtn-W2A2-e2e", "decision"] == "worse"
     assert table.at[f"{TRAINED}/rtn-W4A8-e2e", "status"] == "chosen"
     assert (checkout / "figures/search_pareto.pdf").read_bytes().startswith(b"%PDF")
     assert [job["rule"] for job in job_audits(audit)] == ["search_table"]
     assert undeclared(audit, checkout) == {}  # the job touched only the files its rule declares
+
+
+def test_the_chosen_cell_is_confirmed_on_held_out_episodes(tmp_path, capsys):
+    """RTN W4A8 e2e, chosen within 20 pp, against full precision on run seed 1 (60 episodes each, never read by the
+    search): -5.0 pp, bootstrap [-15.0, +3.3], above -20: confirmed."""
+    out = tmp_path / "s.csv"
+    assert main(["search", str(TRAINED_FIXED), "--margin", "20", "--confirm-seed", "1", "--confirm-dir", str(CONFIRM),
+                 "--csv", str(out)]) == 0
+    assert "-5.0 pp [-15.0, +3.3] (task-clustered bootstrap 95%): confirmed_not_worse" in capsys.readouterr().out
+    chosen = next(r for r in csv.DictReader(out.open()) if r["status"] == "chosen")
+    assert chosen["confirm_cell"] == f"{TRAINED}/seed1-rtn-W4A8-e2e" and float(chosen["confirm_episodes"]) == 60
+    held = {ref: read_cell(path) for ref, path in find_cells(CONFIRM).items()}
+    search = {ref: read_cell(path) for ref, path in find_cells(TRAINED_FIXED).items()}
+    for ref, cell in held.items():  # other episodes: the same tasks and variations, other seeds
+        same = search[ref.replace("seed1-", "")].episodes
+        assert list(cell.episodes["task_id"]) == list(same["task_id"]) and not set(cell.episodes["seed"]) & set(same["seed"])
 
 
 def test_confirmation_needs_the_held_out_records_and_a_new_seed(tmp_path, capsys):
@@ -196,13 +214,19 @@ def _dry_run(checkout, *configs):
 
 def test_a_dag_that_runs_the_candidates_live_must_run_the_searchs_rule(tmp_path):
     """Without records the DAG runs the space's cells under study.sequential: at alpha 0.05 for 2 candidates it is
-    refused while the DAG is built, naming the level to set; at 0.025 it plans the baseline and both candidates."""
+    refused while the DAG is built, naming the level to set; at 0.025 it plans the baseline and both candidates
+    once the confirmation's records folder exists (refused naming it before)."""
     checkout, _ = workflow_with_tables(tmp_path)
     refused = _dry_run(checkout)
     assert refused.returncode != 0
     assert "set alpha 0.025 (search.alpha 0.05 / 2 candidates) and margin_pp 20" in refused.stdout + refused.stderr
     level = tmp_path / "level.yaml"
     level.write_text("study: {sequential: {alpha: 0.025, margin_pp: 20, against: rtn-BASELINE-e2e}}\n")
+    refused = _dry_run(checkout, level)
+    assert refused.returncode != 0
+    assert "search.confirm.records_dir results/trained_search/confirm is not a folder" in refused.stdout + refused.stderr
+    (checkout / "results").mkdir()
+    (checkout / "results/trained_search").symlink_to(ROOT / "results/trained_search")
     planned = _dry_run(checkout, level)
-    assert planned.returncode == 0, planned.stderr[-3000:]
+    assert planned.returncode == 0, planned.stdout[-3000:]
     assert planned.stdout.count("rule rollout:") == 3 and "rule search_table:" in planned.stdout
