@@ -171,6 +171,8 @@ def sequential_refs():
 # --- Precision search (rules/search.smk) ----------------------------------------------------------
 SEARCH = config.get("search") or {}
 SEARCH_TARGET = "tables/search.csv"
+SEARCH_CONFIRM = SEARCH.get("confirm") or {}
+CONFIRM_MANIFEST = [SEARCH_CONFIRM["manifest"]] if SEARCH_CONFIRM.get("manifest") else []
 
 
 def search_cells():
@@ -204,7 +206,7 @@ def search_held_out():
     from vlaquantbench.records import find_cells
     from vlaquantbench.tables.search import held_out
 
-    confirm = SEARCH.get("confirm")
+    confirm = SEARCH_CONFIRM
     if not confirm:
         return {}
     _, space = search_cells()

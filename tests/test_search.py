@@ -156,6 +156,7 @@ def test_snakemake_searches_the_trained_policy_from_its_committed_records(tmp_pa
     (checkout / "manifests").mkdir()
     (checkout / "manifests/trained_sequential_fixed.tsv").symlink_to(ROOT / "manifests/trained_sequential_fixed.tsv")
     (checkout / "results/trained_search").symlink_to(ROOT / "results/trained_search")
+    (checkout / "manifests/trained_search_confirm.tsv").symlink_to(ROOT / "manifests/trained_search_confirm.tsv")
     configs = ["config/trained_sequential.yaml", "config/trained_sequential_fixed.yaml"]
 
     audit = tmp_path / "audit"
@@ -227,6 +228,7 @@ def test_a_dag_that_runs_the_candidates_live_must_run_the_searchs_rule(tmp_path)
     assert "search.confirm.records_dir results/trained_search/confirm is not a folder" in refused.stdout + refused.stderr
     (checkout / "results").mkdir()
     (checkout / "results/trained_search").symlink_to(ROOT / "results/trained_search")
+    (checkout / "manifests").symlink_to(ROOT / "manifests")
     planned = _dry_run(checkout, level)
     assert planned.returncode == 0, planned.stdout[-3000:]
     assert planned.stdout.count("rule rollout:") == 3 and "rule search_table:" in planned.stdout
