@@ -24,7 +24,7 @@ DEFAULT_BASELINE = "rtn-BASELINE-e2e"
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("search", help="closed-loop precision search over a folder of cell records")
-    parser.add_argument("records_dir", help="folder of cell folders (episodes.parquet and header.json)")
+    parser.add_argument("records_dir", help="folder of cell records (authors' .jsonl or cell folders)")
     parser.add_argument("--baseline", default=DEFAULT_BASELINE, metavar="CELL",
                         help=f"the full-precision cell: its name (default {DEFAULT_BASELINE}), one such cell in the "
                              "folder, or its reference (e.g. libero/libero_spatial/pi05/rtn-BASELINE-e2e)")
