@@ -14,6 +14,7 @@ include: "rules/analysis.smk"
 include: "rules/rollout.smk"
 include: "rules/replay.smk"
 include: "rules/sequential.smk"
+include: "rules/search.smk"
 include: "rules/demonstrations.smk"
 include: "rules/training.smk"
 

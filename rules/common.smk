@@ -166,3 +166,53 @@ def sequential_refs():
     tables_dir lacks those tables builds its DAG without them)."""
     refs = sorted({ref for name in SEQUENTIAL_TABLES for pair in WF.table(name).contrasts() for ref in pair})
     return WF.checked_refs(WF.record_refs(refs, SEQUENTIAL_TARGET), SEQUENTIAL_TARGET)
+
+
+# --- Precision search (rules/search.smk) ----------------------------------------------------------
+SEARCH = config.get("search") or {}
+SEARCH_TARGET = "tables/search.csv"
+SEARCH_CONFIRM = SEARCH.get("confirm") or {}
+CONFIRM_MANIFEST = [SEARCH_CONFIRM["manifest"]] if SEARCH_CONFIRM.get("manifest") else []
+
+
+def search_cells():
+    """The baseline and the candidates of the search: the cells of `search.table` of the baseline's benchmark,
+    suite and model (read when the target is asked for)."""
+    from vlaquantbench.errors import UserError
+
+    if not SEARCH:
+        raise UserError(f"{SEARCH_TARGET} needs a `search` section in the config (its table, baseline, alpha, margin_pp)")
+    refs = list(dict.fromkeys(WF.table(SEARCH["table"]).refs()))
+    baseline = SEARCH.get("baseline", "rtn-BASELINE-e2e")
+    named = [ref for ref in refs if baseline in (ref, ref.rsplit("/", 1)[-1])]
+    if len(named) != 1:
+        raise UserError(f"search.baseline {baseline!r}: {len(named)} such cells in table {SEARCH['table']} "
+                        f"({', '.join(named) or 'none'}); the search needs exactly one")
+    group = named[0].rsplit("/", 1)[0]
+    space = [ref for ref in refs if ref.rsplit("/", 1)[0] == group]
+    live = WF.study.sequential
+    if WF.records_dir is None and live is not None:  # the DAG runs the candidates under the live rule
+        from vlaquantbench.search import SearchDesign, check_live_design
+
+        check_live_design(SearchDesign(SEARCH.get("alpha", 0.05), SEARCH.get("margin_pp", 5.0)), len(space) - 1,
+                          named[0], live.alpha, live.margin_pp, live.against)
+    return named[0], WF.checked_refs(WF.record_refs(space, SEARCH_TARGET), SEARCH_TARGET)
+
+
+def search_held_out():
+    """The confirmation's records (search.confirm): the run-seed cells of the space in its records_dir, by
+    reference; which one the search chooses is known only when it has run."""
+    from vlaquantbench.errors import UserError
+    from vlaquantbench.records import find_cells
+    from vlaquantbench.tables.search import held_out
+
+    confirm = SEARCH_CONFIRM
+    if not confirm:
+        return {}
+    _, space = search_cells()
+    if not Path(confirm["records_dir"]).is_dir():
+        raise UserError(f"search.confirm.records_dir {confirm['records_dir']} is not a folder: record the chosen cell "
+                        f"and the baseline on run seed {confirm['seed']} there first (vqb rollout seed{confirm['seed']}-<cell>)")
+    found = find_cells(confirm["records_dir"])
+    wanted = {held_out(ref, confirm["seed"]) for ref in space}
+    return {ref: str(path) for ref, path in found.items() if ref in wanted}

@@ -1,0 +1,79 @@
+"""`vqb search RECORDS_DIR --csv FILE`: the cheapest recorded cell decided not worse than full precision.
+
+The candidates are the cells of the baseline's benchmark, suite and model in the folder (`--cells` narrows them
+by name patterns); each is an allocation (its scope and subset at its preset, the rest at full precision) costed
+by its weight memory on the model's committed layer index (cells of another run seed, `seed<N>-`, are left out). `vlaquantbench.search` visits them cheapest first
+(equal costs: the lower sum of the per-component layer errors its header reports), runs the stopping rule on
+each one's recorded rounds against the baseline at alpha / K, prunes after `worse` and stops at the first
+`not_worse`. The CSV has one row per candidate in search order (status, decision, episodes read, A - B and the
+success rate at the stop with confidence sequences, Pareto front) after the baseline's row; `--exhaustive` also
+decides every candidate and reports whether the search chose what deciding them all would have; `--confirm-seed N`
+contrasts the chosen cell with the baseline on run seed N's records (`seed<N>-<cell>`, in `--confirm-dir`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import re
+
+from vlaquantbench.errors import UserError
+
+DEFAULT_BASELINE = "rtn-BASELINE-e2e"
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("search", help="closed-loop precision search over a folder of cell records")
+    parser.add_argument("records_dir", help="folder of cell records (authors' .jsonl or cell folders)")
+    parser.add_argument("--baseline", default=DEFAULT_BASELINE, metavar="CELL",
+                        help=f"the full-precision cell: its name (default {DEFAULT_BASELINE}), one such cell in the "
+                             "folder, or its reference (e.g. libero/libero_spatial/pi05/rtn-BASELINE-e2e)")
+    parser.add_argument("--cells", nargs="+", metavar="PATTERN",
+                        help="the candidates: cell names matching any of these patterns (default: every other cell "
+                             "of the baseline's model and suite)")
+    parser.add_argument("--alpha", type=float, default=0.05,
+                        help="level of the whole search, split over the candidates (default 0.05)")
+    parser.add_argument("--margin", type=float, default=5.0, metavar="PP",
+                        help="`not_worse`: not worse than the baseline by more than this many pp (default 5)")
+    parser.add_argument("--exhaustive", action="store_true",
+                        help="also decide every candidate and say whether the search chose the same")
+    parser.add_argument("--csv", required=True, metavar="FILE", help="CSV to write, one row per candidate")
+    parser.add_argument("--confirm-seed", type=int, metavar="N",
+                        help="confirm the chosen cell against the baseline on run seed N's episodes (cells "
+                             "seed<N>-<cell>, run in full), never used by the search")
+    parser.add_argument("--confirm-dir", metavar="DIR", help="where those records are (default RECORDS_DIR)")
+    parser.add_argument("--figure", metavar="PDF", help="also plot success against weight memory (the Pareto front)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from vlaquantbench.records import find_cells, read_cell
+    from vlaquantbench.search import SearchDesign
+    from vlaquantbench.tables.search import write_search
+
+    design = SearchDesign(args.alpha, args.margin)
+    design.per_candidate(1)  # a bad level or margin is refused before any record is read
+    cells = find_cells(args.records_dir)
+    baselines = [ref for ref in cells if args.baseline in (ref, ref.rsplit("/", 1)[-1])]
+    if len(baselines) != 1:
+        raise UserError(f"--baseline {args.baseline!r}: {len(baselines)} such cells in {args.records_dir} "
+                        f"({', '.join(baselines) or 'none'}); the search needs exactly one")
+    baseline = baselines[0]
+    group = baseline.rsplit("/", 1)[0]
+    # Cells of another run seed (`seed<N>-`) run other episodes: a confirmation's, never a candidate.
+    names = [ref for ref in cells if ref.rsplit("/", 1)[0] == group and ref != baseline
+             and not re.match(r"seed\d+-", ref.rsplit("/", 1)[-1])]
+    if args.cells:
+        names = [ref for ref in names if any(fnmatch.fnmatchcase(ref.rsplit("/", 1)[-1], p) for p in args.cells)]
+    if not names:
+        raise UserError(f"no candidate cell of {group} in {args.records_dir}"
+                        + (f" matches --cells {' '.join(args.cells)}" if args.cells else ""))
+    held = {}
+    if args.confirm_seed is not None:
+        found = find_cells(args.confirm_dir or args.records_dir)
+        prefix = f"seed{args.confirm_seed}-"
+        held = {ref: read_cell(path) for ref, path in found.items() if ref.rsplit("/", 1)[-1].startswith(prefix)}
+    report = write_search({ref: read_cell(cells[ref]) for ref in [baseline, *names]}, baseline, design, args.csv,
+                          args.figure, args.exhaustive, held, args.confirm_seed)
+    print("\n".join(report.summary()))
+    return 0

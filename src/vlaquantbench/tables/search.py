@@ -1,0 +1,186 @@
+"""The precision search (`vlaquantbench.search`) over recorded cells: its per-candidate CSV (the Pareto table of
+cost against success) and its figure, for `vqb search` and the Snakemake target `tables/search.csv`.
+
+Each candidate's row: its search order, weight-memory ratio to the BF16 model, status (`visited`, `chosen`,
+`pruned by CELL`, `not reached`), decision, episodes read, A - B and the success rate at the stop with their
+confidence sequences at the candidate's level (alpha / K), and `pareto` (on the cost-success front of the decided
+rows). The baseline's row comes first (its success over all its episodes).
+
+Confirmation: the chosen cell and the baseline rerun in full on episodes the search never used, another run seed
+(`seed<N>-<cell>`, `held_out`), and contrasted by the paper's fixed-sample task-clustered bootstrap (95%, 5,000
+draws, seed 0): `confirmed_not_worse` when its lower end is above -margin (one pre-specified test after the
+search, at 2.5% one-sided), `worse` when its upper end is below 0, else `not_confirmed`. Columns `confirm_*` of
+the chosen row.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping
+
+import pandas as pd
+
+from vlaquantbench.atomic import atomic_write, write_text
+from vlaquantbench.errors import UserError
+from vlaquantbench.records import contrast_mismatch
+from vlaquantbench.records.cell import Cell
+from vlaquantbench.search import (Candidate, SearchDesign, SearchResult, exhaustive, pareto_front, precision_search,
+                                  records_decider)
+from vlaquantbench.sequential import Design, full_sample_decision
+from vlaquantbench.stats import task_clustered_bootstrap
+
+COLOURS = {"chosen": "tab:green", "visited": "tab:blue", "baseline": "black"}
+
+
+def proxy(header: Mapping) -> float | None:
+    """The sum over components of the header's mean relative output error (None where it reports none)."""
+    errors = [v["mean_rel_mse"] for v in (header.get("quant_report") or {}).values()
+              if isinstance(v, dict) and v.get("mean_rel_mse") is not None]
+    return sum(errors) if errors else None
+
+
+def held_out(ref: str, seed: int) -> str:
+    """The cell `ref` on run seed `seed` (`seed<N>-` prefix): the same cell on episodes of other seeds."""
+    group, name = ref.rsplit("/", 1)
+    if name.startswith("seed"):
+        raise UserError(f"cell {ref} already names a run seed: its held-out episodes need a cell without one")
+    if seed < 1:
+        raise UserError(f"the confirmation's run seed must be 1 or more (0 is the search's own), got {seed}")
+    return f"{group}/seed{seed}-{name}"
+
+
+@dataclass(frozen=True)
+class Confirmation:
+    cell: str
+    baseline: str
+    episodes: int
+    delta_pp: float
+    low_pp: float
+    high_pp: float
+    decision: str
+
+    def columns(self) -> dict:
+        return {"confirm_cell": self.cell, "confirm_episodes": self.episodes, "confirm_delta_pp": self.delta_pp,
+                "confirm_bootstrap_low_pp": self.low_pp, "confirm_bootstrap_high_pp": self.high_pp,
+                "confirm_decision": self.decision}
+
+
+def confirm(held: Mapping[str, Cell], chosen: str, baseline: str, seed: int, margin_pp: float) -> Confirmation:
+    """The chosen cell against the baseline on run seed `seed`, from `held` (reference -> records); UserError
+    naming the cells to run when either is not recorded."""
+    cell, against = held_out(chosen, seed), held_out(baseline, seed)
+    missing = [ref for ref in (cell, against) if ref not in held]
+    if missing:
+        raise UserError(f"the confirmation needs the records of {', '.join(missing)} (the chosen cell and its "
+                        f"baseline on run seed {seed}): run `vqb rollout {missing[0]}` with the study's config")
+    mismatch = contrast_mismatch(held[cell], held[against])
+    if mismatch:
+        raise UserError(f"confirmation: {cell} cannot be contrasted with {against}: {mismatch}")
+    interval = task_clustered_bootstrap(held[cell].episodes, held[against].episodes)
+    decision = {"worse": "worse", "not_worse": "confirmed_not_worse", "undecided": "not_confirmed"}[
+        full_sample_decision(interval.low, interval.high, Design(margin_pp=margin_pp))]
+    return Confirmation(cell, against, len(held[cell].episodes), interval.delta, interval.low, interval.high, decision)
+
+
+@dataclass
+class SearchReport:
+    result: SearchResult
+    table: pd.DataFrame
+    exhaustive_choice: str | None  # the cheapest `not_worse` when every candidate is decided ("" when not run)
+    confirmation: Confirmation | None = None
+
+    def summary(self) -> list[str]:
+        result, chosen = self.result, self.result.chosen
+        lines = [f"{result.design.guarantee(len(result.order))}.",
+                 f"chosen: {chosen.ref if chosen else 'none (no candidate decided not_worse)'}"
+                 + (f" at {chosen.cost_ratio:.3f} x the BF16 weight memory" if chosen else ""),
+                 f"episodes: {result.episodes_spent} of {result.episodes_exhaustive} that every candidate run in full "
+                 f"would need ({len(result.verdicts)} visited, {len(result.pruned_by)} pruned)"]
+        if self.exhaustive_choice != "":
+            same = self.exhaustive_choice == (chosen.ref if chosen else None)
+            lines.append(f"exhaustive: {self.exhaustive_choice or 'none'} ({'the same' if same else 'NOT the same'})")
+        if self.confirmation is not None:
+            c = self.confirmation
+            lines.append(f"confirmation on held-out episodes: {c.cell} - {c.baseline}, {c.episodes} episodes each: "
+                         f"{c.delta_pp:+.1f} pp [{c.low_pp:+.1f}, {c.high_pp:+.1f}] (task-clustered bootstrap 95%): "
+                         f"{c.decision}")
+        return lines
+
+
+def search_records(cells: Mapping[str, Cell], baseline: str, design: SearchDesign, decide_all: bool = False,
+                   held: Mapping[str, Cell] | None = None, confirm_seed: int | None = None) -> SearchReport:
+    """Search over `cells` (reference -> records), every one but `baseline` a candidate; `decide_all`: also
+    decide every candidate (the exhaustive choice); `confirm_seed`: confirm the chosen cell on that run seed's
+    records in `held`. UserError naming a cell that cannot be contrasted, before any decision."""
+    if confirm_seed is not None:
+        held_out(baseline, confirm_seed)  # a bad seed is refused before the search
+    names = [ref for ref in cells if ref != baseline]
+    if not names:
+        raise UserError(f"the search space of {baseline} holds no candidate cell")
+    for ref in names:
+        mismatch = contrast_mismatch(cells[ref], cells[baseline])
+        if mismatch:
+            raise UserError(f"cell {ref} cannot be contrasted with {baseline}: {mismatch}")
+    candidates = [Candidate.from_ref(ref, proxy(cells[ref].header)) for ref in names]
+    decide = records_decider({r: c.episodes for r, c in cells.items()}, {r: c.header for r, c in cells.items()},
+                             baseline)
+    result = precision_search(candidates, decide, design)
+    rows = result.rows()
+    rows.insert(0, {"order": 0, "cell": baseline, "cost_ratio": 1.0, "status": "baseline (runs in full)",
+                    "episodes_used": len(cells[baseline].episodes),
+                    "rate_at_stop": 100.0 * cells[baseline].episodes["success"].mean()})
+    front = pareto_front(rows)
+    table = pd.DataFrame(rows).assign(pareto=lambda t: t["cell"].isin(front))
+    choice = ""
+    if decide_all:
+        chosen, _ = exhaustive(candidates, decide, design)
+        choice = chosen.ref if chosen else None
+    confirmation = None
+    if confirm_seed is not None and result.chosen is not None:
+        confirmation = confirm(held or {}, result.chosen.ref, baseline, confirm_seed, design.margin_pp)
+        for column, value in confirmation.columns().items():
+            table.loc[table["cell"] == result.chosen.ref, column] = value
+    return SearchReport(result, table, choice, confirmation)
+
+
+def plot_pareto(table: pd.DataFrame, output: str | Path) -> Path:
+    """Success at the stop (with its confidence sequence) against weight memory, one point per decided row; the
+    Pareto front joined, the chosen allocation and the baseline marked."""
+    # matplotlib here, not at import: the workflow imports this module while it builds the DAG.
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    decided = table[table["rate_at_stop"].notna()]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for row in decided.itertuples():
+        kind = "baseline" if row.order == 0 else ("chosen" if row.status == "chosen" else "visited")
+        low = getattr(row, "rate_cs_low", float("nan"))
+        error = None if pd.isna(low) else [[row.rate_at_stop - low], [row.rate_cs_high - row.rate_at_stop]]
+        ax.errorbar(row.cost_ratio, row.rate_at_stop, yerr=error, fmt="o", color=COLOURS[kind], ms=4, capsize=2)
+        ax.annotate(row.cell.rsplit("/", 1)[-1], (row.cost_ratio, row.rate_at_stop), fontsize=5,
+                    xytext=(3, 3), textcoords="offset points")
+    front = decided[decided["pareto"]].sort_values("cost_ratio")
+    ax.plot(front["cost_ratio"], front["rate_at_stop"], color="tab:gray", lw=0.8, zorder=0)
+    ax.set_xlabel("weight memory / BF16 (committed layer index)")
+    ax.set_ylabel("success at the stop (%), confidence sequence at alpha / K")
+    ax.legend(handles=[plt.Line2D([], [], marker="o", ls="", color=c) for c in COLOURS.values()],
+              labels=list(COLOURS), fontsize=7)
+    fig.tight_layout()
+    with atomic_write(output, "wb") as handle:
+        fig.savefig(handle, format="pdf", metadata={"CreationDate": None})
+    plt.close(fig)
+    return Path(output)
+
+
+def write_search(cells: Mapping[str, Cell], baseline: str, design: SearchDesign, csv: str | Path,
+                 figure: str | Path | None = None, decide_all: bool = False, held: Mapping[str, Cell] | None = None,
+                 confirm_seed: int | None = None) -> SearchReport:
+    """`search_records`, its CSV and (given `figure`) its Pareto figure."""
+    report = search_records(cells, baseline, design, decide_all, held, confirm_seed)
+    write_text(csv, report.table.to_csv(index=False, float_format="%.4f"))
+    if figure is not None:
+        plot_pareto(report.table, figure)
+    return report

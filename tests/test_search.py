@@ -1,0 +1,234 @@
+"""Closed-loop precision search (issue 52): costs from the committed layer index, the dominance that prunes, the
+search over recorded cells (the authors' LIBERO lattice, the pi0.5 trained here) against deciding every candidate,
+and `vqb search`'s refusals."""
+
+import csv
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+from file_audit import audited_env, job_audits, undeclared
+from test_dag_trained_checkpoint import workflow_with_tables
+
+from vlaquantbench.cli import main
+from vlaquantbench.models.layer_index import selected_counts
+from vlaquantbench.records import find_cells, read_cell
+from vlaquantbench.search import (Candidate, SearchDesign, Verdict, at_least_as_aggressive, exhaustive,
+                                  precision_search, records_decider, weight_bits)
+from vlaquantbench.sequential import retrospective
+from paths import RECORDS, ROOT
+
+SPATIAL = "libero/libero_spatial/pi05"
+TRAINED = "metaworld/metaworld_mt50/pi05"
+TRAINED_FIXED = ROOT / "results" / "trained_sequential" / "fixed"
+TRAINED_LIVE = ROOT / "results" / "trained_sequential" / "live"
+CONFIRM = ROOT / "results" / "trained_search" / "confirm"
+
+
+def _space(records_dir, group):
+    """The candidates of `group`'s cells in `records_dir` (all but its BASELINE cell) and every cell's records."""
+    cells = {ref: read_cell(path) for ref, path in find_cells(records_dir).items() if ref.startswith(group + "/")}
+    baseline = f"{group}/rtn-BASELINE-e2e"
+    candidates = [Candidate.from_ref(ref) for ref in cells if ref != baseline]
+    decide = records_decider({r: c.episodes for r, c in cells.items()}, {r: c.header for r, c in cells.items()}, baseline)
+    return candidates, decide, cells, baseline
+
+
+def test_cost_is_weight_memory_on_the_layer_index():
+    counts = selected_counts("pi05", "e2e")
+    total = sum(c["params"] for c in counts.values())
+    assert Candidate.from_ref(f"{SPATIAL}/rtn-BASELINE-e2e").cost_ratio == 1.0
+    # 4-bit asymmetric groups of 128: 4 bits + a 16-bit scale and a 16-bit zero point per 128 weights
+    assert Candidate.from_ref(f"{SPATIAL}/rtn-W4A4-e2e").cost_ratio == pytest.approx((4 + 32 / 128) / 16)
+    assert Candidate.from_ref(f"{SPATIAL}/rtn-W8A8-e2e").cost_ratio == pytest.approx(8 / 16)  # per channel
+    ah = counts["ah"]["params"]
+    assert Candidate.from_ref(f"{SPATIAL}/rtn-W4A8-ah").cost_ratio == pytest.approx(
+        (ah * 4.25 + (total - ah) * 16) / (total * 16))
+    subset = Candidate.from_ref(f"{SPATIAL}/ablate-W4A4-ah-onlyself_attn")
+    assert len(subset.layers) == 72 and sum(subset.layers.values()) == 84934656  # config/scopes.yaml's counts
+    assert weight_bits(subset.preset) == 4.25
+    assert [weight_bits(Candidate.from_ref(f"{SPATIAL}/fp8-{p}-ah").preset) for p in ("FP8E4M3", "MXFP4", "NVFP4")] \
+        == [8, 4 + 8 / 32, 4 + 8 / 16]
+
+
+def test_dominance_needs_same_method_more_layers_and_fewer_bits():
+    def cand(name):
+        return Candidate.from_ref(f"{SPATIAL}/{name}")
+
+    assert at_least_as_aggressive(cand("rtn-W4A4-e2e"), cand("rtn-W4A8-ah"))
+    assert not at_least_as_aggressive(cand("rtn-W4A8-ah"), cand("rtn-W4A4-e2e"))
+    assert at_least_as_aggressive(cand("rtn-W4A4-ah"), cand("ablate-W4A4-ah-onlyself_attn"))  # ablate is RTN
+    assert not at_least_as_aggressive(cand("calib_ah-W4A4-ah"), cand("ablate-W4A4-ah-onlyself_attn"))
+    assert not at_least_as_aggressive(cand("gptq-W4A4-e2e"), cand("rtn-W4A8-e2e"))
+    assert not at_least_as_aggressive(cand("rtn-W2-e2e"), cand("rtn-W4A8-e2e"))  # fewer weight bits, more act bits
+
+
+def test_search_on_the_authors_lattice_chooses_what_deciding_every_candidate_chooses():
+    """pi0.5 on LIBERO-Spatial, the authors' 22 quantized cells (200 episodes each), margin 10 pp: the search
+    stops at the cheapest `not_worse`, reads fewer episodes than the 22 cells in full, and each decision it made
+    is the one `vlaquantbench.sequential.retrospective` gives that contrast at alpha / 22."""
+    candidates, decide, cells, baseline = _space(RECORDS, SPATIAL)
+    design = SearchDesign(alpha=0.05, margin_pp=10.0)
+    result = precision_search(candidates, decide, design)
+    chosen, verdicts = exhaustive(candidates, decide, design)
+    assert len(candidates) == 22 and result.chosen is not None and result.chosen.ref == chosen.ref
+    assert result.chosen.cost_ratio == min(c.cost_ratio for c in candidates if verdicts[c.ref].decision == "not_worse")
+    assert result.episodes_spent < result.episodes_exhaustive == 22 * 200
+    replay = retrospective([(ref, baseline) for ref in result.verdicts], {r: c.episodes for r, c in cells.items()},
+                           design.per_candidate(22), family="none")
+    assert dict(zip(replay["cell"], replay["decision"])) == {r: v.decision for r, v in result.verdicts.items()}
+    assert dict(zip(replay["cell"], replay["episodes_used"])) == {r: v.episodes_used for r, v in result.verdicts.items()}
+
+
+def test_search_on_the_trained_policy_records():
+    """The pi0.5 trained here, its full-precision, RTN W4A8 and W2A2 cells run in full (60 episodes): at alpha
+    0.05 over 2 candidates W2A2 is `worse` after 12 rounds, as the live rule at 0.05 decided, and W4A8 is decided
+    `not_worse` within 20 pp; within 5 pp nothing is chosen."""
+    candidates, decide, _, _ = _space(TRAINED_FIXED, TRAINED)
+    result = precision_search(candidates, decide, SearchDesign(0.05, 20.0))
+    assert result.chosen.ref == f"{TRAINED}/rtn-W4A8-e2e"
+    assert result.verdicts[f"{TRAINED}/rtn-W2A2-e2e"].decision == "worse"
+    assert result.verdicts[f"{TRAINED}/rtn-W2A2-e2e"].episodes_used == 36
+    assert precision_search(candidates, decide, SearchDesign(0.05, 5.0)).chosen is None
+
+
+def test_worse_prunes_the_more_aggressive_and_not_worse_ends_the_search():
+    """The search's own logic, given verdicts (the stopping rule is the test above's): at equal cost W4A8 comes
+    before W4A4, a `worse` W4A8 prunes W4A4 on the same layers, and the first `not_worse` ends the search."""
+    names = ["rtn-W4A4-e2e", "rtn-W4A8-e2e", "gptq-W4A8-e2e", "rtn-W4A8-ah", "rtn-W8A8-ah"]
+    candidates = [Candidate.from_ref(f"{SPATIAL}/{name}") for name in names]
+    verdicts = {"rtn-W4A8-e2e": "worse", "gptq-W4A8-e2e": "undecided", "rtn-W4A8-ah": "not_worse"}
+    visited = []
+
+    def decide(candidate, design):
+        visited.append(candidate.ref.rsplit("/", 1)[-1])
+        assert design.alpha == pytest.approx(0.01)  # alpha split over the 5 candidates
+        return Verdict(verdicts[visited[-1]], 6, 10)
+
+    result = precision_search(candidates, decide, SearchDesign(0.05, 5.0))
+    assert visited == ["gptq-W4A8-e2e", "rtn-W4A8-e2e", "rtn-W4A8-ah"]  # equal costs: by name
+    assert result.pruned_by == {f"{SPATIAL}/rtn-W4A4-e2e": f"{SPATIAL}/rtn-W4A8-e2e"}
+    assert result.status(f"{SPATIAL}/rtn-W8A8-ah") == "not reached"
+    assert result.chosen.ref == f"{SPATIAL}/rtn-W4A8-ah" and result.episodes_spent == 18
+    assert result.episodes_exhaustive == 50
+
+
+def test_vqb_search_writes_the_candidates_and_the_choice(tmp_path, capsys):
+    out = tmp_path / "search.csv"
+    assert main(["search", str(TRAINED_FIXED), "--margin", "20", "--exhaustive", "--csv", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "chosen: metaworld/metaworld_mt50/pi05/rtn-W4A8-e2e" in printed and "(the same)" in printed
+    assert "alpha 0.05 split over the 2 candidates" in printed and "93 of 120" in printed
+    rows = list(csv.DictReader(out.open()))
+    assert [r["status"] for r in rows] == ["baseline (runs in full)", "visited", "chosen"]
+    assert [r["pareto"] for r in rows] == ["True", "True", "True"]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--alpha", "1.5"], "alpha must lie in (0, 1)"),
+    (["--baseline", "rtn-W8A8-e2e"], "0 such cells"),
+    (["--cells", "awq-*"], "matches --cells awq-*"),
+])
+def test_vqb_search_refuses_bad_input(tmp_path, capsys, args, message):
+    assert main(["search", str(TRAINED_FIXED), *args, "--csv", str(tmp_path / "s.csv")]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "s.csv").exists()
+
+
+def test_live_stopped_records_are_searched_only_at_their_level(tmp_path, capsys):
+    """The live W2A2 cell stopped at alpha 0.05: one candidate (alpha / 1) reads it, two (alpha / 2) refuse it."""
+    out = tmp_path / "s.csv"
+    assert main(["search", str(TRAINED_LIVE), "--cells", "rtn-W2A2-e2e", "--csv", str(out)]) == 0
+    assert [r["decision"] for r in csv.DictReader(out.open())][1:] == ["worse"]
+    assert main(["search", str(TRAINED_LIVE), "--csv", str(out)]) == 2
+    assert "rtn-W2A2-e2e: its records were stopped by a live rule at alpha 0.05" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_snakemake_searches_the_trained_policy_from_its_committed_records(tmp_path):
+    """tables/search.csv and figures/search_pareto.pdf through Snakemake from the committed records (no episode
+    runs): the same choice as `vqb search` on the folder and as deciding every candidate; a config without a
+    `search` section is refused naming it."""
+    checkout, _ = workflow_with_tables(tmp_path)
+    (checkout / "results").mkdir()
+    (checkout / "results/trained_sequential").symlink_to(ROOT / "results/trained_sequential")
+    (checkout / "manifests").mkdir()
+    (checkout / "manifests/trained_sequential_fixed.tsv").symlink_to(ROOT / "manifests/trained_sequential_fixed.tsv")
+    (checkout / "results/trained_search").symlink_to(ROOT / "results/trained_search")
+    (checkout / "manifests/trained_search_confirm.tsv").symlink_to(ROOT / "manifests/trained_search_confirm.tsv")
+    configs = ["config/trained_sequential.yaml", "config/trained_sequential_fixed.yaml"]
+
+    audit = tmp_path / "audit"
+
+    def snakemake(*configs):
+        return subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "tables/search.csv", "--configfile",
+                               *configs], cwd=checkout, capture_output=True, text=True, timeout=600,
+                              env=audited_env(audit))
+
+    refused = snakemake(*configs)
+    assert refused.returncode != 0 and "needs a `search` section" in refused.stderr
+    result = snakemake(*configs, "config/trained_search.yaml")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "rule rollout" not in result.stdout + result.stderr
+    log = (checkout / "logs/tables/search.log").read_text()
+    assert f"chosen: {TRAINED}/rtn-W4A8-e2e" in log and "(the same)" in log and "confirmed_not_worse" in log
+    table = pd.read_csv(checkout / "tables/search.csv").set_index("cell")
+    assert table.at[f"{TRAINED}/rtn-W2A2-e2e", "decision"] == "worse"
+    assert table.at[f"{TRAINED}/rtn-W4A8-e2e", "status"] == "chosen"
+    assert (checkout / "figures/search_pareto.pdf").read_bytes().startswith(b"%PDF")
+    assert [job["rule"] for job in job_audits(audit)] == ["search_table"]
+    assert undeclared(audit, checkout) == {}  # the job touched only the files its rule declares
+
+
+def test_the_chosen_cell_is_confirmed_on_held_out_episodes(tmp_path, capsys):
+    """RTN W4A8 e2e, chosen within 20 pp, against full precision on run seed 1 (60 episodes each, never read by the
+    search): -5.0 pp, bootstrap [-15.0, +3.3], above -20: confirmed."""
+    out = tmp_path / "s.csv"
+    assert main(["search", str(TRAINED_FIXED), "--margin", "20", "--confirm-seed", "1", "--confirm-dir", str(CONFIRM),
+                 "--csv", str(out)]) == 0
+    assert "-5.0 pp [-15.0, +3.3] (task-clustered bootstrap 95%): confirmed_not_worse" in capsys.readouterr().out
+    chosen = next(r for r in csv.DictReader(out.open()) if r["status"] == "chosen")
+    assert chosen["confirm_cell"] == f"{TRAINED}/seed1-rtn-W4A8-e2e" and float(chosen["confirm_episodes"]) == 60
+    held = {ref: read_cell(path) for ref, path in find_cells(CONFIRM).items()}
+    search = {ref: read_cell(path) for ref, path in find_cells(TRAINED_FIXED).items()}
+    for ref, cell in held.items():  # other episodes: the same tasks and variations, other seeds
+        same = search[ref.replace("seed1-", "")].episodes
+        assert list(cell.episodes["task_id"]) == list(same["task_id"]) and not set(cell.episodes["seed"]) & set(same["seed"])
+
+
+def test_confirmation_needs_the_held_out_records_and_a_new_seed(tmp_path, capsys):
+    out = tmp_path / "s.csv"
+    assert main(["search", str(TRAINED_FIXED), "--margin", "20", "--confirm-seed", "1", "--csv", str(out)]) == 2
+    assert (f"the confirmation needs the records of {TRAINED}/seed1-rtn-W4A8-e2e, {TRAINED}/seed1-rtn-BASELINE-e2e"
+            in capsys.readouterr().err)
+    assert main(["search", str(TRAINED_FIXED), "--confirm-seed", "0", "--csv", str(out)]) == 2
+    assert "the confirmation's run seed must be 1 or more" in capsys.readouterr().err
+
+
+def _dry_run(checkout, *configs):
+    return subprocess.run([sys.executable, "-m", "snakemake", "-n", "--cores", "2", "tables/search.csv", "--configfile",
+                           "config/trained_sequential.yaml", "config/trained_search.yaml", *map(str, configs),
+                           "--config", "records_dir=", "manifest="],
+                          cwd=checkout, capture_output=True, text=True, timeout=600)
+
+
+def test_a_dag_that_runs_the_candidates_live_must_run_the_searchs_rule(tmp_path):
+    """Without records the DAG runs the space's cells under study.sequential: at alpha 0.05 for 2 candidates it is
+    refused while the DAG is built, naming the level to set; at 0.025 it plans the baseline and both candidates
+    once the confirmation's records folder exists (refused naming it before)."""
+    checkout, _ = workflow_with_tables(tmp_path)
+    refused = _dry_run(checkout)
+    assert refused.returncode != 0
+    assert "set alpha 0.025 (search.alpha 0.05 / 2 candidates) and margin_pp 20" in refused.stdout + refused.stderr
+    level = tmp_path / "level.yaml"
+    level.write_text("study: {sequential: {alpha: 0.025, margin_pp: 20, against: rtn-BASELINE-e2e}}\n")
+    refused = _dry_run(checkout, level)
+    assert refused.returncode != 0
+    assert "search.confirm.records_dir results/trained_search/confirm is not a folder" in refused.stdout + refused.stderr
+    (checkout / "results").mkdir()
+    (checkout / "results/trained_search").symlink_to(ROOT / "results/trained_search")
+    (checkout / "manifests").symlink_to(ROOT / "manifests")
+    planned = _dry_run(checkout, level)
+    assert planned.returncode == 0, planned.stdout[-3000:]
+    assert planned.stdout.count("rule rollout:") == 3 and "rule search_table:" in planned.stdout
