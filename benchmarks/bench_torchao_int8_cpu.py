@@ -23,7 +23,7 @@ import torchao
 from torchao.quantization import Int8DynamicActivationInt8WeightConfig
 from torchao.quantization import quantize_ as ao_quantize
 
-from vlaquantbench.quant.kernels import Int8DynamicLinear
+from vlaquantbench.quant.kernels.int8 import Int8DynamicLinear
 
 # (tokens, in, out): OpenVLA-OFT-like LLM projections at one chunk, and the demo pi0.5 expert's
 SHAPES = [(64, 4096, 4096), (64, 4096, 11008), (50, 256, 1024)]

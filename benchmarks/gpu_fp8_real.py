@@ -42,8 +42,11 @@ from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup  # noqa: E4
 from vlaquantbench.quant import QuantConfig, quantize_  # noqa: E402
 from vlaquantbench.quant.fused_kernel import fuse_activation_hooks  # noqa: E402
 from vlaquantbench.quant.grid import PerTokenCast  # noqa: E402
-from vlaquantbench.quant.hooks import CountingHook, InputTransform  # noqa: E402
-from vlaquantbench.quant.kernels import FP8, Fp8DynamicLinear, Int8DynamicLinear  # noqa: E402
+from vlaquantbench.quant.hooks import CountingHook  # noqa: E402
+from vlaquantbench.quant.input_transform import InputTransform  # noqa: E402
+from vlaquantbench.quant.kernels.fp8 import Fp8DynamicLinear  # noqa: E402
+from vlaquantbench.quant.kernels.int8 import Int8DynamicLinear  # noqa: E402
+from vlaquantbench.quant.kernels.packed import FP8  # noqa: E402
 
 CELLS = {"bf16": ("BASELINE", "rtn"), "fakequant": ("FP8E4M3", "rtn"), "fp8real": ("W8A8", "fp8"),
          "int8real": ("W8A8", "int8_dynamic"), "int4": ("W4", "int4wo")}

@@ -47,8 +47,9 @@ from vlaquantbench.models import get_model_spec  # noqa: E402
 from vlaquantbench.models.pi05.fast import CapturedSampler  # noqa: E402
 from vlaquantbench.quant import QuantConfig, quantize_  # noqa: E402
 from vlaquantbench.quant.fused_kernel import fuse_activation_hooks, fused_fake_quant, rotated_fake_quant  # noqa: E402
-from vlaquantbench.quant.hooks import InputTransform, Rotated  # noqa: E402
-from vlaquantbench.quant.transforms import BlockHadamard  # noqa: E402
+from vlaquantbench.quant.hadamard import BlockHadamard  # noqa: E402
+from vlaquantbench.quant.hooks import Rotated  # noqa: E402
+from vlaquantbench.quant.input_transform import InputTransform  # noqa: E402
 
 CELLS = {"baseline": ("BASELINE", "rtn"), "w4a4": ("W4A4", "rtn"), "w4a4_hadamard": ("W4A4", "hadamard")}
 

@@ -62,7 +62,7 @@ from vlaquantbench.models.pi05.fast.captured import capture_graph
 from vlaquantbench.models.registry import Component
 from vlaquantbench.quant import QuantConfig, quantize_
 from vlaquantbench.quant.calibration import observe
-from vlaquantbench.quant.kernels import FP8, quantize_per_token  # registers the methods
+from vlaquantbench.quant.kernels.packed import FP8, quantize_per_token
 
 METHODS = {  # method -> preset it implements
     "bf16": None, "nf4": "W4", "int8": "W8", "int4wo": "W4", "smoothquant": "W8A8", "fp8": "W8A8", "fp8_tensor": "W8A8",

@@ -32,7 +32,7 @@ from vlaquantbench.hub.cache import offline_cache, repo_folder
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.quant import QuantConfig
 from vlaquantbench.quant.presets import WeightGrid
-from vlaquantbench.quant.transforms import BlockHadamard
+from vlaquantbench.quant.hadamard import BlockHadamard
 
 RESULTS = Path(__file__).resolve().parent / "results" / "trained_cpu" / "rotation_weight_shape.json"
 OUTLIER_GAIN = 20.0

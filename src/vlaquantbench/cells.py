@@ -386,7 +386,7 @@ def _runner_field(study: StudyConfig, model: str, key: str) -> str:
 
 
 def _check_steps(ref: str, benchmark: str, suite: str, model: str, study: StudyConfig, runner: RunnerConfig) -> None:
-    """An episode's steps fit the simulator's horizon (`envs.SuiteSize.horizon`): one that outruns it dies inside
+    """An episode's steps fit the simulator's horizon (`envs.suites.SuiteSize.horizon`): one that outruns it dies inside
     the simulator at the horizon's step, so a longer `max_steps` is refused now, naming the field."""
     try:
         check_step_limit(_runner_field(study, model, "max_steps"), runner.max_steps, benchmark, suite,

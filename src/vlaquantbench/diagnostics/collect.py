@@ -21,7 +21,7 @@ from vlaquantbench.diagnostics.measures import MEASURES, layer_measures
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.quant import parse_preset, select_layers
-from vlaquantbench.quant.hooks import InputTransform
+from vlaquantbench.quant.input_transform import InputTransform
 from vlaquantbench.replay.record import load_records, recorded_calls
 from vlaquantbench.runner.provenance import code_revision, versions
 

@@ -53,7 +53,7 @@ def client_conventions(model: str) -> ClientConventions:
 
 def step_limit(model: str, benchmark: str, suite: str) -> int:
     """Policy steps before an unfinished episode of `model` on `suite` counts as a failure: the model's
-    client's (`STEP_LIMITS`), else the benchmark's own (`envs.SuiteSize.step_limit`); UserError naming the
+    client's (`STEP_LIMITS`), else the benchmark's own (`envs.suites.SuiteSize.step_limit`); UserError naming the
     model, benchmark and suite when neither has one (the model's client never ran there)."""
     from vlaquantbench.envs import BENCHMARK_SUITES
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vlaquantbench.envs import BENCHMARK_SUITES
+from vlaquantbench.envs.suites import BENCHMARK_SUITES
 from vlaquantbench.envs.episodes import TASK_SEED_STRIDE, EpisodeSpec, SuiteTasks, episode_seed
 from vlaquantbench.envs.libero.offline import load_libero
 from vlaquantbench.errors import UserError
