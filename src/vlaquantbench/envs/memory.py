@@ -19,7 +19,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from vlaquantbench.envs.suites import BENCHMARK_SUITES
+from vlaquantbench.envs.registry import BENCHMARK_SUITES
 from vlaquantbench.errors import UserError
 
 GIB = 2**30
