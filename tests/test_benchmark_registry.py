@@ -47,3 +47,13 @@ def test_a_second_declaration_under_a_registered_name_is_refused():
 def test_the_protocol_names_no_benchmark(module):
     source = (ENVS / module).read_text()
     assert not re.findall(r"(?i)libero|meta-?world", source), module
+
+
+def test_a_declaration_names_its_cameras_by_role():
+    libero = get_benchmark("libero")
+    with pytest.raises(UserError, match=r"benchmark 'libero': cameras \['side'\]: the roles are main, wrist"):
+        register_benchmark(dataclasses.replace(libero, cameras={"side": "agentview"}))
+    with pytest.raises(UserError, match="a main camera is required"):
+        register_benchmark(dataclasses.replace(libero, cameras={"wrist": "wrist"}))
+    # what replay records of each benchmark's observations: each declared camera's image, then the state
+    assert get_benchmark("metaworld").observed == ("image", "state")

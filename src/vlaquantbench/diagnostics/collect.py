@@ -83,7 +83,7 @@ def collect(records_json: str | Path, trajectories: list[str | Path], model: str
     torch.set_num_threads(meta["torch_threads"])
     with DiagnosticsObserver(layers, preset) as observer, torch.no_grad():
         for rec in tqdm(meta["records"], desc=f"diagnostics {scope} {preset}", unit="trajectory"):
-            for _, obs, generator in recorded_calls(adapter, trajectories[rec["record"]], rec["record"]):
+            for _, obs, generator in recorded_calls(adapter, trajectories[rec["record"]], rec["record"], meta["benchmark"]):
                 adapter.act([obs], [generator])
     unfired = [n for n, c in observer.calls.items() if c == 0]
     if unfired:

@@ -45,13 +45,21 @@ class SuiteSize:
 class Benchmark:
     """A benchmark's declaration. `suite_class`, `env_class` and `simulator_versions` are "module:name" of its
     suite class (a `SuiteTasks`), its vector env class (a `WorkerVectorEnv`, whose keyword-only parameters are
-    the env settings it takes) and `simulator_versions(pinned)`, imported only when a suite or env is built."""
+    the env settings it takes) and `simulator_versions(pinned)`, imported only when a suite or env is built.
+    `cameras` says what its observations show: camera role ("main", and "wrist" where there is one) -> the
+    observation key of that image (beside `state` and `instruction`, which every benchmark's observation has)."""
 
     name: str
     suites: dict[str, SuiteSize]
     suite_class: str
     env_class: str
     simulator_versions: str
+    cameras: dict[str, str]
+
+    @property
+    def observed(self) -> tuple[str, ...]:
+        """The observation keys of what a policy reads besides its instruction: each camera's image, then the state."""
+        return (*self.cameras.values(), STATE)
 
     def resolve(self, which: str) -> Any:
         """The object `which` ("suite_class", "env_class" or "simulator_versions") names, imported now."""
@@ -59,12 +67,20 @@ class Benchmark:
         return getattr(importlib.import_module(module), attribute)
 
 
+# The observation key of the robot state, in every benchmark's observations (`envs.workers.serve` replies).
+STATE = "state"
+CAMERA_ROLES = ("main", "wrist")
+
 _REGISTERED: dict[str, Benchmark] = {}
 
 
 def register_benchmark(benchmark: Benchmark) -> Benchmark:
     """Register `benchmark` under its name (a benchmark's `benchmark.py` calls it); UserError when another
     declaration holds the name."""
+    unknown = sorted(set(benchmark.cameras) - set(CAMERA_ROLES))
+    if unknown or "main" not in benchmark.cameras:
+        raise UserError(f"benchmark {benchmark.name!r}: cameras {sorted(benchmark.cameras)}: the roles are "
+                        f"{', '.join(CAMERA_ROLES)}, and a main camera is required")
     held = _REGISTERED.get(benchmark.name)
     if held is not None and held != benchmark:
         raise UserError(f"benchmark {benchmark.name!r} is declared twice ({held.suite_class}, {benchmark.suite_class})")

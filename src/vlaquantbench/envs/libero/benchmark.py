@@ -27,4 +27,5 @@ LIBERO = register_benchmark(Benchmark(
     suite_class="vlaquantbench.envs.libero.suite:LiberoSuite",
     env_class="vlaquantbench.envs.libero.vector_env:LiberoVectorEnv",
     simulator_versions="vlaquantbench.envs.libero.versions:simulator_versions",
+    cameras={"main": "agentview", "wrist": "wrist"},  # both rotated 180 degrees, as LIBERO's clients read them
 ))

@@ -23,4 +23,5 @@ METAWORLD = register_benchmark(Benchmark(
     suite_class="vlaquantbench.envs.metaworld.suite:MetaWorldSuite",
     env_class="vlaquantbench.envs.metaworld.vector_env:MetaWorldVectorEnv",
     simulator_versions="vlaquantbench.envs.metaworld.vector_env:simulator_versions",
+    cameras={"main": "image"},  # corner2, as lerobot's Meta-World env renders it; no wrist camera
 ))
