@@ -76,6 +76,7 @@ def collect(records_json: str | Path, trajectories: list[str | Path], model: str
     if meta["model"] != model:
         raise UserError(f"diagnostics for {model!r} asked of a recording of {meta['model']!r} ({records_json})")
     adapter = make_adapter(AdapterConfig(model=meta["model"], variant=meta["variant"], checkpoint=meta["checkpoint"],
+                                         revision=meta["revision"],
                                          checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"],
                                          device=meta["device"], flow_steps=meta["flow_steps"]))
     adapter.load()

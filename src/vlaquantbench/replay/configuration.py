@@ -46,6 +46,7 @@ def replay_configuration(records_json, trajectories, study: dict, name: str, pre
     meta, trajectories = load_records(records_json, trajectories)
     cfg, expected_layers = quant_config(study, name, preset)
     adapter = make_adapter(AdapterConfig(model=meta["model"], variant=meta["variant"], checkpoint=meta["checkpoint"],
+                                         revision=meta["revision"],
                                          checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"],
                                          device=meta["device"], flow_steps=meta["flow_steps"]))
     adapter.load()

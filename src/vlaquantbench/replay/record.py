@@ -37,6 +37,7 @@ from vlaquantbench.textfiles import read_parsed
 
 def adapter_config(settings: RecordSettings) -> AdapterConfig:
     return AdapterConfig(model=settings.model, variant=settings.variant, checkpoint=settings.checkpoint,
+                         revision=settings.revision,
                          checkpoint_dir=settings.checkpoint_dir, device=settings.device,
                          executed_chunk=settings.executed_chunk, flow_steps=settings.flow_steps)
 
