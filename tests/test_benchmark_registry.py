@@ -43,7 +43,7 @@ def test_a_second_declaration_under_a_registered_name_is_refused():
         register_benchmark(dataclasses.replace(libero, suite_class="elsewhere:Suite"))
 
 
-@pytest.mark.parametrize("module", ["__init__.py", "registry.py"])
+@pytest.mark.parametrize("module", ["__init__.py", "registry.py", "memory.py"])
 def test_the_protocol_names_no_benchmark(module):
     source = (ENVS / module).read_text()
     assert not re.findall(r"(?i)libero|meta-?world", source), module
