@@ -7,9 +7,9 @@ seed 0, 2 cameras at 224 px, 200 prompt tokens, 10 flow steps; scope e2e, all 45
     bf16       BASELINE (released precision: bf16, the SigLIP tower and projector float32)
     fakequant  rtn-FP8E4M3-e2e: e4m3 per-channel weights and per-token inputs, values rounded and
                the products in bf16/float32 (the fused hooks, producer-fused quantization)
-    fp8real    fp8-W8A8-e2e: e4m3 weights stored as FP8 (`quant.kernels.Fp8DynamicLinear`),
+    fp8real    fp8-W8A8-e2e: e4m3 weights stored as FP8 (`quant.kernels.fp8.Fp8DynamicLinear`),
                per-token input casts computed by the producing op, `torch._scaled_mm` row-wise
-    int8real   int8_dynamic-W8A8-e2e: int8 weights (`quant.kernels.Int8DynamicLinear`), per-token int8
+    int8real   int8_dynamic-W8A8-e2e: int8 weights (`quant.kernels.int8.Int8DynamicLinear`), per-token int8
                input casts computed by the producing op, `torch._int_mm`, float32 rescale (Triton)
     int4       int4wo-W4-e2e: int4 weights in asymmetric groups of 128, bf16 activations, tinygemm
                (`torch._weight_int4pack_mm`); its layers run one by one (nothing to cast)
@@ -42,8 +42,11 @@ from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup  # noqa: E4
 from vlaquantbench.quant import QuantConfig, quantize_  # noqa: E402
 from vlaquantbench.quant.fused_kernel import fuse_activation_hooks  # noqa: E402
 from vlaquantbench.quant.grid import PerTokenCast  # noqa: E402
-from vlaquantbench.quant.hooks import CountingHook, InputTransform  # noqa: E402
-from vlaquantbench.quant.kernels import FP8, Fp8DynamicLinear, Int8DynamicLinear  # noqa: E402
+from vlaquantbench.quant.hooks import CountingHook  # noqa: E402
+from vlaquantbench.quant.input_transform import InputTransform  # noqa: E402
+from vlaquantbench.quant.kernels.fp8 import Fp8DynamicLinear  # noqa: E402
+from vlaquantbench.quant.kernels.int8 import Int8DynamicLinear  # noqa: E402
+from vlaquantbench.quant.kernels.packed import FP8  # noqa: E402
 
 CELLS = {"bf16": ("BASELINE", "rtn"), "fakequant": ("FP8E4M3", "rtn"), "fp8real": ("W8A8", "fp8"),
          "int8real": ("W8A8", "int8_dynamic"), "int4": ("W4", "int4wo")}

@@ -7,7 +7,7 @@ seed 0, 2 cameras at 224 px, 200 prompt tokens, 10 flow steps; scope e2e, all 45
     baseline        BASELINE (bf16, the SigLIP tower and projector float32)
     w4a4            rtn-W4A4-e2e: the fused per-token quantization of every linear's input
     w4a4_hadamard   hadamard-W4A4-e2e: every linear's input rotated by its block-Hadamard transform
-                    (`quant.transforms.BlockHadamard`) and quantized per token by one Triton kernel
+                    (`quant.hadamard.BlockHadamard`) and quantized per token by one Triton kernel
                     after the op that produces it (`quant.fused_kernel.rotated_fake_quant`: products
                     with the +-1 Hadamard factors on the tensor cores); once per input that q/k/v or
                     gate/up share (`quant.hooks.Rotated`)

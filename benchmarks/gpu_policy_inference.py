@@ -55,7 +55,7 @@ def time_chunks(fn, warmup: int, repeats: int) -> list[float]:
 def fused_kernel_check(device) -> dict:
     """Fraction of elements where the fused kernel equals the reference transform (expected: all)."""
     from vlaquantbench.quant.fused_kernel import fused_fake_quant
-    from vlaquantbench.quant.hooks import InputTransform
+    from vlaquantbench.quant.input_transform import InputTransform
 
     out = {}
     g = torch.Generator(device="cpu").manual_seed(0)

@@ -15,8 +15,10 @@ from vlaquantbench.models.pi05.fast import static_sampling
 from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
 from vlaquantbench.quant.float_grid import E4M3, fake_quant_fp8
 from vlaquantbench.quant.grid import CastRows, PerTokenCast, fake_quant_activation, fma_quotient
-from vlaquantbench.quant.hooks import CountingHook, InputTransform
-from vlaquantbench.quant.kernels import FP8, Fp8DynamicLinear, quantize_per_token
+from vlaquantbench.quant.hooks import CountingHook
+from vlaquantbench.quant.input_transform import InputTransform
+from vlaquantbench.quant.kernels.fp8 import Fp8DynamicLinear
+from vlaquantbench.quant.kernels.packed import FP8, quantize_per_token
 from vlaquantbench.runner.cell import CellRun
 
 
@@ -72,18 +74,19 @@ def test_fp8_weights_are_stored_in_one_byte_on_the_fake_quantized_grid():
 
 def test_the_header_records_the_packed_weight_memory():
     """int8 W8A8 (SmoothQuant's layers without smoothing) runs on the CPU; the record is the same code for fp8."""
-    from vlaquantbench.quant import kernels
+    from vlaquantbench.quant.kernels.int8 import Int8DynamicLinear
+    from vlaquantbench.quant.kernels.packed import replace_all
     from vlaquantbench.quant.scope import Selection
 
     torch.manual_seed(0)
     model = nn.Sequential(nn.Linear(64, 32).to(torch.bfloat16), nn.Linear(32, 16, bias=False).to(torch.bfloat16))
     selection = Selection({"llm": {"0": model[0], "1": model[1]}})
-    result = kernels._replace_all(model, selection, lambda n, m: kernels.Int8DynamicLinear(m), "int8 W8A8")
+    result = replace_all(model, selection, lambda n, m: Int8DynamicLinear(m), "int8 W8A8")
     released = 2 * (64 * 32 + 32 + 32 * 16)
     packed = (64 * 32 + 32 * 16) + 4 * (32 + 16) + 2 * 32  # int8 weights, float32 scales, the bf16 bias
     assert result.details["weight_memory"] == {"layers": 2, "released_bytes": released, "packed_bytes": packed,
                                                "ratio": packed / released}
-    assert result.details["kernels"] == {kernels.Int8DynamicLinear.KERNEL: 2}
+    assert result.details["kernels"] == {Int8DynamicLinear.KERNEL: 2}
 
 
 def _fp8_layers(sizes, hooks=True):

@@ -16,8 +16,10 @@ from vlaquantbench.models.pi05.fast import CapturedSampler, static_sampling
 from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
 from vlaquantbench.quant import QuantConfig, quantize_
 from vlaquantbench.quant.grid import CastRows, PerTokenCast
-from vlaquantbench.quant.hooks import CountingHook, InputTransform
-from vlaquantbench.quant.kernels import Int4WeightOnlyLinear, Int8DynamicLinear, dequantize_int32
+from vlaquantbench.quant.hooks import CountingHook
+from vlaquantbench.quant.input_transform import InputTransform
+from vlaquantbench.quant.kernels.int4 import Int4WeightOnlyLinear
+from vlaquantbench.quant.kernels.int8 import Int8DynamicLinear, dequantize_int32
 from test_fp8_real import CAPTURED
 
 

@@ -70,13 +70,13 @@ def test_a_worker_count_beyond_the_memory_is_capped_or_refused_naming_both(monke
     assert capsys.readouterr().err == ""
     assert affordable_workers(8, "libero", "libero_spatial", "study.execution.num_envs") == 3
     assert capsys.readouterr().err == (
-        f"warning: study.execution.num_envs = 8: 8 LIBERO workers x {SPATIAL} GiB on libero_spatial = "
+        f"warning: study.execution.num_envs = 8: 8 libero workers x {SPATIAL} GiB on libero_spatial = "
         f"{8 * SPATIAL:.1f} GiB, but {3.5 * SPATIAL:.1f} GiB available ({memory.OVERRIDE}={3.5 * SPATIAL}); running 3 "
         "workers instead (each episode keeps its seed, init state and noise stream)\n")
     with pytest.raises(UserError, match=r"^study.execution.num_envs = 8: .* set it to at most 3 or give the job more memory"):
         affordable_workers(8, "libero", "libero_spatial", "study.execution.num_envs", cap=False)  # calibration
     monkeypatch.setenv(memory.OVERRIDE, "1")
-    with pytest.raises(UserError, match=rf"^--num-envs = 4: 4 LIBERO workers x {SPATIAL} GiB .* but 1.0 GiB available "
+    with pytest.raises(UserError, match=rf"^--num-envs = 4: 4 libero workers x {SPATIAL} GiB .* but 1.0 GiB available "
                                         rf"\({memory.OVERRIDE}=1\): not one worker fits"):
         affordable_workers(4, "libero", "libero_spatial", "--num-envs")
 
@@ -87,7 +87,7 @@ def test_vqb_rollout_refuses_workers_that_do_not_fit_before_the_checkpoint_downl
            "--num-envs", "4", "--results", str(tmp_path / "out")]
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT, env=env)
     assert result.returncode == 2, result.stderr
-    assert (f"vqb rollout: error: --num-envs = 4: 4 LIBERO workers x {SPATIAL} GiB on libero_spatial = "
+    assert (f"vqb rollout: error: --num-envs = 4: 4 libero workers x {SPATIAL} GiB on libero_spatial = "
             f"{4 * SPATIAL:.1f} GiB, but 1.0 GiB available") in result.stderr, result.stderr
     assert not (tmp_path / "out").exists()  # no checkpoint stamp, no cell folder
 

@@ -107,7 +107,8 @@ def test_a_calibrated_transform_keeps_its_layers_apart():
     from torch import nn
 
     from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
-    from vlaquantbench.quant.hooks import CountingHook, InputTransform
+    from vlaquantbench.quant.hooks import CountingHook
+    from vlaquantbench.quant.input_transform import InputTransform
 
     torch.manual_seed(0)
     layers = [nn.Linear(16, 8, bias=False) for _ in range(3)]
@@ -128,7 +129,8 @@ def test_float_format_members_share_one_product_and_their_hooks_result():
     from torch import nn
 
     from vlaquantbench.models.pi05.fast.linear_groups import LinearGroup
-    from vlaquantbench.quant.hooks import CountingHook, InputTransform
+    from vlaquantbench.quant.hooks import CountingHook
+    from vlaquantbench.quant.input_transform import InputTransform
     from vlaquantbench.quant.presets import FORMATS
 
     torch.manual_seed(0)

@@ -17,9 +17,10 @@ from vlaquantbench.models import get_model_spec
 from vlaquantbench.models.registry import adapter_class
 from vlaquantbench.quant import QuantConfig, quantize_, select_layers
 from vlaquantbench.quant import calibration as calib
-from vlaquantbench.quant.hooks import InputTransform
+from vlaquantbench.quant.hadamard import BlockHadamard
+from vlaquantbench.quant.input_transform import InputTransform
 from vlaquantbench.quant.rotation import FoldedInput
-from vlaquantbench.quant.transforms import BlockHadamard, Hadamard
+from vlaquantbench.quant.transforms import Hadamard
 
 MODELS = ("pi05", "pi0")
 

@@ -6,7 +6,8 @@ import torch
 from torch import nn
 
 from vlaquantbench.quant.grid import fake_quant_activation
-from vlaquantbench.quant.hooks import CountingHook, InputTransform
+from vlaquantbench.quant.hooks import CountingHook
+from vlaquantbench.quant.input_transform import InputTransform
 
 
 def _norm(x: torch.Tensor, eps: float):

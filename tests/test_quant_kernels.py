@@ -12,8 +12,11 @@ from transformers import LlamaConfig, LlamaModel
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.registry import Component
-from vlaquantbench.quant import CalibrationSettings, QuantConfig, kernels, quantize_, registered_methods
-from vlaquantbench.quant.calibration import observe
+from vlaquantbench.quant import CalibrationSettings, QuantConfig, quantize_, registered_methods
+from vlaquantbench.quant.calibration import observe, smoothing_factors
+from vlaquantbench.quant.kernels.fp8 import Fp8DynamicLinear, Fp8StaticLinear
+from vlaquantbench.quant.kernels.int8 import Int8DynamicLinear
+from vlaquantbench.quant.kernels.packed import FP8_MAX
 
 COMPONENTS = {"llm": Component(roots=("layers",))}
 
@@ -62,7 +65,7 @@ def test_int8_w8a8_matches_its_definition():
     """`torch._int_mm` result equals (round(x/s_x) @ round(W/s_w)^T) * s_x * s_w computed in float."""
     linear = torch.nn.Linear(48, 40)
     x = torch.randn(3, 5, 48)
-    layer = kernels.Int8DynamicLinear(linear)
+    layer = Int8DynamicLinear(linear)
     s_w = linear.weight.abs().amax(dim=1, keepdim=True) / 127
     w_q = torch.round(linear.weight / s_w).clamp(-128, 127)
     s_x = x.reshape(-1, 48).abs().amax(dim=-1, keepdim=True) / 127
@@ -78,7 +81,7 @@ def test_smoothquant_smooths_by_default_and_refuses_to_run_without_statistics():
     config = _w8a8("smoothquant", model, x)
     q_proj = model.layers[0].self_attn.q_proj
     stats = config.stats.layers["layers.0.self_attn.q_proj"]
-    expected = kernels.smoothing_factors(stats.absmax, q_proj.weight, 0.85)
+    expected = smoothing_factors(stats.absmax, q_proj.weight, 0.85)
     report = quantize_(model, config, config.select(model, COMPONENTS))
     packed = model.layers[0].self_attn.q_proj
     assert torch.equal(packed.smooth, expected.float()) and report.result.calibrated == set(report.selected)
@@ -147,7 +150,7 @@ def test_static_fp8_uses_the_calibrated_input_range():
         out = model(inputs_embeds=x).last_hidden_state
     assert report.unfired() == [] and report.result.calibrated == set(report.selected)
     q_proj = model.layers[0].self_attn.q_proj
-    expected = stats.layers["layers.0.self_attn.q_proj"].absmax.max() / kernels.FP8_MAX
+    expected = stats.layers["layers.0.self_attn.q_proj"].absmax.max() / FP8_MAX
     assert q_proj.input_scale.item() == pytest.approx(expected.item())
     assert 0 < _rel(out, reference) < 0.1
 
@@ -155,8 +158,8 @@ def test_static_fp8_uses_the_calibrated_input_range():
 def test_static_fp8_equals_dynamic_at_the_calibrated_range_and_saturates_beyond():
     linear = torch.nn.Linear(64, 32)
     x = torch.randn(10, 64)
-    static = kernels.Fp8StaticLinear(linear, x.abs().amax(dim=0))
-    dynamic = kernels.Fp8DynamicLinear(linear, tensorwise=True)
+    static = Fp8StaticLinear(linear, x.abs().amax(dim=0))
+    dynamic = Fp8DynamicLinear(linear, tensorwise=True)
     with torch.no_grad():
         assert torch.equal(static(x), dynamic(x))
         assert torch.isfinite(static(10 * x)).all()  # clamped at the e4m3 maximum, not cast to NaN

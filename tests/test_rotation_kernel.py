@@ -70,8 +70,8 @@ SCRIPT = textwrap.dedent("""
         rsqrt=numpy_libdevice(lambda a: (np.float32(1) / np.sqrt(a)).astype(np.float32)))
 
     from vlaquantbench.quant.fused_kernel import rotated_fake_quant
-    from vlaquantbench.quant.hooks import InputTransform
-    from vlaquantbench.quant.transforms import BlockHadamard
+    from vlaquantbench.quant.hadamard import BlockHadamard
+    from vlaquantbench.quant.input_transform import InputTransform
 
     results = []
     for width, dtype, bits, producer, *tokens in json.loads(sys.argv[1]):
@@ -196,7 +196,7 @@ def test_tokens_sharing_a_program_give_what_a_program_each_gives():
 
 def test_tokens_per_program_past_the_tile_limit_is_refused_naming_it():
     from vlaquantbench.quant import fused_kernel
-    from vlaquantbench.quant.transforms import BlockHadamard
+    from vlaquantbench.quant.hadamard import BlockHadamard
 
     with pytest.raises(ValueError, match="tokens_per_program"):
         fused_kernel.rotation_tile(4096, BlockHadamard(4096), 50, tokens_per_program=8)  # 8 x 32 tile rows
@@ -221,7 +221,7 @@ def test_rotation_kernels_compile_for_hopper(kernel, width, dtype, tokens):
 
     from vlaquantbench.models.pi05.fast import gelu_quant, rotated_norms
     from vlaquantbench.quant import fused_kernel
-    from vlaquantbench.quant.transforms import BlockHadamard
+    from vlaquantbench.quant.hadamard import BlockHadamard
 
     launch = fused_kernel.rotation_tile(width, BlockHadamard(width), tokens_per_program=tokens)
     warps = launch.pop("num_warps")

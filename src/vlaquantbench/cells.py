@@ -39,11 +39,12 @@ import re
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from vlaquantbench.config import validate
 from vlaquantbench.config.study import RunnerConfig, StudyConfig
 from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_step_limit
 from vlaquantbench.envs.episodes import RUN_SEED_STRIDE
 from vlaquantbench.errors import UserError
-from vlaquantbench.models.client import client_conventions, step_limit
+from vlaquantbench.models.client import ClientConventions, client_conventions, step_limit
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
 from vlaquantbench.models.trained_home import trained_weights
 from vlaquantbench.quant.methods import METHODS, SAMPLE_ROWS, registered_methods
@@ -142,6 +143,33 @@ class CellCalibration:
 
 
 @dataclass(frozen=True)
+class AgainstCell:
+    """The cell a sequential cell is tested against: its reference and config hash (the rollout reads its records)."""
+
+    ref: str
+    config_hash: str
+
+
+@dataclass(frozen=True)
+class SequentialSpec:
+    """A cell's stopping rule under study.sequential (`runner.stopping`): level `alpha`, not-worse margin
+    `margin_pp`, and the cell it is tested against. Its level, margin and the against cell's name satisfy the
+    rules of `study.sequential` in the config schema, checked when it is built or read back."""
+
+    alpha: float
+    margin_pp: float
+    against: AgainstCell
+
+    def __post_init__(self):
+        validate({"alpha": self.alpha, "margin_pp": self.margin_pp, "against": parse_ref(self.against.ref)[3]},
+                 "config", f"cell sequential spec against {self.against.ref!r}", subschema=("study", "sequential"))
+
+    @classmethod
+    def from_dict(cls, raw: dict[str, Any]) -> SequentialSpec:
+        return cls(alpha=raw["alpha"], margin_pp=raw["margin_pp"], against=AgainstCell(**raw["against"]))
+
+
+@dataclass(frozen=True)
 class PolicyRunConfig:
     """What a cell and its calibration episodes share: where they run and the policy's weights."""
 
@@ -173,12 +201,12 @@ class CellConfig(PolicyRunConfig):
     runner: RunnerConfig = field(default_factory=RunnerConfig)
     # The model's released client conventions (`models.client`) and every value of this cell that
     # differs from them ({key: {client, cell}}): recorded, never silent.
-    client: dict[str, Any] = field(default_factory=dict)
+    client: ClientConventions | None = None
     overrides: dict[str, Any] = field(default_factory=dict)
     # study.sequential's stopping rule and the cell it is tested against ({ref, config_hash}, whose records
     # the rollout reads); None (absent from the canonical form, so fixed-design hashes are unchanged) for
     # a fixed-design cell and for the `against` cell itself.
-    sequential: dict[str, Any] | None = None
+    sequential: SequentialSpec | None = None
 
     @classmethod
     def from_ref(cls, ref: str, study: StudyConfig) -> CellConfig:
@@ -224,7 +252,7 @@ class CellConfig(PolicyRunConfig):
             tasks=tuple(study.task_ids),
             episodes_per_task=episodes,
             runner=runner,
-            client=client.as_dict(),
+            client=client,
             overrides=_overrides(client, runner, episodes, released_limit),
             sequential=_sequential(ref, benchmark, suite, model, name, study, seed),
         )
@@ -244,8 +272,11 @@ class CellConfig(PolicyRunConfig):
             return None if value is None else tuple(value)
 
         calibration = None if cfg["calibration"] is None else CellCalibration.from_dict(cfg["calibration"])
+        sequential = cfg.get("sequential")
         return cls(**{**cfg, "only": tuple_or_none(cfg["only"]), "exclude": tuple_or_none(cfg["exclude"]),
-                      "tasks": tuple(cfg["tasks"]), "calibration": calibration, "runner": RunnerConfig(**cfg["runner"])})
+                      "tasks": tuple(cfg["tasks"]), "calibration": calibration, "runner": RunnerConfig(**cfg["runner"]),
+                      "client": ClientConventions(**cfg["client"]),
+                      "sequential": None if sequential is None else SequentialSpec.from_dict(sequential)})
 
     @property
     def config_hash(self) -> str:
@@ -277,7 +308,7 @@ class CalibrationConfig(PolicyRunConfig):
 
 
 def _sequential(ref: str, benchmark: str, suite: str, model: str, name: str, study: StudyConfig,
-                seed: int) -> dict[str, Any] | None:
+                seed: int) -> SequentialSpec | None:
     """The cell's stopping rule under study.sequential: its level, margin and the `against` cell (its
     reference and config hash: the rollout depends on that cell's records); None for the `against` cell.
     The `against` cell is of the same benchmark, suite, model and tasks; a cell of other episode seeds (another
@@ -294,8 +325,7 @@ def _sequential(ref: str, benchmark: str, suite: str, model: str, name: str, stu
         raise UserError(f"cell {ref!r}: study.sequential.against: {design.against} runs its episodes with run seed "
                         f"{against_cell.seed}, this cell with run seed {seed}: a contrast pairs only cells of the same "
                         "episode seeds; run it without study.sequential or drop the seed prefix that differs")
-    return {"alpha": design.alpha, "margin_pp": design.margin_pp,
-            "against": {"ref": against, "config_hash": against_cell.config_hash}}
+    return SequentialSpec(design.alpha, design.margin_pp, AgainstCell(against, against_cell.config_hash))
 
 
 def _runner(study: RunnerConfig, model: dict[str, Any], client, flow_steps: int | None, released_limit: int) -> RunnerConfig:
@@ -386,7 +416,7 @@ def _runner_field(study: StudyConfig, model: str, key: str) -> str:
 
 
 def _check_steps(ref: str, benchmark: str, suite: str, model: str, study: StudyConfig, runner: RunnerConfig) -> None:
-    """An episode's steps fit the simulator's horizon (`envs.SuiteSize.horizon`): one that outruns it dies inside
+    """An episode's steps fit the simulator's horizon (`envs.registry.SuiteSize.horizon`): one that outruns it dies inside
     the simulator at the horizon's step, so a longer `max_steps` is refused now, naming the field."""
     try:
         check_step_limit(_runner_field(study, model, "max_steps"), runner.max_steps, benchmark, suite,

@@ -21,7 +21,7 @@ from vlaquantbench.diagnostics.measures import MEASURES, layer_measures
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.quant import parse_preset, select_layers
-from vlaquantbench.quant.hooks import InputTransform
+from vlaquantbench.quant.input_transform import InputTransform
 from vlaquantbench.replay.record import load_records, recorded_calls
 from vlaquantbench.runner.provenance import code_revision, versions
 
@@ -76,6 +76,7 @@ def collect(records_json: str | Path, trajectories: list[str | Path], model: str
     if meta["model"] != model:
         raise UserError(f"diagnostics for {model!r} asked of a recording of {meta['model']!r} ({records_json})")
     adapter = make_adapter(AdapterConfig(model=meta["model"], variant=meta["variant"], checkpoint=meta["checkpoint"],
+                                         revision=meta["revision"],
                                          checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"],
                                          device=meta["device"], flow_steps=meta["flow_steps"]))
     adapter.load()
@@ -83,7 +84,7 @@ def collect(records_json: str | Path, trajectories: list[str | Path], model: str
     torch.set_num_threads(meta["torch_threads"])
     with DiagnosticsObserver(layers, preset) as observer, torch.no_grad():
         for rec in tqdm(meta["records"], desc=f"diagnostics {scope} {preset}", unit="trajectory"):
-            for _, obs, generator in recorded_calls(adapter, trajectories[rec["record"]], rec["record"]):
+            for _, obs, generator in recorded_calls(adapter, trajectories[rec["record"]], rec["record"], meta["benchmark"]):
                 adapter.act([obs], [generator])
     unfired = [n for n, c in observer.calls.items() if c == 0]
     if unfired:

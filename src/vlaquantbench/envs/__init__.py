@@ -1,101 +1,38 @@
-"""Simulated benchmarks, one folder each (`envs/libero/`, `envs/metaworld/`), behind one protocol.
+"""Simulated benchmarks, one folder each (`envs/<benchmark>/`), behind one protocol.
 
-`BENCHMARK_SUITES` names every benchmark, its suites and their sizes without importing a simulator, so
-cell references, task ids and episode counts are checked while the workflow builds the DAG
-(`tests/test_libero_suite.py` and `tests/test_metaworld_env.py` compare the sizes with the simulators'
-own lists). `make_suite` and `make_env` build a benchmark's suite and its batched worker env
+`BENCHMARK_SUITES` (`envs.registry`) names every registered benchmark, its suites and their sizes without
+importing a simulator, so cell references, task ids and episode counts are checked while the workflow builds
+the DAG (each benchmark's tests compare the sizes with the simulator's own lists). `make_suite` and `make_env` build a benchmark's suite and its batched worker env
 (`envs.workers.WorkerVectorEnv`: reset a slot, submit a chunk, collect, release) from the benchmark's
 name, importing only that benchmark's simulator; `env_settings` picks a cell's env settings from its
 runner config and `simulator_versions` reads (and checks) what a cell header records of the simulator.
 The closed-loop runner, rollout calibration and replay recording take their suites, episode specs,
 step limits (`SuiteTasks.max_steps`) and envs from here only.
 
-A benchmark is a package `envs/<benchmark>/` exporting a suite class (a `SuiteTasks`), a vector env
-class (a `WorkerVectorEnv`) and `simulator_versions(pinned)` under the names `_EXPORTS` lists, plus its
-suites' sizes in `BENCHMARK_SUITES` (README "Benchmarks": adding a third one).
+A benchmark is a package `envs/<benchmark>/` whose `benchmark.py` registers its declaration
+(`envs.registry.Benchmark`: its suites' sizes and where its suite class, a `SuiteTasks`, its vector env class,
+a `WorkerVectorEnv`, and its `simulator_versions(pinned)` live); nothing here names one (docs/simulators.md:
+adding a third one).
 """
 
 from __future__ import annotations
 
-import importlib
 import inspect
 from collections.abc import Iterable
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from vlaquantbench.envs.episodes import TASK_SEED_STRIDE
-from vlaquantbench.errors import UserError, lookup
+from vlaquantbench.envs.registry import BENCHMARK_SUITES, get_benchmark
+from vlaquantbench.errors import UserError
 
 if TYPE_CHECKING:
     from vlaquantbench.envs.episodes import SuiteTasks
     from vlaquantbench.envs.workers import WorkerVectorEnv
 
 
-@dataclass(frozen=True)
-class Horizon:
-    """A simulator's hard limit on one episode: `steps` env steps, after which it refuses to step on (it raises
-    from inside the simulator, naming no setting), the settle steps after a reset included where
-    `counts_settle_steps` (a benchmark whose env settles, `runner.settle_steps`)."""
-
-    steps: int
-    source: str  # where the limit is set, in words
-    counts_settle_steps: bool = False
-
-
-@dataclass(frozen=True)
-class SuiteSize:
-    tasks: int  # task ids 0..tasks-1, in the benchmark's task order
-    init_states: int  # initial states (LIBERO) or seeded task variations (Meta-World) per task, ids 0..init_states-1
-    worker_gib: float  # memory of one simulator worker process (envs.memory), measured as noted below
-    # Env steps the simulator takes in one episode before it refuses another (`Horizon`): the most steps any
-    # setting may ask of an episode.
-    horizon: Horizon
-    # Policy steps before an unfinished episode counts as a failure, whatever the model (Meta-World's); None:
-    # each model's client declares its own (LIBERO's, `models/<model>/client.py` STEP_LIMITS).
-    step_limit: int | None = None
-
-
-# worker_gib, LIBERO: the largest proportional set size (PSS, psutil's memory_full_info; shared libraries counted
-# once across workers) of a LIBERO worker (camera 256, MuJoCo 3.3.2, MUJOCO_GL=egl) after an episode reset and a
-# 10-action chunk, measured on the 2-core x86-64 development machine (2026-12-04): fresh workers on every task
-# of the suite, and one worker that built each task in turn (rebuilding leaves up to 0.5 GiB behind: LIBERO-10
-# task 4 holds 2.35 GiB fresh, 2.86 after the other nine), rounded up to 0.1 GiB. Spatial, Object, Goal, 10: fresh
-# maxima 1.80, 1.94, 1.53, 2.35 GiB; after the cycle 1.85, 2.10, 1.68, 2.86. An idle worker interpreter holds 0.1 GiB. The
-# 64-worker H200 benchmark's host held about 1.7 GB per worker (benchmarks/results/closed_loop_gpu_64_mem.log).
-# Meta-World, the same way on MT10's first task: 0.16 GiB without a camera, 0.34 GiB rendering 224 px; 0.4 allowed.
-# Its variations are seeds below TASK_SEED_STRIDE (`envs.metaworld.suite`); task counts are lerobot's groups and
-# Meta-World's MT10 / MT50 lists.
-# Meta-World's `max_path_length` (its envs refuse to step further), which lerobot's
-# `MetaworldEnv._max_episode_steps` and so lerobot-eval's rollouts use.
-METAWORLD_STEP_LIMIT = 500
-# LIBERO's `OffScreenRenderEnv` (robosuite) ends an episode at its horizon, 1000 env steps after the reset, and
-# refuses any further step ("executing action in terminated episode"): the settle steps count.
-LIBERO_HORIZON = Horizon(1000, "LIBERO's env horizon, settle steps included: robosuite refuses to step on",
-                         counts_settle_steps=True)
-METAWORLD_HORIZON = Horizon(METAWORLD_STEP_LIMIT, "Meta-World's max_path_length: it refuses to step on")
-_METAWORLD_TASKS = {"metaworld_easy": 28, "metaworld_medium": 11, "metaworld_hard": 6, "metaworld_very_hard": 5,
-                    "metaworld_mt10": 10, "metaworld_mt50": 50}
-BENCHMARK_SUITES = {
-    "libero": {
-        "libero_spatial": SuiteSize(tasks=10, init_states=50, worker_gib=1.9, horizon=LIBERO_HORIZON),
-        "libero_object": SuiteSize(tasks=10, init_states=50, worker_gib=2.1, horizon=LIBERO_HORIZON),
-        "libero_goal": SuiteSize(tasks=10, init_states=50, worker_gib=1.7, horizon=LIBERO_HORIZON),
-        "libero_10": SuiteSize(tasks=10, init_states=50, worker_gib=2.9, horizon=LIBERO_HORIZON),
-    },
-    "metaworld": {suite: SuiteSize(tasks=tasks, init_states=TASK_SEED_STRIDE, worker_gib=0.4, horizon=METAWORLD_HORIZON,
-                              step_limit=METAWORLD_STEP_LIMIT)
-                  for suite, tasks in _METAWORLD_TASKS.items()},
-}
-# Each benchmark's package exports its suite class, its vector env class and its `simulator_versions`
-# under these names.
-_EXPORTS = {"libero": ("LiberoSuite", "LiberoVectorEnv", "simulator_versions"),
-            "metaworld": ("MetaWorldSuite", "MetaWorldVectorEnv", "simulator_versions")}
-
-
 def check_ids(field: str, ids: Iterable[int], count: int, what: str) -> None:
     """UserError `<field>: <ids outside 0..count-1> ...` naming the field, the offending ids and the range.
 
-    `what` says what the ids index, e.g. "libero_spatial has 10 tasks"."""
+    `what` says what the ids index, e.g. "<suite> has 10 tasks"."""
     outside = sorted({i for i in ids if not 0 <= i < count})
     if outside:
         shown = ", ".join(map(str, outside[:8])) + (", ..." if len(outside) > 8 else "")
@@ -115,21 +52,16 @@ def check_step_limit(field: str, max_steps: int, benchmark: str, suite: str, set
                         f"episode ({horizon.source}); set it to at most {horizon.steps - settled}")
 
 
-def _benchmark_export(benchmark: str, which: int) -> Any:
-    names = lookup(_EXPORTS, benchmark, "benchmark")
-    return getattr(importlib.import_module(f"vlaquantbench.envs.{benchmark}"), names[which])
-
-
 def make_suite(benchmark: str, suite: str) -> SuiteTasks:
     """Suite `suite` of `benchmark`; UserError naming the benchmark or suite if either is unknown."""
-    return _benchmark_export(benchmark, 0)(suite)
+    return get_benchmark(benchmark).resolve("suite_class")(suite)
 
 
 def make_env(benchmark: str, suite: str | SuiteTasks, num_envs: int, **settings: Any) -> WorkerVectorEnv:
     """`num_envs` worker slots of `benchmark` on `suite` (a name or a built suite). `settings` are the
-    benchmark's env settings (LIBERO: camera_size, settle_steps, control_mode, mujoco; Meta-World:
-    camera_size, None to render no image, and mujoco); UserError naming an unknown one, before any suite or worker."""
-    env_class = _benchmark_export(benchmark, 1)
+    benchmark's env settings (the keyword-only parameters of its vector env class; camera_size None renders
+    no image where the env allows it); UserError naming an unknown one, before any suite or worker."""
+    env_class = get_benchmark(benchmark).resolve("env_class")
     accepted = _settings(env_class)
     unknown = sorted(set(settings) - set(accepted))
     if unknown:
@@ -147,9 +79,9 @@ def _settings(env_class: type) -> list[str]:
 
 def env_settings(benchmark: str, runner: Any, reads_images: bool = True) -> dict[str, Any]:
     """The env settings a cell's runner config (`config.study.RunnerConfig`) sets for `benchmark`: those of
-    its fields the benchmark's env takes (LIBERO: camera_size, settle_steps, control_mode, mujoco; Meta-World:
-    camera_size). A policy that reads no image (`reads_images`) gets none rendered (camera_size None)."""
-    settings = {name: getattr(runner, name) for name in _settings(_benchmark_export(benchmark, 1)) if hasattr(runner, name)}
+    its fields the benchmark's env takes (the keyword-only parameters of its vector env class). A policy
+    that reads no image (`reads_images`) gets none rendered (camera_size None)."""
+    settings = {name: getattr(runner, name) for name in _settings(get_benchmark(benchmark).resolve("env_class")) if hasattr(runner, name)}
     if not reads_images and "camera_size" in settings:
         settings["camera_size"] = None
     return settings
@@ -158,4 +90,4 @@ def env_settings(benchmark: str, runner: Any, reads_images: bool = True) -> dict
 def simulator_versions(benchmark: str, pinned: str | None = None) -> dict[str, Any]:
     """The simulator versions a cell header records; UserError when MuJoCo is not `pinned` (a cell's
     `runner.mujoco`; None: the active software environment's pin)."""
-    return _benchmark_export(benchmark, 2)(pinned=pinned)
+    return get_benchmark(benchmark).resolve("simulator_versions")(pinned=pinned)

@@ -1,8 +1,8 @@
 """Memory: what a rollout job's simulator workers need, what this process may use, and whether a dead
 worker was killed for memory.
 
-A LIBERO worker is a whole interpreter with MuJoCo, robosuite and one built env; `SuiteSize.worker_gib`
-(`envs.BENCHMARK_SUITES`) holds its measured footprint. A job's worker count (`study.execution.num_envs`
+A simulator worker is a whole interpreter with its simulator and one built env; `SuiteSize.worker_gib`
+(each benchmark's declaration, `envs.registry`) holds its measured footprint. A job's worker count (`study.execution.num_envs`
 or `vqb rollout --num-envs`) is checked against `available_memory()` before any worker starts: capped to
 what fits, with a warning naming the setting and both numbers (an episode's seed, init state and noise
 stream do not depend on how many workers run; on the CPU neither do its actions), and refused when not one
@@ -19,7 +19,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from vlaquantbench.envs import BENCHMARK_SUITES
+from vlaquantbench.envs.registry import BENCHMARK_SUITES
 from vlaquantbench.errors import UserError
 
 GIB = 2**30
@@ -128,7 +128,7 @@ def affordable_workers(requested: int, benchmark: str, suite: str, setting: str,
     fits = int(available.bytes / GIB // each)
     if fits >= requested:
         return requested
-    need = f"{requested} LIBERO workers x {each} GiB on {suite} = {requested * each:.1f} GiB"
+    need = f"{requested} {benchmark} workers x {each} GiB on {suite} = {requested * each:.1f} GiB"
     if fits < 1 or not cap:
         remedy = "not one worker fits" if fits < 1 else f"set it to at most {fits} or give the job more memory"
         raise UserError(f"{setting} = {requested}: {need}, but {available}: {remedy}")

@@ -20,17 +20,29 @@ import dataclasses
 import importlib
 from dataclasses import dataclass
 
+from vlaquantbench.config import validate
 from vlaquantbench.errors import UserError
 
 
 @dataclass(frozen=True)
 class ClientConventions:
+    """A released client's conventions. The runner options they set and the episodes per task satisfy the
+    rules of `study.runner` and `study.episodes_per_task` in the config schema (the YAML values they stand
+    in for), checked when the conventions are built, in a model's client.py or read back from a cell config."""
+
     executed_chunk: int  # actions executed per predicted chunk
     episodes_per_task: int
     control_mode: str  # LIBERO arm controller: "delta" or "absolute" end-effector poses
     mujoco: str  # the MuJoCo version the client's environment pins
     model_seed: int | None = None  # fixed model seed of a deterministic head (None: per-episode streams)
     source: str = ""  # where the values come from
+
+    def __post_init__(self):
+        where = f"client conventions ({self.source or 'no source'})"
+        validate(self.runner(), "config", where, subschema=("study", "runner"))
+        validate(self.episodes_per_task, "config", f"{where}: episodes_per_task", subschema=("study", "episodes_per_task"))
+        if self.model_seed is not None and (not isinstance(self.model_seed, int) or isinstance(self.model_seed, bool)):
+            raise UserError(f"{where}: model_seed: {self.model_seed!r} is not an integer or None")
 
     def runner(self) -> dict:
         """The runner options these conventions set (hashed with the cell)."""
@@ -53,7 +65,7 @@ def client_conventions(model: str) -> ClientConventions:
 
 def step_limit(model: str, benchmark: str, suite: str) -> int:
     """Policy steps before an unfinished episode of `model` on `suite` counts as a failure: the model's
-    client's (`STEP_LIMITS`), else the benchmark's own (`envs.SuiteSize.step_limit`); UserError naming the
+    client's (`STEP_LIMITS`), else the benchmark's own (`envs.registry.SuiteSize.step_limit`); UserError naming the
     model, benchmark and suite when neither has one (the model's client never ran there)."""
     from vlaquantbench.envs import BENCHMARK_SUITES
 

@@ -32,7 +32,8 @@ from torch import nn
 
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.calibration import CalibrationSettings, CalibrationStats, ChannelStats
-from vlaquantbench.quant.hooks import CountingHook, InputTransform
+from vlaquantbench.quant.hooks import CountingHook
+from vlaquantbench.quant.input_transform import InputTransform
 from vlaquantbench.quant.methods import MethodConfig, get_method
 from vlaquantbench.quant.presets import Preset, parse_preset
 from vlaquantbench.quant.patterns import scope_components

@@ -1,6 +1,6 @@
 """Per-token activation fake quantization fused into one GPU kernel, swapped into installed hooks.
 
-`InputTransform` (quant.hooks) is written as readable tensor code: a float32 copy, an absmax
+`InputTransform` (quant.input_transform) is written as readable tensor code: a float32 copy, an absmax
 reduction, a division, a rounding, a clamp, a multiplication and a cast -- seven kernels and as
 many passes over the activation per linear call. Here the same arithmetic runs as one Triton
 program per token (one read, one write), bit-identical to `quant.grid.fake_quant_activation`
@@ -13,7 +13,7 @@ layers read (q/k/v projections, gate/up projections share one input), rotated fi
 transform rotates (`InputTransform.rotation`). Hook call counting is
 untouched. On a device other than CUDA it falls back to the reference transform.
 
-`rotated_fake_quant` rotates by a `quant.transforms.BlockHadamard` and quantizes in the same pass:
+`rotated_fake_quant` rotates by a `quant.hadamard.BlockHadamard` and quantizes in the same pass:
 the row read once as a tile of blocks, multiplied by the +-1 Sylvester factors with `tl.dot` on the
 tensor cores (float32 accumulation; float32 operands in three exact bf16 parts), rounded to the
 row's dtype, quantized. It equals the reference up to the float32 rounding of R x (sums in another
@@ -26,8 +26,8 @@ import numpy as np
 import torch
 
 from vlaquantbench.quant.grid import SCALE_FLOOR
-from vlaquantbench.quant.hooks import InputTransform
-from vlaquantbench.quant.transforms import BlockHadamard
+from vlaquantbench.quant.hadamard import BlockHadamard
+from vlaquantbench.quant.input_transform import InputTransform
 
 try:  # Triton ships with torch's CUDA wheels; without it (or a GPU) the reference code runs.
     import triton

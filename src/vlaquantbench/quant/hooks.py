@@ -19,40 +19,8 @@ import torch
 from torch import nn
 
 from vlaquantbench.quant.grid import CastRows, PerTokenCast, fake_quant_activation
+from vlaquantbench.quant.input_transform import InputTransform
 from vlaquantbench.quant.presets import FloatFormat
-
-
-@dataclass(frozen=True)
-class InputTransform:
-    """What a hook does to a linear input, in the paper's order: rotate (an orthonormal rotation
-    folded into the weight, `quant.transforms.BlockHadamard`), divide by the smoothing vector,
-    clip at the per-channel threshold, then quantize: per token on an integer grid (`act_bits`) or
-    in a floating-point format (`act_format`, per block / token / sample). Every step is optional."""
-
-    smooth: torch.Tensor | None = None  # d_j, shape [in_features]
-    clip: torch.Tensor | None = None  # post-smoothing threshold, shape [in_features]
-    act_bits: int | None = None
-    act_format: FloatFormat | None = None
-    # x -> R x, equal (and hashed) by what it computes, so layers sharing an input share it
-    rotation: Callable[[torch.Tensor], torch.Tensor] | None = None
-
-    def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        if self.rotation is not None:
-            x = self.rotation(x)
-        if self.smooth is not None:
-            x = (x.float() / self.smooth).to(x.dtype)
-        if self.clip is not None:
-            x = torch.maximum(torch.minimum(x.float(), self.clip), -self.clip).to(x.dtype)
-        if self.act_bits is not None:
-            x = fake_quant_activation(x, self.act_bits)
-        if self.act_format is not None:
-            x = self.act_format.quantize_activation(x)
-        return x
-
-    @property
-    def is_identity(self) -> bool:
-        return (self.smooth is None and self.clip is None and self.act_bits is None and self.act_format is None
-                and self.rotation is None)
 
 
 @dataclass(frozen=True)
@@ -211,7 +179,7 @@ def _rotating_kernel_or(compiled: Callable, op: Callable, quantization: Rotated,
     inductor ran the rotation as float32 products of their own, with float32 copies around them:
     1.5-1.6x BASELINE's chunk for W4A4 on an H200, against 1.02-1.05x unrotated. Elsewhere (or for a
     rotation the kernel does not compute) `compiled`."""
-    from vlaquantbench.quant import fused_kernel  # it imports this module (InputTransform)
+    from vlaquantbench.quant import fused_kernel  # Triton, imported only where a rotated kernel is asked for
 
     if not fused_kernel.supports_rotation(quantization.rotation):
         return compiled

@@ -1,7 +1,7 @@
 """The quantization method registry: one typed config per method, by name, without importing torch.
 
     METHODS["gptq"]                   # GPTQ(name="gptq", damp=0.01, act_order=False, ...)
-    METHODS["fp8"].resolve()          # -> vlaquantbench.quant.kernels.fp8 (imported on first use)
+    METHODS["fp8"].resolve()          # -> vlaquantbench.quant.kernels.fp8.fp8 (imported on first use)
     register_method("mine", fn)       # a method defined at run time (tests, plugins)
 
 Each entry is a frozen `MethodConfig` (torchao's `quantize_(model, config)` style): its implementation
@@ -137,20 +137,20 @@ class StepStatic(MethodConfig):
 
 # Pre-quantization transforms a method entry may name ("module:class", built without arguments).
 TRANSFORMS = {"hadamard": "vlaquantbench.quant.transforms:Hadamard"}
-_KERNELS = "vlaquantbench.quant.kernels"
+_KERNELS = "vlaquantbench.quant.kernels"  # a module per family
 _GPTQ = "vlaquantbench.quant.gptq:gptq"
 METHODS: dict[str, MethodConfig] = {
     "rtn": MethodConfig("rtn", "vlaquantbench.quant.apply:rtn", composes=True),
-    "nf4": MethodConfig("nf4", f"{_KERNELS}:nf4", presets=(4, None)),
-    "int8": MethodConfig("int8", f"{_KERNELS}:llm_int8", presets=(8, None),
+    "nf4": MethodConfig("nf4", f"{_KERNELS}.bnb:nf4", presets=(4, None)),
+    "int8": MethodConfig("int8", f"{_KERNELS}.bnb:llm_int8", presets=(8, None),
                          uncapturable="bitsandbytes LLM.int8() synchronizes with the host on its outlier columns"),
-    "int4wo": MethodConfig("int4wo", f"{_KERNELS}:int4_weight_only", presets=(4, None)),
-    "awq": MethodConfig("awq", f"{_KERNELS}:awq", frozenset({ROWS}), presets=WEIGHT_ONLY),
-    "smoothquant": SmoothQuant("smoothquant", f"{_KERNELS}:smoothquant", frozenset({ABSMAX}), presets=(8, 8)),
-    "int8_dynamic": MethodConfig("int8_dynamic", f"{_KERNELS}:int8_dynamic", presets=(8, 8)),
-    "fp8": MethodConfig("fp8", f"{_KERNELS}:fp8", presets=(8, 8)),
-    "fp8_tensor": MethodConfig("fp8_tensor", f"{_KERNELS}:fp8_tensorwise", presets=(8, 8)),
-    "fp8_static": MethodConfig("fp8_static", f"{_KERNELS}:fp8_static", frozenset({ABSMAX}), presets=(8, 8)),
+    "int4wo": MethodConfig("int4wo", f"{_KERNELS}.int4:int4_weight_only", presets=(4, None)),
+    "awq": MethodConfig("awq", f"{_KERNELS}.int4:awq", frozenset({ROWS}), presets=WEIGHT_ONLY),
+    "smoothquant": SmoothQuant("smoothquant", f"{_KERNELS}.int8:smoothquant", frozenset({ABSMAX}), presets=(8, 8)),
+    "int8_dynamic": MethodConfig("int8_dynamic", f"{_KERNELS}.int8:int8_dynamic", presets=(8, 8)),
+    "fp8": MethodConfig("fp8", f"{_KERNELS}.fp8:fp8", presets=(8, 8)),
+    "fp8_tensor": MethodConfig("fp8_tensor", f"{_KERNELS}.fp8:fp8_tensorwise", presets=(8, 8)),
+    "fp8_static": MethodConfig("fp8_static", f"{_KERNELS}.fp8:fp8_static", frozenset({ABSMAX}), presets=(8, 8)),
     "gptq": GPTQ("gptq", _GPTQ, frozenset({HESSIAN, ROWS}), INTEGER_WEIGHTS, composes=True),
     "gptq_act": GPTQ("gptq_act", _GPTQ, frozenset({HESSIAN, ROWS}), INTEGER_WEIGHTS, composes=True, act_order=True),
     # Rotated inputs (QuaRot-style Hadamard, `quant.transforms.Hadamard`), then RTN or GPTQ

@@ -30,7 +30,7 @@ from torch import nn
 from vlaquantbench.errors import UserError
 
 if TYPE_CHECKING:
-    from vlaquantbench.quant.transforms import BlockHadamard
+    from vlaquantbench.quant.hadamard import BlockHadamard
 
 
 # Embedding rows rotated at once: PaliGemma's 257,152 x 2,048 table would need several float32 copies

@@ -6,9 +6,6 @@ published `<benchmark>/<suite>/<model>/<cell>.jsonl` (a header line, then one li
 """
 
 from vlaquantbench.records.cell import (
-    EPISODE_COLUMNS,
-    OPTIONAL_COLUMNS,
-    Cell,
     check_declared_episodes,
     contrast_mismatch,
     episode_gaps,
@@ -18,6 +15,7 @@ from vlaquantbench.records.cell import (
     record_files,
     write_cell,
 )
+from vlaquantbench.records.episodes import EPISODE_COLUMNS, OPTIONAL_COLUMNS, Cell
 
 __all__ = [
     "EPISODE_COLUMNS",

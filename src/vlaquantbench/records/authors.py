@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from vlaquantbench.errors import UserError
-from vlaquantbench.records.cell import EPISODE_COLUMNS, EPISODE_KEY, OPTIONAL_COLUMNS, Cell, normalize_episodes
+from vlaquantbench.records.episodes import EPISODE_COLUMNS, EPISODE_KEY, OPTIONAL_COLUMNS, Cell, normalize_episodes
 from vlaquantbench.records.schema import EpisodeCheck
 from vlaquantbench.textfiles import read_parsed
 

@@ -1,9 +1,9 @@
-"""The `Cell` record: a provenance header plus one row per episode."""
+"""This project's cell folder (`header.json` + `episodes.parquet`): reading, writing and finding cells;
+`read_cell` also reads the authors' `.jsonl` (`records.authors`)."""
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -11,6 +11,8 @@ import pandas as pd
 
 from vlaquantbench.atomic import atomic_write, write_text
 from vlaquantbench.errors import UserError
+from vlaquantbench.records.authors import read_authors_jsonl
+from vlaquantbench.records.episodes import EPISODE_KEY, Cell, normalize_episodes
 from vlaquantbench.records.schema import EpisodeCheck, declared_tasks, present
 from vlaquantbench.textfiles import read_parsed
 
@@ -19,74 +21,6 @@ EPISODES_FILE = "episodes.parquet"
 # The run's journal of finished episodes (runner.journal), kept beside them until the cell completes.
 JOURNAL_FILE = "journal.jsonl"
 AUTHORS_SUFFIX = ".jsonl"
-
-EPISODE_KEY = ("task_id", "episode", "seed")
-EPISODE_COLUMNS = ("suite", "task_id", "episode", "seed", "success", "steps", "init_state_id")
-OPTIONAL_COLUMNS = (
-    "task_name",
-    "wall_time_s",
-    "policy_latency_mean_s",  # the authors' records: one control call of one episode
-    "policy_batch_latency_mean_s",  # this runner: one batched policy call (every episode in its batch)
-    "inference_latency_mean_s",
-    "peak_vram_gb",
-    "subtasks_completed",
-    "progress_score",
-    "nonfinite_action",  # the policy output NaN/infinity; the episode ended before it (runner.loop)
-    "task_variation",  # Meta-World: the object and goal placement the episode's seeded variation drew
-    "action_rate",  # smoothness of the executed actions (records.smoothness)
-    "jerk",
-)
-# Nullable dtypes: benchmarks without LIBERO init states (CALVIN, SIMPLER) leave init_state_id empty.
-_DTYPES = {
-    "suite": "string",
-    "task_id": "int64",
-    "episode": "int64",
-    "seed": "int64",
-    "success": "bool",
-    "steps": "int64",
-    "init_state_id": "Int64",
-    "task_name": "string",
-    "wall_time_s": "float64",
-    "policy_latency_mean_s": "float64",
-    "policy_batch_latency_mean_s": "float64",
-    "inference_latency_mean_s": "float64",
-    "peak_vram_gb": "float64",
-    "subtasks_completed": "float64",
-    "progress_score": "float64",
-    "nonfinite_action": "bool",
-    "task_variation": "object",  # a list of floats per episode (parquet list<double>)
-    "action_rate": "float64",
-    "jerk": "float64",
-}
-
-
-@dataclass(frozen=True)
-class Cell:
-    header: dict[str, Any]
-    episodes: pd.DataFrame
-    path: Path
-
-    @property
-    def n_episodes(self) -> int:
-        return len(self.episodes)
-
-    @property
-    def n_successes(self) -> int:
-        return int(self.episodes["success"].sum())
-
-    @property
-    def n_nonfinite(self) -> int | None:
-        """Episodes ended by a non-finite action; None for records that do not say (the authors')."""
-        if "nonfinite_action" not in self.episodes.columns:
-            return None
-        return int(self.episodes["nonfinite_action"].sum())
-
-    @property
-    def quantized_layers(self) -> int:
-        """Layers quantized over all components, from the header's `quant_report` (#L in the paper)."""
-        report = self.header.get("quant_report") or {}
-        return sum(int(entry["layers"]) for entry in report.values() if isinstance(entry, dict) and "layers" in entry)
-
 
 def episode_gaps(cell: Cell) -> list[str]:
     """What the header declares but the episodes lack: per task, episode indices 0..n-1 with no hole and
@@ -158,38 +92,10 @@ def read_checked_cell(ref: str, path: str | Path) -> Cell:
     return cell
 
 
-def normalize_episodes(rows: pd.DataFrame | list[dict[str, Any]], source: Path) -> pd.DataFrame:
-    """Episode table with the required columns, known dtypes and unique (task_id, episode, seed).
-
-    The casts are safe only on episodes the schema has passed (`check_rows`, the authors' importer):
-    pandas casts the string "false" to True.
-    """
-    frame = rows if isinstance(rows, pd.DataFrame) else pd.DataFrame(rows)
-    if frame.empty:
-        raise UserError(f"{source}: the cell has no episodes")
-    if "init_state_id" not in frame.columns:
-        frame = frame.assign(init_state_id=pd.NA)
-    missing = [column for column in EPISODE_COLUMNS if column not in frame.columns]
-    if missing:
-        raise UserError(f"{source}: episodes lack required column(s) {', '.join(missing)}")
-    columns = list(EPISODE_COLUMNS) + [c for c in OPTIONAL_COLUMNS if c in frame.columns]
-    try:
-        frame = frame[columns].astype({c: _DTYPES[c] for c in columns}).reset_index(drop=True)
-    except (TypeError, ValueError) as err:
-        raise UserError(f"{source}: an episode column has values of the wrong type ({err})") from err
-    duplicated = frame.duplicated(list(EPISODE_KEY), keep=False)
-    if duplicated.any():
-        first = frame.loc[duplicated, list(EPISODE_KEY)].iloc[0].to_dict()
-        raise UserError(f"{source}: duplicate episode key (task_id, episode, seed) = {tuple(first.values())}")
-    return frame
-
-
 def read_cell(path: str | Path) -> Cell:
     """Read a cell from the authors' `.jsonl`, a cell folder, or the `episodes.parquet` inside one."""
     path = Path(path)
     if path.suffix == AUTHORS_SUFFIX:
-        from vlaquantbench.records.authors import read_authors_jsonl
-
         return read_authors_jsonl(path)
     folder = path.parent if path.name == EPISODES_FILE else path
     header_path, episodes_path = folder / HEADER_FILE, folder / EPISODES_FILE

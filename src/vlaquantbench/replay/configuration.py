@@ -46,6 +46,7 @@ def replay_configuration(records_json, trajectories, study: dict, name: str, pre
     meta, trajectories = load_records(records_json, trajectories)
     cfg, expected_layers = quant_config(study, name, preset)
     adapter = make_adapter(AdapterConfig(model=meta["model"], variant=meta["variant"], checkpoint=meta["checkpoint"],
+                                         revision=meta["revision"],
                                          checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"],
                                          device=meta["device"], flow_steps=meta["flow_steps"]))
     adapter.load()
@@ -58,7 +59,8 @@ def replay_configuration(records_json, trajectories, study: dict, name: str, pre
     arrays, records = {}, []
     with probe:
         for rec in tqdm(meta["records"], desc=f"replay {name}", unit="trajectory"):
-            arrays[rec["record"]], dev = _replay_trajectory(adapter, probe, trajectories[rec["record"]], rec["record"])
+            arrays[rec["record"]], dev = _replay_trajectory(adapter, probe, trajectories[rec["record"]], rec["record"],
+                                                               meta["benchmark"])
             records.append({**rec, "dev_from_recorded_actions": dev})
     report.check_hooks_fired()
     summary = {
@@ -73,9 +75,9 @@ def replay_configuration(records_json, trajectories, study: dict, name: str, pre
     return ReplayRun(summary, arrays)
 
 
-def _replay_trajectory(adapter, probe: PolicyProbe, data: dict, record: str) -> tuple[dict, float]:
+def _replay_trajectory(adapter, probe: PolicyProbe, data: dict, record: str, benchmark: str) -> tuple[dict, float]:
     chunks, states, inputs, actions = [], [], [], []
-    for j, obs, generator in recorded_calls(adapter, data, record):
+    for j, obs, generator in recorded_calls(adapter, data, record, benchmark):
         with probe.call():
             chunk = adapter.act([obs], [generator])[0]
         captured = probe.take(0)

@@ -1,8 +1,9 @@
-"""Record full-precision trajectories in LIBERO for same-observation replay (suite, episode specs, step
+"""Record full-precision trajectories in any benchmark for same-observation replay (suite, episode specs, step
 limit and env from the benchmark seam, `vlaquantbench.envs`; the controller mode and MuJoCo pin the model's client's).
 
 One `<record>.npz` per trajectory (`t<task>_e<init state>.npz`) holds everything the policy saw and
-did at each call: both camera images, the state, the instruction, the episode's RNG seed and the
+did at each call: the image of every camera the benchmark declares (`envs.registry.Benchmark.cameras`,
+under its observation key), the state, the instruction, the episode's RNG seed and the
 generator state entering the call, the predicted normalized chunk, the flow states entering each
 denoising step, how many of the chunk's actions were executed, and the executed actions.
 `records.json` beside them carries the provenance. The rule `replay_record` declares every one of
@@ -23,6 +24,7 @@ from vlaquantbench.atomic import atomic_write, write_text
 from vlaquantbench.config.study import RunnerConfig
 from vlaquantbench.envs import env_settings, make_env, make_suite, simulator_versions
 from vlaquantbench.envs.episodes import EpisodeSpec
+from vlaquantbench.envs.registry import get_benchmark
 from vlaquantbench.envs.workers import WorkerVectorEnv
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
@@ -35,12 +37,14 @@ from vlaquantbench.textfiles import read_parsed
 
 def adapter_config(settings: RecordSettings) -> AdapterConfig:
     return AdapterConfig(model=settings.model, variant=settings.variant, checkpoint=settings.checkpoint,
+                         revision=settings.revision,
                          checkpoint_dir=settings.checkpoint_dir, device=settings.device,
                          executed_chunk=settings.executed_chunk, flow_steps=settings.flow_steps)
 
 
-def _record_one(adapter, probe: PolicyProbe, env: WorkerVectorEnv, spec: EpisodeSpec, max_steps: int) -> dict:
-    calls: dict[str, list] = {k: [] for k in ("agentview", "wrist", "state", "rng_state", "chunk", "flow_states", "executed")}
+def _record_one(adapter, probe: PolicyProbe, env: WorkerVectorEnv, spec: EpisodeSpec, max_steps: int,
+                observed: tuple[str, ...]) -> dict:
+    calls: dict[str, list] = {k: [] for k in (*observed, "rng_state", "chunk", "flow_states", "executed")}
     actions: list[np.ndarray] = []
     generator = adapter.reset(spec.seed)
     obs, success = env.reset([spec])[0], False
@@ -49,7 +53,7 @@ def _record_one(adapter, probe: PolicyProbe, env: WorkerVectorEnv, spec: Episode
         with probe.call():
             chunk = adapter.act([obs], [generator])[0]
         captured = probe.take(0)
-        for view in ("agentview", "wrist", "state"):
+        for view in observed:
             calls[view].append(obs[view])
         calls["chunk"].append(captured["chunk"])
         calls["flow_states"].append(captured["flow_states"])
@@ -100,14 +104,14 @@ def record(settings: RecordSettings, records_json: str | Path, trajectories: lis
     records = []
     with make_env(settings.benchmark, suite, 1, **env_options) as env, PolicyProbe(adapter.model, settings.observe, 7) as probe:
         for spec, path in tqdm(list(zip(specs, trajectories)), desc="record", unit="trajectory"):
-            data = _record_one(adapter, probe, env, spec, max_steps)
+            data = _record_one(adapter, probe, env, spec, max_steps, get_benchmark(settings.benchmark).observed)
             with atomic_write(path, "wb") as handle:
                 np.savez_compressed(handle, **data)
             records.append({"record": path.name, "task_id": spec.task_id, "episode": spec.init_state_id,
                             "seed": spec.seed, "n_steps": len(data["actions"]), "n_chunks": len(data["chunk"]),
                             "flow_steps": settings.flow_steps, "recorded_success": bool(data["success"])})
     meta = {
-        "model": settings.model, "variant": settings.variant, "suite": settings.suite,
+        "model": settings.model, "variant": settings.variant, "benchmark": settings.benchmark, "suite": settings.suite,
         "checkpoint": settings.checkpoint, "revision": settings.revision,
         "init_states": settings.init_states, "run_seed": settings.run_seed, "max_steps": max_steps,
         "weights_seed": adapter.config.seed,
@@ -128,6 +132,8 @@ def load_records(records_json: str | Path, trajectories: list[str | Path]) -> tu
     if not records_json.is_file():
         raise UserError(f"no recording: {records_json} is missing")
     meta = read_parsed(records_json, json.loads, "JSON")
+    if "benchmark" not in meta:  # its trajectories' observation keys are that benchmark's (`recorded_calls`)
+        raise UserError(f"recording {records_json} names no benchmark (recorded before issue 50); record it again")
     given = {Path(p).name: Path(p) for p in trajectories}
     named = [rec["record"] for rec in meta["records"]]
     if sorted(given) != sorted(named):
@@ -146,15 +152,15 @@ def record_to(study: dict, options: dict | None, records_json: str | Path, traje
     return record(RecordSettings.from_study(study, options), records_json, trajectories)
 
 
-def recorded_calls(adapter, data: dict[str, np.ndarray], record: str):
-    """Feed a recorded trajectory to a policy: resets it with the recorded episode seed and yields
+def recorded_calls(adapter, data: dict[str, np.ndarray], record: str, benchmark: str):
+    """Feed a recorded trajectory of `benchmark` to a policy: resets it with the recorded episode seed and yields
     `(call index, observation, generator)` per call, checking that the generator state entering
     each call equals the recorded one (identical flow noise)."""
+    observed = get_benchmark(benchmark).observed
     generator = adapter.reset(int(data["seed"]))
     instruction = str(data["instruction"])
     for j in range(len(data["chunk"])):
         if not np.array_equal(torch_rng_state(generator), data["rng_state"][j]):
             raise RuntimeError(f"{record} call {j}: the policy's random stream diverged from the recording")
-        obs = {"agentview": data["agentview"][j], "wrist": data["wrist"][j], "state": data["state"][j],
-               "instruction": instruction}
+        obs = {**{view: data[view][j] for view in observed}, "instruction": instruction}
         yield j, obs, generator

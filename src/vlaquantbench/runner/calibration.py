@@ -15,6 +15,7 @@ from vlaquantbench.envs import env_settings, make_env, make_suite
 from vlaquantbench.models.registry import adapter_class
 from vlaquantbench.envs.memory import affordable_workers
 from vlaquantbench.runner.cell import calibration_settings, load_policy
+from vlaquantbench.runner.checkpoint import CheckpointStamp
 from vlaquantbench.runner.loop import run_episodes
 from vlaquantbench.runner.provenance import code_revision
 
@@ -47,7 +48,8 @@ def calibrate(
     # Refused, never capped: the statistics are per policy call, so they depend on how many workers share one.
     workers = affordable_workers(min(num_envs, len(specs)), calib.benchmark, calib.suite,
                                  "study.execution.num_envs", cap=False)
-    adapter = load_policy(calib, checkpoint_stamp, adapter_class(calib.model))
+    stamp = CheckpointStamp.read(checkpoint_stamp) if checkpoint_stamp is not None else None
+    adapter = load_policy(calib, stamp, adapter_class(calib.model))
     settings = calibration_settings(settings_cfg, adapter)
     layers = {}
     for component in settings.components:

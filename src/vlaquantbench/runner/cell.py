@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import fnmatch
 import itertools
-import json
 import sys
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -40,6 +39,7 @@ from vlaquantbench.models.client import environment_name
 from vlaquantbench.models.registry import adapter_class
 from vlaquantbench.records import write_cell
 from vlaquantbench.records.cell import JOURNAL_FILE
+from vlaquantbench.runner.checkpoint import CheckpointStamp
 from vlaquantbench.runner.gpus import device_record
 from vlaquantbench.runner.journal import EPISODE_KEY, CellJournal, journal_episodes, recorded_keys
 from vlaquantbench.runner.lock import writing
@@ -55,23 +55,17 @@ class CellFailed(UserError):
     """A protocol check failed; the cell's records are not written (its journal is kept)."""
 
 
-def checkpoint_dir(stamp: str | Path | None) -> str | None:
-    if stamp is None:
-        return None
-    return json.loads(Path(stamp).read_text()).get("path")
-
-
-def load_policy(cfg: CellConfig | CalibrationConfig, stamp: str | Path | None, policy_class: type):
+def load_policy(cfg: CellConfig | CalibrationConfig, stamp: CheckpointStamp | None, policy_class: type):
     """The adapter of `policy_class` (the model's, looked up once by the caller) with the policy of `cfg`
-    loaded, after checking its executed chunk length and controller mode."""
-    adapter = policy_class(AdapterConfig.from_cell(cfg, checkpoint_dir(stamp), policy_class))
-    hf_home = json.loads(Path(stamp).read_text()).get("hf_home") if stamp is not None else None
-    if hf_home is None:
+    loaded from its checkpoint `stamp` (None: the cell's own weights, e.g. random ones), after checking its
+    executed chunk length and controller mode."""
+    adapter = policy_class(AdapterConfig.from_cell(cfg, stamp.path if stamp is not None else None, policy_class))
+    if stamp is None or stamp.hf_home is None:
         adapter.load()
     else:  # a checkpoint trained here: it and the tokenizer its preprocessor names load from its own folder
         from vlaquantbench.hub.cache import offline_cache
 
-        with offline_cache(hf_home):
+        with offline_cache(stamp.hf_home):
             adapter.load()
     expected = cfg.runner.executed_chunk
     if adapter.executed_chunk != expected:
@@ -134,7 +128,8 @@ class CellRun:
         self.policy_class = adapter_class(cfg.model)
         self.out_dir = Path(out_dir)
         self.journal = Path(journal) if journal else self.out_dir / JOURNAL_FILE  # default: beside the records
-        self.checkpoint_stamp = checkpoint_stamp
+        # Read (and checked) once, before anything loads.
+        self.checkpoint = CheckpointStamp.read(checkpoint_stamp) if checkpoint_stamp is not None else None
         self.calibration_stats = calibration_stats
         self.num_envs = num_envs
         self.progress = progress
@@ -211,7 +206,7 @@ class CellRun:
 
         cfg = self.cfg
         self.simulator = simulator_versions(cfg.benchmark, pinned=cfg.runner.mujoco)
-        self.adapter = load_policy(cfg, self.checkpoint_stamp, self.policy_class)
+        self.adapter = load_policy(cfg, self.checkpoint, self.policy_class)
         calibration, stats = self._calibration()
         quant = QuantConfig.from_preset(
             cfg.preset,
@@ -248,7 +243,7 @@ class CellRun:
             # What really ran (the config's checkpoint of a random-weight variant names only its architecture).
             **dict(zip(("checkpoint", "revision"), self.adapter.config.weights_ran)),
             # The model's released client conventions and every value this cell sets differently.
-            "client": cfg.client,
+            "client": cfg.client.as_dict(),
             "overrides": cfg.overrides,
             **{k: getattr(self.adapter, "checkpoint_provenance", {}).get(k) for k in ("tokenizer", "normalization", "widths")},
             "config": config,

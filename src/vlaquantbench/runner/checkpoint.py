@@ -18,16 +18,38 @@ repository and revision.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from vlaquantbench.atomic import write_text
+from vlaquantbench.config import validate
 from vlaquantbench.errors import UserError
+from vlaquantbench.textfiles import read_parsed
 from vlaquantbench.models.registry import get_model_spec
 
 DOWNLOAD_ATTEMPTS = 3
 # Between attempts: 2 s, then 4 s (tenacity's exponential wait), time for a passing hub hiccup.
 RETRY_WAIT_S = 2
+
+
+@dataclass(frozen=True)
+class CheckpointStamp:
+    """A checkpoint stamp, read once by the job that loads the policy (`runner.cell.load_policy`); the
+    stamp file satisfies `schemas/checkpoint_stamp.schema.yaml`, checked when it is written and read."""
+
+    model: str
+    variant: str
+    checkpoint: str | None
+    revision: str | None
+    path: str | None  # the snapshot folder in the HF cache; None: random weights, nothing fetched
+    hf_home: str | None = None  # a checkpoint trained here: the HF_HOME folder it loads from, offline
+    tokenizers: dict[str, str] | None = None  # tokenizer repository -> the snapshot fetched for it
+
+    @classmethod
+    def read(cls, stamp: str | Path) -> CheckpointStamp:
+        """The stamp at `stamp`; UserError naming the file and the field when it is not a stamp."""
+        return cls(**validate(read_parsed(Path(stamp), json.loads, "JSON"), "checkpoint_stamp", str(stamp)))
 
 
 def _bound_timeouts(request) -> None:
@@ -132,5 +154,6 @@ def _resolve(model: str, variant: str, checkpoint: str | None, revision: str | N
         # without lerobot processors (X-VLA's) carries its tokenizer in its own snapshot.
         named = tokenizer_names(path) if (path / PROCESSOR_FILES[0]).exists() else []
         info["tokenizers"] = {name: _snapshot("tokenizer", name, None, TOKENIZER_PATTERNS).name for name in named}
+    validate(info, "checkpoint_stamp", str(stamp))
     write_text(stamp, json.dumps(info, indent=2, sort_keys=True) + "\n")
     return info

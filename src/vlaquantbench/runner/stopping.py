@@ -32,18 +32,18 @@ class StoppingRule:
 
     def __init__(self, cfg: CellConfig, against_records: str | Path | None):
         design = cfg.sequential
-        self.ref, self.against = cfg.ref, design["against"]
+        self.ref, self.against = cfg.ref, design.against
         if against_records is None:
-            raise UserError(f"cell {self.ref}: study.sequential tests it against {self.against['ref']}, whose records "
+            raise UserError(f"cell {self.ref}: study.sequential tests it against {self.against.ref}, whose records "
                             "were not given (run that cell first)")
         baseline = check_declared_episodes(read_cell(against_records))
-        if baseline.header.get("config_hash") != self.against["config_hash"]:
+        if baseline.header.get("config_hash") != self.against.config_hash:
             raise UserError(f"{baseline.path}: config hash {baseline.header.get('config_hash')!r}, but cell {self.ref} "
-                            f"is tested against {self.against['ref']} with config hash {self.against['config_hash']!r}")
+                            f"is tested against {self.against.ref} with config hash {self.against.config_hash!r}")
         if baseline.header.get("stopping"):
-            raise UserError(f"{baseline.path}: cell {self.against['ref']} stopped early itself; a sequential cell is "
+            raise UserError(f"{baseline.path}: cell {self.against.ref} stopped early itself; a sequential cell is "
                             "tested against a cell that ran all its episodes")
-        self.design = Design(alpha=design["alpha"], margin_pp=design["margin_pp"])
+        self.design = Design(alpha=design.alpha, margin_pp=design.margin_pp)
         self.tasks, self.cap = list(cfg.tasks), int(cfg.episodes_per_task)
         self.baseline = baseline.episodes[baseline.episodes["task_id"].isin(self.tasks)]
         if sorted(self.baseline["task_id"].unique()) != sorted(self.tasks):
@@ -69,7 +69,7 @@ class StoppingRule:
             return None
         cell = pd.DataFrame([e for e in episodes if e["episode"] < complete])[["task_id", "episode", "success"]]
         baseline = self.baseline[self.baseline["episode"] < complete]
-        result = stopping_rule(paired_rounds(cell, baseline, (self.ref, self.against["ref"])), self.design)
+        result = stopping_rule(paired_rounds(cell, baseline, (self.ref, self.against.ref)), self.design)
         return result if result.decision != "undecided" or complete >= self.cap else None
 
     def next_batch(self, episodes: list[dict[str, Any]], missing: list, workers: int) -> list:
@@ -98,5 +98,5 @@ class StoppingRule:
             "log_capital_not_worse": result.log_capital_not_worse,
             "alpha": self.design.alpha,
             "margin_pp": self.design.margin_pp,
-            "against": self.against["ref"],
+            "against": self.against.ref,
         }

@@ -24,7 +24,7 @@ import pandas as pd
 from vlaquantbench.atomic import atomic_write, write_text
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import contrast_mismatch
-from vlaquantbench.records.cell import Cell
+from vlaquantbench.records.episodes import Cell
 from vlaquantbench.search import (Candidate, SearchDesign, SearchResult, exhaustive, pareto_front, precision_search,
                                   records_decider)
 from vlaquantbench.sequential import Design, full_sample_decision

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from vlaquantbench.envs import BENCHMARK_SUITES
 from vlaquantbench.envs.episodes import TASK_SEED_STRIDE, EpisodeSpec, SuiteTasks, episode_seed
+from vlaquantbench.envs.libero.benchmark import LIBERO
 from vlaquantbench.envs.libero.offline import load_libero
 from vlaquantbench.errors import UserError
 
-SUITES = BENCHMARK_SUITES["libero"]
+SUITES = LIBERO.suites
 
 __all__ = ["SUITES", "TASK_SEED_STRIDE", "EpisodeSpec", "LiberoSuite", "LiberoTask", "episode_seed"]
 

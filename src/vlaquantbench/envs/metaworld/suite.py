@@ -23,16 +23,16 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from vlaquantbench.envs import BENCHMARK_SUITES, METAWORLD_STEP_LIMIT
 from vlaquantbench.envs.episodes import TASK_SEED_STRIDE, EpisodeSpec, SuiteTasks, episode_seed
+from vlaquantbench.envs.metaworld.benchmark import METAWORLD, METAWORLD_STEP_LIMIT
 from vlaquantbench.errors import UserError
 
-SUITES = BENCHMARK_SUITES["metaworld"]
+SUITES = METAWORLD.suites
 # lerobot's difficulty group of each difficulty suite (`DIFFICULTY_TO_TASKS` keys).
 DIFFICULTY_GROUPS = {f"metaworld_{group}": group for group in ("easy", "medium", "hard", "very_hard")}
 # Meta-World's multi-task benchmarks: the `metaworld.env_dict` table of each suite.
 MULTI_TASK_LISTS = {"metaworld_mt10": "MT10_V3", "metaworld_mt50": "MT50_V3"}
-STEP_LIMIT = METAWORLD_STEP_LIMIT  # whatever the model (`envs.SuiteSize.step_limit`)
+STEP_LIMIT = METAWORLD_STEP_LIMIT  # whatever the model (`envs.registry.SuiteSize.step_limit`)
 
 
 @functools.cache

@@ -10,7 +10,7 @@ output as the member's hook would, inside the same compiled function, and counts
 (quantizers of one input compute it once, `quant.hooks`). Nothing here touches a count.
 
 Real low-bit kernels group too: members of one packed class that names the per-token quantization
-of its input (`input_cast`, e.g. `quant.kernels.Fp8DynamicLinear`) and can merge into one layer
+of its input (`input_cast`, e.g. `quant.kernels.fp8.Fp8DynamicLinear`) and can merge into one layer
 (`merged`, whose weight the members' packed weights then view: no second copy), each with one
 `CountingHook` that changes nothing. Their producer then computes the cast itself -- the low-bit
 values and per-token scales, `CastRows`, in the op's own kernel -- and the merged layer's product

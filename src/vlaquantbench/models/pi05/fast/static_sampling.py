@@ -26,7 +26,7 @@ Mirrors lerobot 0.6.1 `PI05Pytorch.sample_actions` (prefix pass that fills the K
   GELUs carry a hand-written kernel for it, `gelu_quant`; the vision tower's LayerNorms are followed
   by `quant.fused_kernel`'s; inductor compiles the rest).
 
-Packed per-token FP8 layers (`quant.kernels.Fp8DynamicLinear`) group too: their producer casts the
+Packed per-token FP8 layers (`quant.kernels.fp8.Fp8DynamicLinear`) group too: their producer casts the
 input to e4m3 rows and scales (`CastRows`, whose `shape` is all the code here reads of a group's
 input) and the group multiplies once with `torch._scaled_mm`. Layers a group cannot fuse (calibrated
 or wrapped transforms, other packed real-kernel layers) and the

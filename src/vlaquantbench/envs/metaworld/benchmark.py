@@ -1,0 +1,27 @@
+"""Meta-World declares itself (`envs.registry`): lerobot's task groups and MT10 / MT50, their sizes, its
+500-step limit and worker footprint. No simulator import: the workflow reads this while it builds the DAG."""
+
+from __future__ import annotations
+
+from vlaquantbench.envs.episodes import TASK_SEED_STRIDE
+from vlaquantbench.envs.registry import Benchmark, Horizon, SuiteSize, register_benchmark
+
+# worker_gib: measured as LIBERO's (envs/libero/benchmark.py), on MT10's first task: 0.16 GiB without a camera, 0.34 GiB rendering 224 px; 0.4 allowed.
+# Its variations are seeds below TASK_SEED_STRIDE (`envs.metaworld.suite`); task counts are lerobot's groups and
+# Meta-World's MT10 / MT50 lists.
+# Meta-World's `max_path_length` (its envs refuse to step further), which lerobot's
+# `MetaworldEnv._max_episode_steps` and so lerobot-eval's rollouts use.
+METAWORLD_STEP_LIMIT = 500
+METAWORLD_HORIZON = Horizon(METAWORLD_STEP_LIMIT, "Meta-World's max_path_length: it refuses to step on")
+_TASKS = {"metaworld_easy": 28, "metaworld_medium": 11, "metaworld_hard": 6, "metaworld_very_hard": 5,
+          "metaworld_mt10": 10, "metaworld_mt50": 50}
+METAWORLD = register_benchmark(Benchmark(
+    name="metaworld",
+    suites={suite: SuiteSize(tasks=tasks, init_states=TASK_SEED_STRIDE, worker_gib=0.4, horizon=METAWORLD_HORIZON,
+                             step_limit=METAWORLD_STEP_LIMIT)
+            for suite, tasks in _TASKS.items()},
+    suite_class="vlaquantbench.envs.metaworld.suite:MetaWorldSuite",
+    env_class="vlaquantbench.envs.metaworld.vector_env:MetaWorldVectorEnv",
+    simulator_versions="vlaquantbench.envs.metaworld.vector_env:simulator_versions",
+    cameras={"main": "image"},  # corner2, as lerobot's Meta-World env renders it; no wrist camera
+))

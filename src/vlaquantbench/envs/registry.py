@@ -1,0 +1,123 @@
+"""The benchmark registry: each benchmark package `envs/<benchmark>/` declares itself in its own light
+`benchmark.py` (a `Benchmark`: its suites and their sizes, hard step limits, worker footprints, and where its
+suite class, vector env class and `simulator_versions` live) and registers it with `register_benchmark`.
+Nothing outside a benchmark's folder names it: `BENCHMARK_SUITES` finds every folder's declaration the first
+time it is read, without importing a simulator, so cell references, task ids and episode counts are checked
+while the workflow builds the DAG (`envs.memory` sizes worker pools by the same declarations)."""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from vlaquantbench.errors import UserError, lookup
+
+
+@dataclass(frozen=True)
+class Horizon:
+    """A simulator's hard limit on one episode: `steps` env steps, after which it refuses to step on (it raises
+    from inside the simulator, naming no setting), the settle steps after a reset included where
+    `counts_settle_steps` (a benchmark whose env settles, `runner.settle_steps`)."""
+
+    steps: int
+    source: str  # where the limit is set, in words
+    counts_settle_steps: bool = False
+
+
+@dataclass(frozen=True)
+class SuiteSize:
+    tasks: int  # task ids 0..tasks-1, in the benchmark's task order
+    init_states: int  # initial states or seeded task variations per task, ids 0..init_states-1
+    worker_gib: float  # memory of one simulator worker process (envs.memory), measured as noted below
+    # Env steps the simulator takes in one episode before it refuses another (`Horizon`): the most steps any
+    # setting may ask of an episode.
+    horizon: Horizon
+    # Policy steps before an unfinished episode counts as a failure, whatever the model; None: each model's
+    # client declares its own (`models/<model>/client.py` STEP_LIMITS).
+    step_limit: int | None = None
+
+
+@dataclass(frozen=True)
+class Benchmark:
+    """A benchmark's declaration. `suite_class`, `env_class` and `simulator_versions` are "module:name" of its
+    suite class (a `SuiteTasks`), its vector env class (a `WorkerVectorEnv`, whose keyword-only parameters are
+    the env settings it takes) and `simulator_versions(pinned)`, imported only when a suite or env is built.
+    `cameras` says what its observations show: camera role ("main", and "wrist" where there is one) -> the
+    observation key of that image (beside `state` and `instruction`, which every benchmark's observation has)."""
+
+    name: str
+    suites: dict[str, SuiteSize]
+    suite_class: str
+    env_class: str
+    simulator_versions: str
+    cameras: dict[str, str]
+
+    @property
+    def observed(self) -> tuple[str, ...]:
+        """The observation keys of what a policy reads besides its instruction: each camera's image, then the state."""
+        return (*self.cameras.values(), STATE)
+
+    def resolve(self, which: str) -> Any:
+        """The object `which` ("suite_class", "env_class" or "simulator_versions") names, imported now."""
+        module, _, attribute = getattr(self, which).partition(":")
+        return getattr(importlib.import_module(module), attribute)
+
+
+# The observation key of the robot state, in every benchmark's observations (`envs.workers.serve` replies).
+STATE = "state"
+CAMERA_ROLES = ("main", "wrist")
+
+_REGISTERED: dict[str, Benchmark] = {}
+
+
+def register_benchmark(benchmark: Benchmark) -> Benchmark:
+    """Register `benchmark` under its name (a benchmark's `benchmark.py` calls it); UserError when another
+    declaration holds the name."""
+    unknown = sorted(set(benchmark.cameras) - set(CAMERA_ROLES))
+    if unknown or "main" not in benchmark.cameras:
+        raise UserError(f"benchmark {benchmark.name!r}: cameras {sorted(benchmark.cameras)}: the roles are "
+                        f"{', '.join(CAMERA_ROLES)}, and a main camera is required")
+    held = _REGISTERED.get(benchmark.name)
+    if held is not None and held != benchmark:
+        raise UserError(f"benchmark {benchmark.name!r} is declared twice ({held.suite_class}, {benchmark.suite_class})")
+    _REGISTERED[benchmark.name] = benchmark
+    return benchmark
+
+
+def _discover() -> None:
+    """Import the `benchmark` module of every benchmark folder beside this file (each registers itself)."""
+    for folder in pkgutil.iter_modules([str(Path(__file__).parent)]):
+        if folder.ispkg and (Path(__file__).parent / folder.name / "benchmark.py").is_file():
+            importlib.import_module(f"{__package__}.{folder.name}.benchmark")
+
+
+class _Registered(Mapping):
+    """{benchmark: {suite: SuiteSize}} of every registered benchmark, its folders found on first read."""
+
+    def _benchmarks(self) -> dict[str, Benchmark]:
+        if not getattr(self, "_found", False):
+            self._found = True
+            _discover()
+        return _REGISTERED
+
+    def __getitem__(self, name: str) -> dict[str, SuiteSize]:
+        return self._benchmarks()[name].suites
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(sorted(self._benchmarks()))
+
+    def __len__(self) -> int:
+        return len(self._benchmarks())
+
+
+BENCHMARK_SUITES: Mapping[str, dict[str, SuiteSize]] = _Registered()
+
+
+def get_benchmark(name: str) -> Benchmark:
+    """The benchmark `name`; UserError naming the registered ones when it is not."""
+    lookup(BENCHMARK_SUITES, name, "benchmark")
+    return _REGISTERED[name]

@@ -1,0 +1,121 @@
+"""W8A8 int8 kernels (`torch._int_mm`): `int8_dynamic`, and `smoothquant` with its migration vector
+folded into the weights."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F  # noqa: N812
+from torch import nn
+
+from vlaquantbench.errors import UserError
+from vlaquantbench.quant.calibration import smoothing_factors
+from vlaquantbench.quant.kernels.packed import PerTokenLinear, quantize_per_token, replace_all, require_preset
+
+try:  # one-pass activation quantization on CUDA; the torch expression below elsewhere
+    import triton
+    import triton.language as tl
+except ImportError:  # pragma: no cover
+    triton = None
+
+if triton is not None:
+
+    @triton.jit
+    def _dequantize_rows(acc_ptr, row_scale_ptr, col_scale_ptr, out_ptr, n_cols, acc_stride, BLOCK: tl.constexpr):
+        row = tl.program_id(0).to(tl.int64)
+        cols = tl.program_id(1) * BLOCK + tl.arange(0, BLOCK)
+        inside = cols < n_cols
+        acc = tl.load(acc_ptr + row * acc_stride + cols, mask=inside, other=0).to(tl.float32)
+        y = acc * tl.load(row_scale_ptr + row) * tl.load(col_scale_ptr + cols, mask=inside, other=0.0)
+        tl.store(out_ptr + row * n_cols + cols, y.to(out_ptr.dtype.element_ty), mask=inside)
+
+
+# cuBLASLt's int8 products (`torch._int_mm` on CUDA) take more than 16 rows, in multiples of 8 here.
+INT_MM_MIN_ROWS = 32
+
+
+def dequantize_int32(acc: torch.Tensor, row_scales: torch.Tensor, col_scales: torch.Tensor,
+                     dtype: torch.dtype) -> torch.Tensor:
+    """(acc * row_scales) * col_scales in float32, rounded once to `dtype`: an int8 product's int32
+    sums back to the layer's scale. One Triton kernel in eager CUDA code (one read of the int32
+    sums, one write of the output), the same arithmetic as torch ops elsewhere."""
+    if triton is None or not acc.is_cuda or torch.compiler.is_compiling():
+        return (acc.float() * row_scales * col_scales).to(dtype)
+    rows, cols = acc.shape
+    out = torch.empty(rows, cols, dtype=dtype, device=acc.device)
+    _dequantize_rows[(rows, triton.cdiv(cols, 1024))](acc, row_scales, col_scales, out, cols, acc.stride(0), BLOCK=1024)
+    return out
+
+
+class Int8DynamicLinear(PerTokenLinear):
+    """W8A8 int8: y = (round(x/s_x) @ W_q^T) * s_x * s_w (+ b), int32 accumulation in `torch._int_mm`
+    (exact), the scales applied in float32 and the result rounded once to the layer's dtype.
+
+    `smooth` (SmoothQuant's d) is folded into the weights and divided out of the input first; a
+    layer without it takes its input cast per token by its producer (`input_cast`)."""
+
+    WEIGHT, INPUT = "weight_int8", torch.int8
+    KERNEL = "torch._int_mm (int8 x int8 -> int32) + float32 rescale"
+
+    def __init__(self, linear: nn.Linear, smooth: torch.Tensor | None = None):
+        super().__init__(linear)
+        weight = linear.weight.detach().float()
+        if smooth is not None:
+            weight = weight * smooth
+        scale = weight.abs().amax(dim=1, keepdim=True).clamp_min(1e-8) / 127.0
+        self.register_buffer("weight_int8", torch.clamp(torch.round(weight / scale), -128, 127).to(torch.int8))
+        self.register_buffer("weight_scale", scale.t().contiguous())  # 1 x out
+        self.register_buffer("smooth", None if smooth is None else smooth.float())
+
+    @property
+    def per_token_input(self) -> bool:
+        return self.smooth is None
+
+    def _as_merged(self) -> None:
+        self.register_buffer("smooth", None)
+
+    def _matmul(self, x2d: torch.Tensor) -> torch.Tensor:
+        if self.smooth is not None:
+            x2d = x2d.float() / self.smooth
+        return self._product(*quantize_per_token(x2d, torch.int8))
+
+    def _product(self, values: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+        rows = values.shape[0]
+        padded = max(INT_MM_MIN_ROWS, (rows + 7) // 8 * 8)
+        if padded != rows:
+            values = F.pad(values, (0, 0, 0, padded - rows))
+        acc = torch._int_mm(values, self.weight_int8.t())[:rows]
+        return dequantize_int32(acc, scales, self.weight_scale, self.out_dtype)
+
+
+def int8_dynamic(model, selection, config):
+    """W8A8 int8 without smoothing: the int8 counterpart of `fp8` (in pi0.5's captured sampler the
+    producing op casts the input rows, and q/k/v and gate/up run as one product)."""
+    require_preset(config, "int8_dynamic")
+    return replace_all(model, selection, lambda n, m: Int8DynamicLinear(m),
+                        "W8A8 int8 (per-channel weights, dynamic per-token activations, torch._int_mm, "
+                        "int32 accumulation, float32 rescale)")
+
+
+def smoothquant(model, selection, config):
+    """SmoothQuant W8A8: migrate activation outliers into the weights with d_j = a_j^alpha / w_j^(1-alpha)
+    (`quant.calibration.smoothing_factors`), then int8 per-channel weights and per-token inputs.
+    Layers of components the calibration does not cover (the pi models' projector) run unsmoothed."""
+    require_preset(config, "smoothquant")
+    if config.calibration is None or config.calibration.alpha is None:
+        raise UserError("method 'smoothquant' smooths by definition: pass calibration=CalibrationSettings(alpha=...) "
+                        "and stats=... (the runner's calibrate step collects them for smoothquant cells)")
+    smoothed = set()
+
+    def make(name, linear):
+        stats = config.stats.layers.get(name) if selection.component_of(name) in config.calibration.components else None
+        if stats is None:
+            return Int8DynamicLinear(linear)
+        smoothed.add(name)
+        return Int8DynamicLinear(linear, smoothing_factors(stats.absmax, linear.weight, config.calibration.alpha))
+
+    result = replace_all(model, selection, make,
+                          "W8A8 int8 (per-channel weights, dynamic per-token activations, torch._int_mm), SmoothQuant "
+                          f"migration alpha={config.calibration.alpha} from rollout calibration statistics "
+                          f"(cache {config.stats.key}; not the paper's 512 text samples)")
+    result.calibrated = smoothed
+    return result

@@ -1,0 +1,66 @@
+"""The cell config is typed to the end (issue 50): its stopping rule (`SequentialSpec`), its client's conventions
+(`ClientConventions`) and the checkpoint stamp a job loads from (`CheckpointStamp`) are dataclasses, each checked
+by the schema rules of the YAML values it stands for, and the typed forms keep every cell's canonical form and hash."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from demo_study import demo_study
+from vlaquantbench.cells import AgainstCell, CellConfig, SequentialSpec
+from vlaquantbench.config.study import StudyConfig
+from vlaquantbench.errors import UserError
+from vlaquantbench.models.client import ClientConventions, client_conventions
+from vlaquantbench.runner.checkpoint import CheckpointStamp, download_checkpoint
+
+SPATIAL_PI05 = "libero/libero_spatial/pi05"
+
+
+def test_a_sequential_cell_reads_back_typed_with_its_hash():
+    study = StudyConfig.from_dict(demo_study("pi05", sequential={"against": "rtn-BASELINE-e2e", "alpha": 0.1}))
+    cell = CellConfig.from_ref(f"{SPATIAL_PI05}/rtn-W4A4-e2e", study)
+    against = CellConfig.from_ref(f"{SPATIAL_PI05}/rtn-BASELINE-e2e", study)
+    assert cell.sequential == SequentialSpec(0.1, 5.0, AgainstCell(against.ref, against.config_hash))
+    assert against.sequential is None and "sequential" not in against.to_dict()
+    assert isinstance(cell.client, ClientConventions) and cell.client == client_conventions("pi05")
+    again = CellConfig.from_dict(cell.to_dict())
+    assert again == cell and again.config_hash == cell.config_hash
+    assert cell.to_dict()["sequential"] == {"alpha": 0.1, "margin_pp": 5.0,
+                                            "against": {"ref": against.ref, "config_hash": against.config_hash}}
+
+
+def test_a_sequential_spec_outside_the_schema_is_refused_naming_the_field():
+    against = AgainstCell(f"{SPATIAL_PI05}/rtn-BASELINE-e2e", "0123456789ab")
+    with pytest.raises(UserError, match=r"against 'libero/libero_spatial/pi05/rtn-BASELINE-e2e': study\.sequential\.alpha"):
+        SequentialSpec(1.5, 5.0, against)
+    with pytest.raises(UserError, match=r"study\.sequential\.margin_pp"):
+        SequentialSpec.from_dict({"alpha": 0.05, "margin_pp": 0, "against": dataclasses.asdict(against)})
+
+
+def test_client_conventions_outside_the_schema_are_refused_naming_the_field():
+    released = client_conventions("pi05")
+    with pytest.raises(UserError, match=r"client conventions \(.*\): study\.runner\.control_mode"):
+        dataclasses.replace(released, control_mode="relative")
+    with pytest.raises(UserError, match=r"study\.runner\.executed_chunk"):
+        dataclasses.replace(released, executed_chunk=0)
+    with pytest.raises(UserError, match="episodes_per_task"):
+        ClientConventions(**{**released.as_dict(), "episodes_per_task": 0})
+
+
+def test_a_stamp_is_read_once_typed_and_a_malformed_one_is_refused_naming_file_and_field(tmp_path):
+    stamp = tmp_path / "checkpoint.json"
+    download_checkpoint("pi05", "demo", "lerobot/pi05_libero_finetuned_v044", None, stamp)
+    assert CheckpointStamp.read(stamp) == CheckpointStamp("pi05", "demo", "lerobot/pi05_libero_finetuned_v044", None, None)
+    written = json.loads(stamp.read_text())
+    stamp.write_text(json.dumps({**written, "hf_hom": "/tmp/x"}))
+    with pytest.raises(UserError, match=rf"{stamp}: .*hf_hom"):
+        CheckpointStamp.read(stamp)
+    stamp.write_text(json.dumps({**written, "path": 3}))
+    with pytest.raises(UserError, match=rf"{stamp}: path: 3 is not of type"):
+        CheckpointStamp.read(stamp)
+    stamp.write_text("{")
+    with pytest.raises(UserError, match=str(stamp)):
+        CheckpointStamp.read(stamp)
