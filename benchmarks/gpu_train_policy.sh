@@ -1,24 +1,14 @@
 #!/bin/bash
-# The trained policy from nothing on a GPU machine, in one device call or in two on the same (warm) machine.
-# Run from the repository root with the Meta-World stack (benchmarks/simstack.py pack --benchmark metaworld)
-# in .gpuwork/demos-stack, carried:
-#   run(command="bash benchmarks/gpu_train_policy.sh", carry=[".gpuwork/demos-stack"])
-# (tree and stack within the 64 MiB a call carries: leave the committed records and checkpoints out of the
-# index for the call, `git rm -r --cached` and .git/info/exclude, and `git reset` after.)
-# Each phase runs only if its output is missing, so a second call on the machine the first one used (a
-# machine stays warm 30 s after a call; its ignored files stay) picks up where the first stopped:
-# 1. the training step's rate, eager and captured as a CUDA graph, and the captured step checked against
-#    the eager one (benchmarks/gpu_train_step.py);
-# 2. rule demonstrations through Snakemake (config/trained_study.yaml: 10 tasks x 50 episodes, 16 workers);
-# 3. sizing (logs/sized.yaml): the fastest checked variant, its steps filling this call's training time,
-#    plus SECOND_CALL_TRAIN_S seconds of a second call when SECOND_CALL_TRAIN_S is set;
-# 4. rule train_policy through Snakemake until TRAIN_END_S into this call: it stops there with its resumable
-#    state when steps are left (the next call resumes it), or writes the checkpoint;
-# 5. with the checkpoint: the closed-loop check, 10 tasks x 20 held-out variations (0..19) at full precision
-#    (benchmarks/trained_policy_closed_loop.py), episodes recorded as they finish.
-# Each phase runs in its own process group, killed whole at its limit (a timed-out Snakemake waits for its
-# jobs). Under $OUT: the checkpoint (tar split in 15 MiB parts), closed_loop.json and .jsonl, logs.tar.gz
-# (refreshed every 20 s and after every phase), timings.txt.
+# The trained policy from nothing on a GPU machine, in one device call or in two on the same warm machine:
+#   run(command="TRAIN_END_S=545 SECOND_CALL_TRAIN_S=320 bash benchmarks/gpu_train_policy.sh", carry=[".gpuwork/demos-stack"])
+# with the Meta-World stack (benchmarks/simstack.py pack --benchmark metaworld) in .gpuwork/demos-stack (leave the
+# committed records and checkpoints out of the index for the call: 64 MiB travel). A phase runs only if its output
+# is missing, so a second call on the machine (warm 30 s after a call) resumes where the first stopped: step rate
+# and graph check (gpu_train_step.py), rule demonstrations, sizing (logs/sized.yaml: the fastest checked variant's
+# steps fill this call's training time plus SECOND_CALL_TRAIN_S), rule train_policy until TRAIN_END_S (then its
+# resumable state), and with the checkpoint the closed-loop check (10 tasks x variations 0..19). Each phase runs in a
+# process group of its own, killed whole at its limit. $OUT: checkpoint tar parts, closed_loop.json(l), logs.tar.gz
+# (refreshed every 20 s), timings.txt.
 set -o pipefail
 TRAIN_END_S=${TRAIN_END_S:-440}  # seconds into this call by which training stops
 SECOND_CALL_TRAIN_S=${SECOND_CALL_TRAIN_S:-0}  # training seconds a second call will add (0: one call)

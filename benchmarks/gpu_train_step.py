@@ -103,8 +103,7 @@ def measure(training: dict, dataset, tokenizer, device: torch.device, batches: l
 def graph_check(training: dict, dataset, tokenizer, device: torch.device, batch_size: int, steps: int) -> dict:
     """The captured step against the eager one: two policies from one initialization take `steps` steps on the
     same batches, noise and time (drawn once, before either runs); their losses and final weights, compared."""
-    from vlaquantbench.training.captured import CapturedLoss
-    from vlaquantbench.training.loop import _flow_loss, _flow_sample
+    from vlaquantbench.training.loop import TrainingStep, _flow_sample
 
     runs, inputs = [], []
     for graph in (False, True):
@@ -116,23 +115,11 @@ def graph_check(training: dict, dataset, tokenizer, device: torch.device, batch_
                 batch = frames.batch(torch.randint(0, len(frames), (batch_size,), device=device),
                                      training.get("random_shift_px", 0))
                 inputs.append((batch, *_flow_sample(policy, batch)))
-        captured = CapturedLoss(policy, lambda p, b, n, t: _flow_loss(p, b, n, t, None)) if graph else None
-        losses = []
-        for batch, noise, time_ in inputs:
-            if graph:
-                loss = captured(batch, noise, time_)
-            else:
-                loss = _flow_loss(policy, batch, noise, time_, None)
-                loss.backward()
-            torch.nn.utils.clip_grad_norm_(policy.parameters(), clip)
-            optimizer.step()
-            if not graph:
-                optimizer.zero_grad(set_to_none=True)
-            scheduler.step()
-            losses.append(loss.detach())
+        step = TrainingStep(policy, optimizer, scheduler, clip, None, cuda_graph=graph)
+        losses = torch.stack([step(*item) for item in inputs]).tolist()
         final = torch.cat([p.detach().flatten() for p in policy.parameters()])
-        runs.append((torch.stack(losses).tolist(), final, (final - initial).abs().max().item()))
-        del policy, optimizer, frames, captured
+        runs.append((losses, final, (final - initial).abs().max().item()))
+        del policy, optimizer, frames, step
     (eager_losses, eager_weights, moved), (graph_losses, graph_weights, _) = runs
     check = {"batch_size": batch_size, "steps": steps, "eager_losses": eager_losses, "graph_losses": graph_losses,
              "max_rel_loss_diff": max(abs(a - b) / abs(a) for a, b in zip(eager_losses, graph_losses)),

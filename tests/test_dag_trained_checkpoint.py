@@ -20,6 +20,7 @@ from vlaquantbench.records import read_cell
 from vlaquantbench.runner.provenance import host
 
 HOME = "checkpoints/pi05_metaworld_cpu"  # the committed CPU-trained pi0.5 (config/trained_cpu.yaml)
+GPU_HOME = "checkpoints/pi05_metaworld"  # the committed GPU-trained pi0.5 (config/trained_study.yaml)
 TRAINING = json.loads((ROOT / HOME / "training.json").read_text())
 REF = "metaworld/metaworld_mt50/pi05/rtn-W4A4-ah"
 
@@ -135,10 +136,11 @@ def test_the_header_stat_prints_a_components_error_from_the_committed_records():
 
 @pytest.mark.slow
 def test_the_trained_policy_shows_a_real_quantization_effect(tmp_path):
-    """Issue 30's real effect, through `snakemake` on the committed checkpoint in real Meta-World: full precision
-    succeeds on most episodes of drawer-close and handle-press (variations 0-7, never demonstrated), RTN W2A2
-    over the whole policy on clearly fewer of the same episodes (tests/test_trained_sequential.py: the live
-    stopping rule calls it worse at alpha 0.05). Random weights would fail the first assertion: they never succeed."""
+    """A real effect, through `snakemake` on the GPU-trained checkpoint (config/trained_study.yaml) in real
+    Meta-World: full precision succeeds on most episodes of coffee-button and drawer-close (variations 0-7,
+    never demonstrated; 20 of 20 each in its closed-loop check, benchmarks/results/gpu_train_policy/), RTN W2A2
+    over the whole policy on far fewer of the same episodes. Random weights would fail the first assertion:
+    they never succeed."""
     checkout, tables = workflow_with_tables(tmp_path)
     base = "metaworld/metaworld_mt50/pi05/"
     (tables / "effect.yaml").write_text(yaml.safe_dump({
@@ -147,8 +149,8 @@ def test_the_trained_policy_shows_a_real_quantization_effect(tmp_path):
     config = tmp_path / "effect.yaml"
     config.write_text(yaml.safe_dump({
         "tables": ["effect"], "tables_dir": str(tables),
-        "study": {"models": {"pi05": {"variant": "full", "trained": HOME, "checkpoint": None, "revision": None}},
-                  "tasks": [18, 24], "episodes_per_task": 8, "runner": {"max_steps": 150},
+        "study": {"models": {"pi05": {"variant": "full", "trained": GPU_HOME, "checkpoint": None, "revision": None}},
+                  "tasks": [8, 18], "episodes_per_task": 8, "runner": {"max_steps": 150},
                   "execution": {"num_envs": 2, "torch_threads": 1, "progress": False}}}))
     result = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "tables/effect.tex", f"--configfile={config}"],
                             cwd=checkout, capture_output=True, text=True, timeout=900)
@@ -158,5 +160,6 @@ def test_the_trained_policy_shows_a_real_quantization_effect(tmp_path):
     key = ["task_id", "episode", "seed"]
     assert sorted(map(tuple, full[key].to_numpy())) == sorted(map(tuple, w2a2[key].to_numpy()))  # the same episodes
     per_task = full.groupby("task_name")["success"].sum()
-    assert (per_task >= 6).all() and len(per_task) == 2, per_task  # most of 8, on both tasks
-    assert w2a2["success"].sum() <= full["success"].sum() - 4, (w2a2["success"].sum(), full["success"].sum())
+    assert (per_task >= 7).all() and len(per_task) == 2, per_task  # nearly all of 8, on both tasks
+    # 50 points or more: the drop no reading of chance explains
+    assert w2a2["success"].sum() <= full["success"].sum() - 8, (w2a2["success"].sum(), full["success"].sum())

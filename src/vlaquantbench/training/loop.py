@@ -173,10 +173,13 @@ class TrainingStep:
         loss_fn = functools.partial(_flow_loss, autocast_dtype=autocast_dtype)
         self.captured = CapturedLoss(policy, loss_fn) if cuda_graph else None
 
-    def __call__(self, batch):
+    def __call__(self, batch, noise=None, time_=None):
+        """One step on `batch`; the flow's noise and time are drawn here unless given (as a comparison of two
+        steps on the same inputs gives them)."""
         import torch
 
-        noise, time_ = _flow_sample(self.policy, batch)
+        if noise is None or time_ is None:
+            noise, time_ = _flow_sample(self.policy, batch)
         if self.captured is None:
             loss = _flow_loss(self.policy, batch, noise, time_, self.autocast_dtype)
             loss.backward()
