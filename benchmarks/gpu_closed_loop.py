@@ -6,32 +6,21 @@ chunks, `runner.loop.run_episodes` overlapping the policy with stepping). For ea
 `--num-envs`, on one set of N workers:
 
   - `simulator_bound`: the same tasks and init states driven by a zero-cost policy (small random
-    actions drawn from each episode's stream in microseconds): what the simulator alone allows on this
-    machine for those actions; measured first and, for N in `--bound-after`, again last (`simulator_bound_after`): the ratio divides by
-    the mean of the two, so that a drift of the machine during the runs does not favour either side;
-    with `--repeats R`, R - 1 further pairs of a policy run and a bound run follow (`repeats`), each
-    policy run's ratio is to the mean of the bounds just before and after it (`pairs`), and
-    `vs_simulator_bound` is the median of the pairs' ratios;
+    actions drawn from each episode's stream in microseconds), measured first and, for N in `--bound-after`,
+    again last (`simulator_bound_after`): the ratio divides by the mean of the two, against drift;
+    with `--repeats R`, R - 1 further pairs of a policy run and a bound run follow, each policy run's
+    ratio to the bounds around it in `pairs`, `vs_simulator_bound` their median;
   - `simulator_bound_replay` (N in `--replay-bound`): after each policy run, a zero-cost policy
-    returning, episode by episode, the chunks that run's policy returned (`ReplayPolicy`): the
-    simulator alone on the very episodes the policy drove, whose steps can cost more CPU than the
-    random actions'; `same_actions` says every episode executed the same actions (`actions_sha256`,
-    over the episodes' digests); `replay_pairs` has each policy run's ratio
-    to its replay, `vs_replay_bound` their median;
+    returning that run's chunks episode by episode (`ReplayPolicy`): the simulator alone on the very
+    episodes the policy drove; `same_actions` says they executed the same actions; `replay_pairs` has
+    each policy run's ratio to its replay, `vs_replay_bound` their median;
   - `policy`: N x `--rounds` episodes (at least `--min-episodes`) driven by the policy.
 
-Every run records each policy call's batch and wall time and the main process's waits for the
-simulator. The main process runs `--torch-threads` intra-op threads (1, as a cell:
-`ExecutionConfig.torch_threads`).
-
-Episodes go task-major as in a cell (task 0's init states 0, 1, ..., then task 1's); each slot's
-first task environment is built before timing, so every run meets the same builds. Random weights
-never succeed: every episode runs to the step limit (the suite's, or `--max-steps`). Worker
-start-up, the first capture of each graph size (`captured.GRAPH_SIZES`: the captured sampler runs a
-batch as the cheapest cover of its rows by these sizes, `graph_plan`; the CUDA cache is emptied
-afterwards, for the workers' EGL contexts) and one short simulator
-warm-up episode are timed apart and excluded. Writes after every N, so a run cut short keeps what
-it measured.
+Every run records each policy call's batch and wall time and the main process's waits for the simulator;
+the main process runs `--torch-threads` intra-op threads (1, as a cell). Episodes go task-major as in a
+cell. Random weights never succeed: every episode runs to the step limit. Worker start-up, the first capture
+of each graph size (`captured.GRAPH_SIZES`) and one short warm-up episode are timed apart and excluded.
+Writes after every N, so a run cut short keeps what it measured.
 
     MUJOCO_GL=egl python benchmarks/gpu_closed_loop.py --num-envs 32 --bound-after 32 --replay-bound 32 --repeats 2 \\
         --out benchmarks/results/closed_loop_gpu_32_replay.json

@@ -56,15 +56,13 @@ if [ ! -f logs/sized.yaml ]; then
 import json, sys, yaml
 this_call, second_call = float(sys.argv[1]), float(sys.argv[2])
 record = json.load(open("logs/step_rate.json"))
-check = record.get("graph_check") or {}
-graph_ok = check.get("max_rel_loss_diff", 1) < 1e-3
+graph_ok = (record.get("graph_check") or {}).get("max_rel_loss_diff", 1) < 1e-3  # the captured step only if checked
 rows = [r for r in record["variants"] if graph_ok or not r["cuda_graph"]]
 best = {b: max((r for r in rows if r["batch_size"] == b), key=lambda r: r["samples_per_s"]) for b in {r["batch_size"] for r in rows}}
 # a larger batch only when it gives 1.4x the samples a second of the smaller (more steps otherwise)
-pick = None
+pick = best[min(best)]
 for batch in sorted(best):
-    if pick is None or best[batch]["samples_per_s"] >= 1.4 * pick["samples_per_s"]:
-        pick = best[batch]
+    pick = best[batch] if best[batch]["samples_per_s"] >= 1.4 * pick["samples_per_s"] else pick
 steps = int(0.92 * pick["steps_per_s"] * (this_call - pick["first_5_steps_s"] + second_call))
 training = yaml.safe_load(open("config/trained_study.yaml"))["training"]
 training.update(steps=steps, batch_size=pick["batch_size"], precision=pick["precision"], cuda_graph=pick["cuda_graph"],

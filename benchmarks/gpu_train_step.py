@@ -1,18 +1,14 @@
-"""Training step rate of the trained pi0.5 (config/trained_study.yaml's `training` section) by precision,
-batch size and how the step runs (eager, captured as a CUDA graph, compiled), on the step
-`vlaquantbench.training` runs (`TrainingStep`): a batch gathered from `DeviceFrames` with the random
-shift, the flow-matching loss, backward, clipping, AdamW and the scheduler.
+"""Training step rate of the trained pi0.5 (config/trained_study.yaml's `training`) by precision, batch size and
+how the step runs (eager, captured as a CUDA graph, compiled), on `vlaquantbench.training.TrainingStep`.
 
     python benchmarks/gpu_train_step.py --out FILE.json [--config config/trained_study.yaml] [--device cuda]
-        [--image-size 112] [--batches 128 256] [--precisions float32 bfloat16] [--graphs off on]
-        [--compile-modes none default] [--check-graph-steps 8] [--steps 30]
+        [--batches 128 256] [--precisions float32 bfloat16] [--graphs off on] [--compile-modes none default]
+        [--check-graph-steps 8] [--steps 30]
 
-`--check-graph-steps N` first runs N captured steps beside N eager ones from one initialization on the
-same inputs and records their losses and weights (`graph_check`). The frames come from a small
-LeRobotDataset written here (random images at the demonstrations' size); the step costs the same
-whatever the pixels. Prints one line a variant and writes `--out` (steps a second, samples a second,
-peak memory, and the seconds the first 5 steps took: capturing or compiling);
-benchmarks/gpu_train_policy.sh reads it to size the run.
+`--check-graph-steps N` first compares N captured steps with N eager ones from one initialization on the same
+inputs (`graph_check`: losses and weights). The frames: a small LeRobotDataset of random images at the
+demonstrations' size (the step costs the same whatever the pixels). Writes `--out` (steps and samples a second,
+peak memory, the first 5 steps' seconds: capture or compile), which benchmarks/gpu_train_policy.sh sizes from.
 """
 
 from __future__ import annotations
@@ -31,11 +27,9 @@ import yaml
 def tiny_dataset(root: Path, image_size: int, tasks: list[str], frames: int = 40):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    features = {
-        "observation.image": {"dtype": "image", "shape": (image_size, image_size, 3), "names": ["height", "width", "channel"]},
-        "observation.state": {"dtype": "float32", "shape": (4,), "names": None},
-        "action": {"dtype": "float32", "shape": (4,), "names": None},
-    }
+    vector = {"dtype": "float32", "shape": (4,), "names": None}
+    features = {"observation.image": {"dtype": "image", "shape": (image_size, image_size, 3), "names": ["height", "width", "channel"]},
+                "observation.state": vector, "action": vector}
     dataset = LeRobotDataset.create("vlaquantbench/step-rate", fps=80, features=features, root=root, use_videos=False)
     rng = np.random.default_rng(0)
     for task in tasks:

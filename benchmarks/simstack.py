@@ -6,29 +6,17 @@
     python3 benchmarks/simstack.py unpack --from .simstack --target /tmp/sim   # on the GPU machine
     . /tmp/sim/env.sh && python3 benchmarks/simstack.py check --target /tmp/sim
 
-`pack` runs every task of the suite here (rendering on, a few steps each) and the pi05 adapter once,
-in a child interpreter with an audit hook, and records (1) the top-level modules imported from this
-environment's site-packages, (2) every file Python opened and (3) every `file=` path of each task's
-compiled MJCF (meshes and textures MuJoCo reads in C). It then writes xz tarballs of:
-  - `dists`: every installed distribution those modules belong to, from its pip RECORD (the wheels'
-    own files, byte-identical, dist-info included, bytecode left out), except the packages the GPU
-    machine already has (`PRESENT`) and the two trees below;
-  - `robosuite` and `libero` (hf-libero): all Python code and dist-info, and of their other files only
-    those the suite opened or referenced (robosuite's robot meshes are 418 MB; the suite needs a few);
-  - `assets`: the LIBERO assets folder pruned to the files the suite opened or referenced;
-  - `gl`: the vendor-neutral GL loaders the probe's renderer mapped (libglvnd's libEGL.so.1,
-    libOpenGL.so.0, libGLdispatch.so.0, ...): a GPU machine may ship only NVIDIA's vendor libraries
-    (libEGL_nvidia.so.0 and its glvnd vendor file) without the loaders that dispatch to them.
-Tarballs are split so that none exceeds the part limit and packed into `part1/`, `part2/`, ... folders
-of at most 58 MiB, each small enough to travel as one carried path of one device call.
-
-`pack --benchmark metaworld` (`pack_metaworld`) packs instead what rule demonstrations and the training
-rule use, probed from a real Snakemake run of the demonstrations rule on the config's tasks.
-
-`unpack` extracts every part into `TARGET/site` (PYTHONPATH), `TARGET/assets` (VQB_LIBERO_ASSETS) and
-`TARGET/lib` (LD_LIBRARY_PATH), and writes `TARGET/env.sh` with the export lines. `check` (run with
-env.sh sourced) steps every task of the suite with rendering on and fails unless everything the
-simulator read came from TARGET.
+`pack` runs every task of the suite here (rendering on) and the pi05 adapter once, in a child interpreter
+with an audit hook recording the modules imported from site-packages, the files opened and each task's MJCF
+`file=` paths. It writes xz tarballs of: `dists` (those modules' distributions from their pip RECORDs,
+byte-identical, less `PRESENT`, the packages the GPU machine has); `robosuite` and `libero` (code and
+dist-info, and only the data files the suite used: robosuite's meshes are 418 MB); `assets` (LIBERO's,
+pruned the same way); `gl` (libglvnd's loaders the renderer mapped: a GPU machine may ship only NVIDIA's
+vendor libraries). Tarballs are split into `part1/`, `part2/`, ... of at most 58 MiB, one carried path each.
+`pack --benchmark metaworld` packs what rule demonstrations and the training rule use, probed from a real
+Snakemake run of the demonstrations rule. `unpack` extracts the parts into `TARGET/site`, `TARGET/assets`
+and `TARGET/lib` and writes `TARGET/env.sh`; `check` (env.sh sourced) steps every task and fails unless
+everything the simulator read came from TARGET.
 """
 
 from __future__ import annotations

@@ -4,20 +4,14 @@
         [--tasks drawer-close-v3 ...] [--episodes 5] [--first-variation 0] [--workers 2] [--device cpu]
         [--max-steps 500] [--preset W2 --scope e2e]
 
-Loads the checkpoint from the HF_HOME folder `--home` through the rollout path (the pi0.5 adapter's
-released-checkpoint loader, offline, at the revision training.json names), and runs `--episodes`
-episodes of each task through `runner.loop.run_episodes` with Meta-World's batched env rendering the
-`corner2` camera at the checkpoint's input size. Episode e starts from task variation
-`--first-variation + e`: variations below the demonstrations' `first_variation` (500) are ones the
-demonstrations never used. The policy executes the `n_action_steps` it was trained with of each
-predicted chunk. `--max-steps` (default: the suite's limit, 500) ends an episode sooner as a failure:
-the scripted experts finish these tasks in 32-93 steps, and a CPU run cannot afford 500 steps of a
-failing policy. `--preset` quantizes the policy first (round-to-nearest, no calibration, over the
-component scope `--scope`), as a study cell's `rtn-<preset>-<scope>` does. Writes `--out` (JSON: success per task, wall time, the checkpoint's revision).
-
-Arguments are checked before the policy loads: counts of at least 1, tasks of the suite, `--max-steps` within
-Meta-World's 500, and variations that the demonstrations never recorded (their range from the `demonstrations`
-section of the workflow config whose `training.output` is `--home`).
+Loads the checkpoint from the HF_HOME folder `--home` through the rollout path (offline, at the revision
+training.json names) and runs `--episodes` episodes of each task through `runner.loop.run_episodes`, the
+`corner2` camera at the checkpoint's input size, executing the `n_action_steps` it was trained with. Episode e
+starts from variation `--first-variation + e`; variations the demonstrations recorded are refused (their range
+from the config whose `training.output` is `--home`). `--max-steps` (default 500, the suite's limit) ends an
+episode sooner as a failure (the experts need 32-93 steps). `--preset` quantizes first (round-to-nearest over
+`--scope`, as cell `rtn-<preset>-<scope>`). Writes `--out` (success per task with a task-clustered 95% interval,
+wall time, revision) and, with `--records`, each episode's record as it ends.
 """
 
 from __future__ import annotations
