@@ -1,17 +1,24 @@
 #!/bin/bash
-# The trained policy from nothing on a GPU machine, in one device call or in two on the same warm machine:
-#   run(command="TRAIN_END_S=545 SECOND_CALL_TRAIN_S=320 bash benchmarks/gpu_train_policy.sh", carry=[".gpuwork/demos-stack"])
+# The trained policy from nothing on a GPU machine, over warm calls on the same machine:
+#   run(command="STEPS=config TRAIN_END_S=545 bash benchmarks/gpu_train_policy.sh", carry=[".gpuwork/demos-stack"])
+# then the same command again while the machine is warm (30 s), until $OUT holds ckpt.tar.part*. STEPS=config
+# trains config/trained_study.yaml's steps (18,796: three calls on an H100, benchmarks/results/gpu_train_policy/);
+# without it the steps are sized from the measured step rate to fill this call plus SECOND_CALL_TRAIN_S.
 # with the Meta-World stack (benchmarks/simstack.py pack --benchmark metaworld) in .gpuwork/demos-stack (leave the
 # committed records and checkpoints out of the index for the call: 64 MiB travel). A phase runs only if its output
 # is missing, so a second call on the machine (warm 30 s after a call) resumes where the first stopped: step rate
 # and graph check (gpu_train_step.py), rule demonstrations, sizing (logs/sized.yaml: the fastest checked variant's
 # steps fill this call's training time plus SECOND_CALL_TRAIN_S), rule train_policy until TRAIN_END_S (then its
 # resumable state), and with the checkpoint the closed-loop check (10 tasks x variations 0..19). Each phase runs in a
-# process group of its own, killed whole at its limit. $OUT: checkpoint tar parts, closed_loop.json(l), logs.tar.gz
-# (refreshed every 20 s), timings.txt.
+# process group of its own, killed whole at its limit. The first call drops the committed checkpoint (on the device
+# machine's copy), so that rule train_policy runs. $OUT: checkpoint tar parts, closed_loop.json(l), logs.tar.gz
+# (refreshed every 20 s), timings.txt; after a call that paused the training, paused.tar.part* (the weights, step
+# and losses, 39 MB, and the dataset's metadata): if the machine is lost, untar them into the checkout and
+# `training.checkpoint_from_saved_state` writes the checkpoint where the state stands.
 set -o pipefail
 TRAIN_END_S=${TRAIN_END_S:-440}  # seconds into this call by which training stops
 SECOND_CALL_TRAIN_S=${SECOND_CALL_TRAIN_S:-0}  # training seconds a second call will add (0: one call)
+STEPS=${STEPS:-rate}  # config: the config's steps; rate: sized from the measured step rate
 S=$PWD/.gpuwork/demos-stack
 T0=$(date +%s)
 at() { echo "$1 at $(( $(date +%s) - T0 )) s" | tee -a $OUT/timings.txt; }
@@ -33,13 +40,17 @@ phase() {
 }
 SNAKEMAKE="python3 -m snakemake --rerun-triggers mtime input --cores 16 --scheduler greedy --nolock --rerun-incomplete"
 mkdir -p logs
+if [ ! -f logs/started ]; then  # the first call on this machine: retrain, not reuse the committed checkpoint
+  rm -rf checkpoints/pi05_metaworld/policy checkpoints/pi05_metaworld/tokenizer checkpoints/pi05_metaworld/training.json
+  touch logs/started
+fi
 [ -f /tmp/sim/env.sh ] || python3 benchmarks/simstack.py unpack --from $S --target /tmp/sim > logs/unpack.log 2>&1 \
   || { tail -20 logs/unpack.log; exit 1; }
 . /tmp/sim/env.sh
 export PYTHONPATH=$PWD/src:$PYTHONPATH PYTHONUNBUFFERED=1 MUJOCO_GL=egl
 ( while sleep 20; do save_logs; done ) &
 nvidia-smi -L | tee -a $OUT/timings.txt; at "ready (resume state: $(ls checkpoints/pi05_metaworld/resume 2>/dev/null))"
-if [ ! -f logs/step_rate.json ]; then
+if [ "$STEPS" = rate ] && [ ! -f logs/step_rate.json ]; then
   phase 150 logs/step_rate.log python3 benchmarks/gpu_train_step.py --out logs/step_rate.json --steps 30 \
     --batches 128 256 --precisions float32 --graphs off on --check-graph-steps 8
   at "step rate (rc $?)"; grep '^{' logs/step_rate.log
@@ -52,9 +63,12 @@ if [ ! -f results/demonstrations/metaworld/manifest.tsv ]; then
 fi
 # Loading the dataset onto the device and saving the state take about 40 s of a training call.
 if [ ! -f logs/sized.yaml ]; then
-  python3 - "$(left $(( TRAIN_END_S - 40 )))" "$SECOND_CALL_TRAIN_S" > logs/sized.yaml <<'PY' || exit 1
+  python3 - "$(left $(( TRAIN_END_S - 40 )))" "$SECOND_CALL_TRAIN_S" "$STEPS" > logs/sized.yaml <<'PY' || exit 1
 import json, sys, yaml
 this_call, second_call = float(sys.argv[1]), float(sys.argv[2])
+if sys.argv[3] == "config":  # the config's recipe as it stands
+    print(yaml.safe_dump({"training": yaml.safe_load(open("config/trained_study.yaml"))["training"]}))
+    sys.exit()
 record = json.load(open("logs/step_rate.json"))
 graph_ok = (record.get("graph_check") or {}).get("max_rel_loss_diff", 1) < 1e-3  # the captured step only if checked
 rows = [r for r in record["variants"] if graph_ok or not r["cuda_graph"]]
@@ -79,6 +93,14 @@ if [ ! -f checkpoints/pi05_metaworld/training.json ]; then
   phase "$(left $(( TRAIN_END_S + 30 )))" logs/snakemake_training.log $SNAKEMAKE checkpoints/pi05_metaworld/training.json \
     --configfile config/trained_study.yaml logs/this_call.yaml
   at "training (rc $?)"; grep "dataset on\|policy:\|step \|time limit\|stopped" logs/train_policy.log | tail -8
+fi
+if [ -f checkpoints/pi05_metaworld/resume/state.pt ]; then  # paused: what a lost machine would take with it
+  python3 -c "
+import torch; s = torch.load('checkpoints/pi05_metaworld/resume/state.pt', map_location='cpu', weights_only=False)
+torch.save({k: s[k] for k in ('binding', 'policy', 'step', 'losses', 'wall_s')}, 'logs/paused_state.pt')"
+  tar -cf - logs/paused_state.pt results/demonstrations/metaworld/dataset/meta results/demonstrations/metaworld/manifest.tsv \
+    | split -b 15M - $OUT/paused.tar.part
+  at "paused state exported"
 fi
 if [ -f checkpoints/pi05_metaworld/training.json ]; then
   tar --exclude resume -cf - checkpoints/pi05_metaworld | split -b 15M - $OUT/ckpt.tar.part

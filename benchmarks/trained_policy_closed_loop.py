@@ -4,8 +4,8 @@
         [--tasks drawer-close-v3 ...] [--episodes 5] [--first-variation 0] [--workers 2] [--device cpu]
         [--max-steps 500] [--preset W2 --scope e2e]
 
-Loads the checkpoint from the HF_HOME folder `--home` through the rollout path (offline, at the revision
-training.json names) and runs `--episodes` episodes of each task through `runner.loop.run_episodes`, the
+Loads the checkpoint from its folder `--home` through the rollout path (verified against its training.json, at
+the revision it names) and runs `--episodes` episodes of each task through `runner.loop.run_episodes`, the
 `corner2` camera at the checkpoint's input size, executing the `n_action_steps` it was trained with. Episode e
 starts from variation `--first-variation + e`; variations the demonstrations recorded are refused (their range
 from the config whose `training.output` is `--home`). `--max-steps` (default 500, the suite's limit) ends an
@@ -29,7 +29,7 @@ from vlaquantbench.demonstrations import DemonstrationConfig
 from vlaquantbench.demonstrations.overlap import VariationRange, check_disjoint, demonstrated_range
 from vlaquantbench.envs import check_step_limit, make_env, make_suite
 from vlaquantbench.errors import UserError
-from vlaquantbench.hub.cache import offline_cache, repo_folder
+from vlaquantbench.models.trained_home import policy_folder
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.quant import QuantConfig, quantize_
 from vlaquantbench.runner.loop import run_episodes
@@ -85,12 +85,11 @@ def evaluate(home: Path, suite_name: str, tasks: list[str], episodes: int, first
         # one thread (benchmarks/results/trained_cpu/README.md). The simulator runs in its own processes.
         torch.set_num_threads(1)
     training = json.loads((home / "training.json").read_text())
-    snapshot = repo_folder(home / "hub", training["checkpoint"]) / "snapshots" / training["revision"]
     adapter = make_adapter(AdapterConfig(model="pi05", variant="full", checkpoint=training["checkpoint"],
-                                         revision=training["revision"], checkpoint_dir=str(snapshot), device=device, dtype="float32",
-                                         executed_chunk=training["policy"]["n_action_steps"], flow_steps=flow_steps))
-    with offline_cache(home):
-        adapter.load()
+                                         revision=training["revision"], checkpoint_dir=str(policy_folder(home)), device=device,
+                                         dtype="float32", executed_chunk=training["policy"]["n_action_steps"],
+                                         flow_steps=flow_steps))
+    adapter.load()
     quantized = None
     if preset is not None:
         quant = QuantConfig.from_preset(preset, scope=scope)

@@ -52,13 +52,13 @@ CHECKPOINTS = {
     cell_configs.checkpoint_key(cfg): {k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}
     for cfg in CELLS.values()
 }
-# A checkpoint trained here (study.models.<model>.trained) resolves offline from its own HF_HOME folder. Its
-# training.json is read while the DAG is built (the revision it names is hashed into every cell), so it is no
-# job's input: a missing one is refused then, naming the command that trains it (rule train_policy). As an input
-# it would also rerun the training of a committed checkpoint whose demonstrations are not committed.
+# A checkpoint trained here (study.models.<model>.trained) loads from its own folder. Its training.json is read,
+# and the folder verified against it, while the DAG is built (the revision it names is hashed into every cell),
+# so it is no job's input: a missing one is refused then, naming the command that trains it (rule train_policy).
+# As an input it would also rerun the training of a committed checkpoint whose demonstrations are not committed.
 for info in CHECKPOINTS.values():
     if WF.study.models[info["model"]].trained:
-        info["hf_home"] = WF.study.models[info["model"]].trained
+        info["trained_home"] = WF.study.models[info["model"]].trained
 
 
 def on_gpu(cfg):

@@ -9,7 +9,9 @@ if "training" in config and DEMONSTRATIONS is not None:
             dataset=rules.demonstrations.output.dataset,
             manifest=rules.demonstrations.output.manifest,
         output:
-            hub=directory(f"{TRAINING['output']}/hub"),
+            # A plain checkpoint folder (vlaquantbench.models.trained_home); training.json is written last.
+            policy=directory(f"{TRAINING['output']}/policy"),
+            tokenizer=directory(f"{TRAINING['output']}/tokenizer"),
             provenance=f"{TRAINING['output']}/training.json",
         params:
             training=TRAINING,

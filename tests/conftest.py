@@ -7,7 +7,7 @@ import yaml
 
 from paths import ROOT
 
-TRAINED_HOME = ROOT / "checkpoints" / "pi05_metaworld_cpu"  # HF_HOME layout, committed (docs/checkpoints.md, "Trained on the CPU")
+TRAINED_HOME = ROOT / "checkpoints" / "pi05_metaworld_cpu"  # a plain checkpoint folder, committed (docs/checkpoints.md, "Trained on the CPU")
 
 
 @pytest.fixture(scope="session")
@@ -24,19 +24,17 @@ def hub_fixture(tmp_path_factory):
 @pytest.fixture(scope="session")
 def trained_policy(tmp_path_factory):
     """The pi0.5 trained here on the CPU, loaded as a study loads a released checkpoint: the checkpoint rule's
-    stamp (`download_checkpoint`, offline from TRAINED_HOME at the revision its training.json names) and the
+    stamp (`download_checkpoint`: TRAINED_HOME verified, at the revision its training.json names) and the
     pi0.5 adapter on the CPU in float32, executing the chunk it was trained with.
     {"home", "training": training.json, "stamp": the stamp file, "adapter": loaded}; quantize a deep copy."""
-    from vlaquantbench.hub.cache import offline_cache
     from vlaquantbench.models.adapter import AdapterConfig, make_adapter
     from vlaquantbench.runner.checkpoint import download_checkpoint
 
     training = json.loads((TRAINED_HOME / "training.json").read_text())
     stamp = tmp_path_factory.mktemp("trained_policy") / "checkpoint.json"
-    with offline_cache(TRAINED_HOME):
-        snapshot = download_checkpoint("pi05", "full", training["checkpoint"], training["revision"], stamp)["path"]
-        adapter = make_adapter(AdapterConfig(model="pi05", variant="full", checkpoint=training["checkpoint"],
-                                             revision=training["revision"], checkpoint_dir=snapshot, device="cpu",
-                                             dtype="float32", executed_chunk=training["policy"]["n_action_steps"]))
-        adapter.load()
+    folder = download_checkpoint("pi05", "full", training["checkpoint"], training["revision"], stamp, TRAINED_HOME)["path"]
+    adapter = make_adapter(AdapterConfig(model="pi05", variant="full", checkpoint=training["checkpoint"],
+                                         revision=training["revision"], checkpoint_dir=folder, device="cpu",
+                                         dtype="float32", executed_chunk=training["policy"]["n_action_steps"]))
+    adapter.load()
     return {"home": TRAINED_HOME, "training": training, "stamp": stamp, "adapter": adapter}

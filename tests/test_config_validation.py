@@ -174,7 +174,7 @@ def dry_run(tmp_path: Path, row_cell: str | None = None, copy_src: bool = False,
         config = yaml.safe_load(config_path.read_text())
         study_edit(config)
         config_path.write_text(yaml.safe_dump(config))
-    cmd = [sys.executable, "-m", "snakemake", "-n", "tables/lattice.tex", "--cores", "1"]
+    cmd = [sys.executable, "-m", "snakemake", "-n", "tables/lattice.tex", "--cores", "1", "--configfile=config/config.yaml"]
     result = subprocess.run(cmd, cwd=checkout, capture_output=True, text=True, timeout=300)
     return result.returncode, result.stdout + result.stderr
 

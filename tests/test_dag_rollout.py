@@ -21,7 +21,8 @@ pytestmark = pytest.mark.slow
 SNAKEMAKE = [sys.executable, "-m", "snakemake"]
 # After the targets (--set-threads takes every word after it). One thread per rollout: the first run's two
 # rollouts run at once (a rollout keeps about one core busy: its LIBERO worker and the policy take turns).
-OPTIONS = ["--cores", "2", "--set-threads", "rollout=1"]
+# The demo config named: with no --configfile the Snakefile runs the main job (config/main.yaml).
+OPTIONS = ["--configfile=config/config.yaml", "--cores", "2", "--set-threads", "rollout=1"]
 BASELINE = "libero/libero_spatial/pi05/rtn-BASELINE-e2e"
 ATTENTION = "libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn"
 

@@ -48,7 +48,6 @@ def test_the_fixture_resolves_through_huggingface_hub_and_transformers_offline(h
     checkpoint, revision = pinned(hub_fixture)
     with offline_cache(hub_fixture["home"]):
         folder = Path(snapshot_download(checkpoint, revision=revision, local_files_only=True))
-        assert Path(snapshot_download(checkpoint, revision=revision)) == folder  # no local_files_only: tree cache
         tokenizer = AutoTokenizer.from_pretrained(TOKENIZER)
     assert folder.name == revision and folder.parent.parent.name == "models--lerobot--pi05_libero_finetuned_v044"
     assert {p.name for p in folder.iterdir()} == {

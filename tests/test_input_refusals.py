@@ -313,3 +313,37 @@ def test_the_closed_loop_script_refuses_an_argument_before_loading_the_policy(tm
     assert run.returncode == 2 and message in run.stderr, run.stderr[-3000:]
     assert "(config/trained_cpu.yaml)" in run.stderr or "--first-variation" not in arguments
     assert not out.exists()
+
+
+# --- A checkpoint trained here: its folder verified against its training.json before the DAG plans a cell ---
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ("edit", "policy/policy_postprocessor.json has SHA-256 {found}, but training.json records {recorded}"),
+    ("extra", "tokenizer/special_tokens_map.json is not recorded in training.json"),
+    ("remove", "tokenizer/tokenizer_config.json is recorded in training.json but missing"),
+])
+def test_a_changed_trained_checkpoint_folder_is_refused_while_the_dag_is_built(tmp_path, change, message):
+    import json
+    import shutil
+
+    from vlaquantbench.hub.checks import sha256
+
+    checkout = checkout_with_records(tmp_path)
+    (checkout / "checkpoints").unlink()
+    (checkout / "checkpoints").mkdir()
+    home = checkout / "checkpoints" / "pi05_metaworld_cpu"
+    shutil.copytree(ROOT / "checkpoints" / "pi05_metaworld_cpu", home)
+    training = json.loads((home / "training.json").read_text())
+    if change == "edit":
+        edited = home / "policy" / "policy_postprocessor.json"
+        edited.write_text(edited.read_text() + " ")
+        message = message.format(found=sha256(edited), recorded=training["files"]["policy/policy_postprocessor.json"])
+    elif change == "extra":
+        (home / "tokenizer" / "special_tokens_map.json").write_text("{}")
+    else:
+        (home / "tokenizer" / "tokenizer_config.json").unlink()
+    status, output = dry_run(checkout, "tables/methods_2026.tex", {}, "records_dir=", "manifest=")
+    assert status != 0
+    assert (f"study.models.pi05.trained: {training['checkpoint']}@{training['revision']} "
+            f"(checkpoints/pi05_metaworld_cpu): checkpoints/pi05_metaworld_cpu/{message}") in output, output[-3000:]

@@ -14,7 +14,6 @@ from gptq_errors import gptq_against_rtn
 
 from vlaquantbench.cells import calibration_config, cell_config
 from vlaquantbench.envs import make_env, make_suite
-from vlaquantbench.hub.cache import offline_cache
 from vlaquantbench.quant import QuantConfig, quantize_, select_layers
 from vlaquantbench.quant.calibration import load_stats
 from vlaquantbench.runner.calibration import calibrate
@@ -59,9 +58,8 @@ def trained_rollouts(trained_policy, tmp_path_factory):
     # The study's protocol calibrates on the suite's first tasks (paper: task 0); task 0 of MT50 is one the
     # policy never saw, so the calibration episodes run the trained task instead.
     calib["calibration"]["tasks"] = [task]
-    with offline_cache(trained_policy["home"]):
-        stats = load_stats(calibrate(calib, tmp_path_factory.mktemp("calibration") / "stats.pt", trained_policy["stamp"],
-                                     num_envs=1, torch_threads=1, progress=False))
+    stats = load_stats(calibrate(calib, tmp_path_factory.mktemp("calibration") / "stats.pt", trained_policy["stamp"],
+                                 num_envs=1, torch_threads=1, progress=False))
     yield adapter, observations, stats
     torch.set_num_threads(threads)
 

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 from paths import ROOT
-from vlaquantbench.hub.cache import offline_cache, repo_folder
+from vlaquantbench.models.trained_home import policy_folder
 
 pytestmark = pytest.mark.slow
 
 HOME = ROOT / "checkpoints" / "pi05_metaworld_cpu"
 TRAINING = json.loads((HOME / "training.json").read_text())
-SNAPSHOT = repo_folder(HOME / "hub", TRAINING["checkpoint"]) / "snapshots" / TRAINING["revision"]
+POLICY = policy_folder(HOME)
 OBSERVE = ["paligemma_with_expert.gemma_expert.model.layers.*.mlp.down_proj"]
 # The action head's linears, as the committed closed-loop cell of the same checkpoint quantized them.
 HEAD_LAYERS = json.loads((ROOT / "results/methods_2026/metaworld/metaworld_mt50/pi05/rtn-W4A4-ah/header.json")
@@ -32,11 +32,10 @@ def recording(tmp_path_factory):
     folder = tmp_path_factory.mktemp("metaworld_replay")
     settings = RecordSettings(model="pi05", variant="full", suite="metaworld_mt50", benchmark="metaworld", tasks=[4],
                               init_states=[0], observe=OBSERVE, checkpoint=TRAINING["checkpoint"],
-                              revision=TRAINING["revision"], checkpoint_dir=str(SNAPSHOT), max_steps=10,
+                              revision=TRAINING["revision"], checkpoint_dir=str(POLICY), max_steps=10,
                               executed_chunk=TRAINING["policy"]["n_action_steps"])
     trajectories = [folder / name for name in settings.trajectory_files()]
-    with offline_cache(HOME):
-        meta = record(settings, folder / "records.json", trajectories)
+    meta = record(settings, folder / "records.json", trajectories)
     return folder, meta, trajectories
 
 
@@ -45,8 +44,7 @@ def _replay(recording, preset, layers=0):
 
     folder, _, trajectories = recording
     study = {"model": "pi05", "configurations": {"head": {"scope": "ah", "subset": None, "layers": layers}}}
-    with offline_cache(HOME):
-        return replay_configuration(folder / "records.json", trajectories, study, "head", preset, str(SNAPSHOT))
+    return replay_configuration(folder / "records.json", trajectories, study, "head", preset, str(POLICY))
 
 
 def test_the_recording_holds_the_declared_camera_and_the_state(recording):
@@ -74,7 +72,6 @@ def test_layer_diagnostics_run_on_the_recording(recording, tmp_path):
     from vlaquantbench.diagnostics.collect import collect
 
     folder, _, trajectories = recording
-    with offline_cache(HOME):
-        result = collect(folder / "records.json", trajectories, "pi05", "ah", "W4A4", tmp_path / "diag.json", str(SNAPSHOT))
+    result = collect(folder / "records.json", trajectories, "pi05", "ah", "W4A4", tmp_path / "diag.json", str(POLICY))
     assert len(result["layers"]) == HEAD_LAYERS and result["provenance"]["tasks"] == [4]
     assert result["provenance"]["checkpoint_revision"] == TRAINING["revision"]

@@ -59,7 +59,8 @@ def local_run(tmp_path_factory):
     checkout = demo_checkout(tmp_path_factory.mktemp("slurm_local") / "local")
     with (checkout.parent / "snakemake.log").open("w") as log:
         process = subprocess.Popen(
-            [*SNAKEMAKE, "tables/lattice.tex", "--cores", "2", "--set-threads", "rollout=1", "calibrate=1"],
+            [*SNAKEMAKE, "tables/lattice.tex", "--configfile=config/config.yaml", "--cores", "2", "--set-threads",
+             "rollout=1", "calibrate=1"],
             cwd=checkout, stdout=log, stderr=subprocess.STDOUT, text=True, start_new_session=True,
         )
     yield checkout, process
@@ -168,7 +169,7 @@ def test_slurm_demo_study_survives_requeue_scancel_and_time_limit(local_run, slu
     injector = FaultInjector(cluster, deadline_s=1200)
     injector.start()
     result = subprocess.run(
-        [*SNAKEMAKE, "tables/lattice.tex", "--profile", "profiles/slurm", *CPU_ONLY],
+        [*SNAKEMAKE, "tables/lattice.tex", "--configfile=config/config.yaml", "--profile", "profiles/slurm", *CPU_ONLY],
         cwd=cluster, capture_output=True, text=True, timeout=1500,
     )
     injector.stop.set()

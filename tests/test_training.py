@@ -58,8 +58,8 @@ def trained(tmp_path_factory):
     root = write_tiny_dataset(tmp / "dataset")
     manifest = tmp / "manifest.tsv"
     manifest.write_text("path\tsha256\n")
-    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, tmp / "hf", tmp / "training.json", _config())
-    return {"home": tmp / "hf", "record": record, "provenance": tmp / "training.json"}
+    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, tmp / "home", _config())
+    return {"home": tmp / "home", "record": record, "provenance": tmp / "home" / "training.json"}
 
 
 @pytest.mark.slow
@@ -76,14 +76,17 @@ def test_provenance_records_the_run(trained):
 
 
 @pytest.mark.slow
-def test_checkpoint_is_in_hub_layout_at_its_weights_hash(trained):
+def test_checkpoint_is_a_plain_folder_at_its_weights_hash_with_every_file_recorded(trained):
+    from vlaquantbench.hub.checks import sha256
     from vlaquantbench.training import weights_revision
 
-    record = trained["record"]
-    repo = trained["home"] / "hub" / "models--vlaquantbench--pi05-tiny"
-    snapshot = repo / "snapshots" / record["revision"]
-    assert (repo / "refs" / "main").read_text() == record["revision"]
+    record, home = trained["record"], trained["home"]
+    assert sorted(p.name for p in home.iterdir()) == ["policy", "tokenizer", "training.json"]
+    snapshot = home / "policy"
     assert weights_revision(snapshot / "model.safetensors") == record["revision"]
+    assert record["files"] == {p.relative_to(home).as_posix(): sha256(p) for p in sorted(home.rglob("*"))
+                               if p.is_file() and p.name != "training.json"}
+    assert {"policy/model.safetensors", "policy/config.json", "tokenizer/tokenizer.json"} <= set(record["files"])
     widths = json.loads((snapshot / REDUCED_WIDTHS_FILE).read_text())
     assert widths["vision"]["num_hidden_layers"] == 27 and widths["gemma_2b"]["depth"] == 18
     assert widths["gemma_300m"]["depth"] == 18 and widths["vocab_size"] % 64 == 0
@@ -93,15 +96,13 @@ def test_checkpoint_is_in_hub_layout_at_its_weights_hash(trained):
 
 
 def _load(trained, device="cpu"):
-    from vlaquantbench.hub.cache import offline_cache
     from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 
     record = trained["record"]
-    snapshot = trained["home"] / "hub" / "models--vlaquantbench--pi05-tiny" / "snapshots" / record["revision"]
     adapter = make_adapter(AdapterConfig(model="pi05", variant="full", checkpoint=record["checkpoint"],
-                                         revision=record["revision"], checkpoint_dir=str(snapshot), executed_chunk=2))
-    with offline_cache(trained["home"]):
-        adapter.load()
+                                         revision=record["revision"], checkpoint_dir=str(trained["home"] / "policy"),
+                                         executed_chunk=2))
+    adapter.load()
     return adapter
 
 
@@ -166,8 +167,7 @@ def test_the_rule_trains_on_the_demonstrations_rules_dataset(tmp_path):
     record = json.loads((tmp_path / "checkpoints" / "tiny" / "training.json").read_text())
     assert record["dataset"]["manifest_sha256"] == sha256(tmp_path / "results" / "demos" / "manifest.tsv")
     assert record["dataset"]["episodes"] == 2 and record["dataset"]["tasks"] == ["Press a handle down"]
-    snapshot = tmp_path / "checkpoints" / "tiny" / "hub" / "models--vlaquantbench--pi05-tiny" / "snapshots" / record["revision"]
-    assert (snapshot / "model.safetensors").is_file() and (tmp_path / "logs" / "train_policy.log").is_file()
+    assert (tmp_path / "checkpoints" / "tiny" / "policy" / "model.safetensors").is_file() and (tmp_path / "logs" / "train_policy.log").is_file()
 
 
 def _config(**changes):
@@ -178,7 +178,8 @@ def _config(**changes):
 
 @pytest.mark.slow
 def test_a_run_paused_at_its_time_limit_resumes_to_the_uninterrupted_runs_weights(trained, tmp_path):
-    """The same command twice: the first stops at `time_limit_s` with its state saved, the second continues
+    """The same command three times: the first two stop at `time_limit_s` with the state saved (the first with a
+    limit shorter than loading the dataset, which the limit counts: it still takes one step), the third continues
     from it; the checkpoint is bit-equal to one run without a limit (the fixture's: same revision)."""
     from vlaquantbench.errors import UserError
     from vlaquantbench.training import TrainingPaused, train_policy
@@ -186,44 +187,60 @@ def test_a_run_paused_at_its_time_limit_resumes_to_the_uninterrupted_runs_weight
     root = write_tiny_dataset(tmp_path / "dataset")
     manifest = tmp_path / "manifest.tsv"
     manifest.write_text("path\tsha256\n")
-    home, provenance = tmp_path / "hf", tmp_path / "training.json"
+    home = tmp_path / "home"
+    provenance = home / "training.json"
+    with pytest.raises(TrainingPaused, match=r"training.time_limit_s 1e-06: stopped after step 1 of 40"):
+        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, _config(time_limit_s=1e-6))
     with pytest.raises(TrainingPaused, match=r"training.time_limit_s 0.5: stopped after step (\d+) of 40") as paused:
-        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, provenance, _config(time_limit_s=0.5))
+        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, _config(time_limit_s=0.5))
     state = home / "resume" / "state.pt"
     assert state.is_file() and not provenance.exists()
-    assert 0 < int(str(paused.value).split("after step ")[1].split()[0]) < STEPS
+    assert 1 < int(str(paused.value).split("after step ")[1].split()[0]) < STEPS
     # Settings that change what is trained are refused by name; the saved state stays.
     with pytest.raises(UserError, match=r"saved by a run with other batch_size"):
-        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, provenance, _config(batch_size=4))
+        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, _config(batch_size=4))
     assert state.is_file()
-    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, home, provenance, _config())
+    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, home, _config())
     assert record["revision"] == trained["record"]["revision"]
     assert record["loss_curve"] == trained["record"]["loss_curve"] and record["steps"] == STEPS
     assert not state.exists()
 
 
 @pytest.mark.slow
-def test_changed_weights_under_a_recorded_revision_are_refused_at_load(trained, tmp_path):
-    """A sign-flipped tensor is still a valid safetensors file: the load checks it against the training's
-    recorded hashes before lerobot reads it."""
+def test_a_changed_or_unrecorded_file_in_the_checkpoint_folder_is_refused_at_load(trained, tmp_path):
+    """A sign-flipped tensor is still a valid safetensors file, an edited config still a config: the load
+    checks the folder against its training.json before lerobot reads anything, naming the file."""
     import shutil
 
     from safetensors.torch import load_file, save_file
 
     from vlaquantbench.errors import UserError
 
-    home = tmp_path / "hf"
-    shutil.copytree(trained["home"], home, symlinks=False)
     record = trained["record"]
-    assert len(record["weights_sha256"]) == 64
-    snapshot = home / "hub" / "models--vlaquantbench--pi05-tiny" / "snapshots" / record["revision"]
-    weights = load_file(snapshot / "model.safetensors")
-    name = sorted(weights)[0]
-    weights[name] = -weights[name]
-    (snapshot / "model.safetensors").unlink()
-    save_file(weights, snapshot / "model.safetensors")
-    with pytest.raises(UserError, match=rf"is not the weights its training recorded .*records revision {record['revision']}"):
+    named = rf"checkpoint vlaquantbench/pi05-tiny: vlaquantbench/pi05-tiny@{record['revision']}"
+
+    def copy(name):
+        home = tmp_path / name
+        shutil.copytree(trained["home"], home)
+        return home
+
+    home = copy("flipped")
+    weights = load_file(home / "policy" / "model.safetensors")
+    first = sorted(weights)[0]
+    weights[first] = -weights[first]
+    save_file(weights, home / "policy" / "model.safetensors")
+    with pytest.raises(UserError, match=rf"{named} .*policy/model.safetensors is not the weights of this revision"):
         _load({**trained, "home": home})
+    home = copy("edited")
+    config = home / "policy" / "config.json"
+    config.write_text(config.read_text().replace('"chunk_size": 4', '"chunk_size": 3'))
+    with pytest.raises(UserError, match=rf"{named} .*policy/config.json has SHA-256 [0-9a-f]{{64}}, but training.json records"):
+        _load({**trained, "home": home})
+    home = copy("unrecorded")
+    (home / "tokenizer" / "added_tokens.json").write_text("{}")
+    with pytest.raises(UserError, match=rf"{named} .*tokenizer/added_tokens.json is not recorded in training.json"):
+        _load({**trained, "home": home})
+    _load({**trained, "home": copy("untouched")})  # the same copy unchanged loads
 
 
 @pytest.mark.slow
@@ -305,21 +322,20 @@ def test_a_paused_run_ended_where_its_state_stands_is_a_checkpoint_of_the_saved_
     root = write_tiny_dataset(tmp_path / "dataset")
     manifest = tmp_path / "manifest.tsv"
     manifest.write_text("path\tsha256\n")
-    home, provenance = tmp_path / "hf", tmp_path / "training.json"
+    home = tmp_path / "home"
     with pytest.raises(TrainingPaused):
-        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, provenance, _config(time_limit_s=0.5))
+        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, _config(time_limit_s=0.5))
     saved = torch.load(home / "resume" / "state.pt", weights_only=False)
     with pytest.raises(UserError, match=r"saved by a run with other seed than this training section"):
-        checkpoint_from_saved_state(root, "vlaquantbench/tiny-demos", manifest, home, provenance, _config(seed=1), "a test")
-    record = checkpoint_from_saved_state(root, "vlaquantbench/tiny-demos", manifest, home, provenance, _config(),
+        checkpoint_from_saved_state(root, "vlaquantbench/tiny-demos", manifest, home, _config(seed=1), "a test")
+    record = checkpoint_from_saved_state(root, "vlaquantbench/tiny-demos", manifest, home, _config(),
                                          "the test stops it here", {"type": "cpu"})
     assert record["stopped_early"]["at_step"] == saved["step"] == record["steps"] < STEPS
     assert record["stopped_early"]["why"] == "the test stops it here" and record["planned_steps"] == STEPS
     assert not (home / "resume" / "state.pt").exists()
     adapter = _load({"home": home, "record": record})
     assert adapter.checkpoint_provenance["training"]["stopped_early"]["at_step"] == saved["step"]
-    weights = load_file(home / "hub" / "models--vlaquantbench--pi05-tiny" / "snapshots" / record["revision"]
-                        / "model.safetensors")
+    weights = load_file(home / "policy" / "model.safetensors")
     assert weights and set(weights) <= set(saved["policy"])  # save_pretrained drops tied copies only
     for name, value in weights.items():
         assert torch.equal(value, saved["policy"][name]), name
@@ -337,5 +353,5 @@ def test_a_captured_step_is_refused_where_it_cannot_run_before_the_dataset_loads
     (tmp_path / "dataset" / "meta").mkdir(parents=True)
     (tmp_path / "dataset" / "meta" / "info.json").write_text("{}")  # the refusal comes before it is read
     with pytest.raises(UserError, match=refusal):
-        train_policy(tmp_path / "dataset", "vlaquantbench/tiny-demos", tmp_path / "manifest.tsv", tmp_path / "hf",
-                     tmp_path / "training.json", _config(**settings))
+        train_policy(tmp_path / "dataset", "vlaquantbench/tiny-demos", tmp_path / "manifest.tsv", tmp_path / "home",
+                     _config(**settings))

@@ -6,6 +6,5 @@ from vlaquantbench.rule_log import job_log
 from vlaquantbench.training import train_policy
 
 with job_log(snakemake):
-    training = snakemake.params.training
     train_policy(snakemake.input.dataset, snakemake.params.dataset_repo_id, snakemake.input.manifest,
-                 training["output"], snakemake.output.provenance, training)
+                 snakemake.params.training["output"], snakemake.params.training)

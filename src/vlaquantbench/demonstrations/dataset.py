@@ -303,7 +303,10 @@ def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, worke
             log.info("%d episodes tried, %d kept, %.1f episodes/minute with %d workers",
                      done, len(kept), done / _minutes_since(started), workers)
     merging = time.perf_counter()
-    aggregate_datasets([config.repo_id] * len(merged), config.repo_id, roots=merged, aggr_root=out / DATASET_DIR)
+    # One data file per shard: packing them appends every shard to the growing file, re-reading and
+    # re-embedding every PNG already in it (quadratic in the shards; 100.7 s for 42 shards on the H200).
+    aggregate_datasets([config.repo_id] * len(merged), config.repo_id, roots=merged, aggr_root=out / DATASET_DIR,
+                       concatenate_data=False)
     shutil.rmtree(shards_dir)
     meta = LeRobotDatasetMetadata(config.repo_id, root=out / DATASET_DIR)
     log.info("%d episodes kept in %.1f s (%.1f a minute), merged in %.1f s", meta.total_episodes, merging - started,

@@ -4,11 +4,12 @@
         blobs/<etag>                       file contents, named by their etag
         snapshots/<revision>/<path>        relative symlinks into blobs/
         refs/<ref>                         the commit a branch name resolves to
-        trees/<revision>.json              the commit's file listing (huggingface_hub >= 1.3 keeps it)
 
 The hub's etag of a Git-LFS file (weights, tokenizer models) is its SHA-256; of any other file the
 Git blob SHA-1 of its bytes. huggingface_hub resolves a commit revision through `snapshots/` and a
-branch through `refs/`, offline (`HF_HUB_OFFLINE=1`, `local_files_only=True`) as online.
+branch through `refs/`, offline (`HF_HUB_OFFLINE=1`, `local_files_only=True`) as online. The tree
+listing huggingface_hub >= 1.3 also caches is not written: its writer is private, and lookups with
+`local_files_only` (the project's offline path, `runner.checkpoint`) do not read it.
 """
 
 from __future__ import annotations
@@ -45,30 +46,14 @@ def etag(path: Path) -> str:
     return hashlib.sha256(data).hexdigest() if _is_lfs(path) else _git_blob_id(data)
 
 
-def tree_entry(path: Path):
-    """The hub's `/tree` record of a file: its Git blob id (of the LFS pointer for an LFS file)."""
-    from huggingface_hub._tree_cache import TreeCacheEntry
-
-    data = path.read_bytes()
-    if not _is_lfs(path):
-        return TreeCacheEntry(size=len(data), blob_id=_git_blob_id(data))
-    digest = hashlib.sha256(data).hexdigest()
-    pointer = f"version https://git-lfs.github.com/spec/v1\noid sha256:{digest}\nsize {len(data)}\n".encode()
-    return TreeCacheEntry(size=len(data), blob_id=_git_blob_id(pointer), lfs_sha256=digest, lfs_size=len(data))
-
-
 def write_snapshot(hub_cache: str | Path, repo_id: str, revision: str, files: Path, ref: str | None = "main") -> Path:
     """Put every file below folder `files` into the cache as `repo_id` at commit `revision`; point
     branch `ref` at it (None: no branch). Returns the snapshot folder."""
-    # huggingface_hub's own writer of the tree listing (a private module: its format is versioned).
-    from huggingface_hub._tree_cache import write_tree_cache
-
     repo = repo_folder(hub_cache, repo_id)
     snapshot = repo / "snapshots" / revision
     if snapshot.exists():
         shutil.rmtree(snapshot)
     sources = sorted(p for p in Path(files).rglob("*") if p.is_file())
-    write_tree_cache(str(repo), revision, {p.relative_to(files).as_posix(): tree_entry(p) for p in sources})
     for source in sources:
         relative = source.relative_to(files)
         blob = repo / "blobs" / etag(source)

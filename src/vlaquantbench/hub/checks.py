@@ -44,23 +44,6 @@ def check_snapshot_revision(folder: str | Path, checkpoint: str, revision: str) 
         )
 
 
-def check_trained_weights(folder: str | Path, checkpoint: str, revision: str, training_file: str) -> None:
-    """A checkpoint trained here names its revision after its weights (the SHA-1 of model.safetensors)
-    and records their SHA-256 in `training_file`: refuse weights that are neither, before they load
-    (a valid safetensors file with other values would load silently under the old revision)."""
-    import hashlib
-
-    weights = Path(folder) / "model.safetensors"
-    record = load_json(Path(folder) / training_file, "training provenance")
-    data = weights.read_bytes()  # one read for both hashes
-    sha1, found_sha256 = hashlib.sha1(data).hexdigest(), hashlib.sha256(data).hexdigest()
-    recorded = record.get("weights_sha256")
-    if sha1 != revision or (recorded is not None and found_sha256 != recorded):
-        raise UserError(f"checkpoint {checkpoint}@{revision}: {weights} is not the weights its training recorded "
-                        f"(SHA-1 {sha1}, SHA-256 {found_sha256}; {training_file} records revision {revision}"
-                        f"{f' and SHA-256 {recorded}' if recorded else ''}): retrain or restore the file")
-
-
 def load_json(path: Path, what: str) -> Any:
     """The JSON file `path`; UserError naming it (as `what`) when it is missing or not JSON."""
     if not path.is_file():

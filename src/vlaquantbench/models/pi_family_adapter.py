@@ -135,11 +135,16 @@ class PiFamilyAdapter(AdapterBase):
         folder = self.config.checkpoint_dir
         if not folder:
             raise UserError(f"{self.name}: checkpoint {self.config.checkpoint} has no local snapshot; run its download rule")
-        checks.check_snapshot_revision(folder, self.config.checkpoint, self.config.revision)
-        if (Path(folder) / TRAINING_FILE).exists():
-            checks.check_trained_weights(folder, self.config.checkpoint, self.config.revision, TRAINING_FILE)
-        normalization = checks.check_processors(folder)
-        tokenizers = [checks.load_tokenizer(name)[1] for name in checks.tokenizer_names(folder)]
+        overrides: dict[str, dict] = {"device_processor": {"device": self.config.device}}
+        if (Path(folder) / TRAINING_FILE).exists():  # trained here: a plain folder beside its tokenizer's
+            tokenizer, provenance = self._trained_tokenizer(Path(folder))
+            overrides["tokenizer_processor"] = {"tokenizer": tokenizer}  # instead of loading it by name
+            tokenizers = [provenance]
+            normalization = checks.check_processors(folder)
+        else:
+            checks.check_snapshot_revision(folder, self.config.checkpoint, self.config.revision)
+            normalization = checks.check_processors(folder)
+            tokenizers = [checks.load_tokenizer(name)[1] for name in checks.tokenizer_names(folder)]
         weights = Path(folder) / "model.safetensors"
         found = checks.weight_shapes(weights)
         lib = importlib.import_module(self.policy_module)
@@ -157,14 +162,30 @@ class PiFamilyAdapter(AdapterBase):
         # lerobot's loader of a checkpoint's processors (as lerobot-eval uses it): the batch and
         # action converters, the relative/absolute action steps wired together.
         self.preprocessor, self.postprocessor = make_pre_post_processors(
-            policy.config, pretrained_path=folder,
-            preprocessor_overrides={"device_processor": {"device": self.config.device}},
-        )
+            policy.config, pretrained_path=folder, preprocessor_overrides=overrides)
         self.checkpoint_provenance = {
             "tokenizer": tokenizers[0] if len(tokenizers) == 1 else tokenizers,
             "normalization": normalization,
             **self._widths_provenance(Path(folder)),
         }
+
+    def _trained_tokenizer(self, folder: Path):
+        """The task tokenizer of a checkpoint trained here, from its folder's tokenizer folder, after the
+        folder is verified against its training.json (`trained_home.verify`: the weights against the
+        revision the cell pins, every file against its SHA-256); and its provenance."""
+        from transformers import AutoTokenizer
+
+        from vlaquantbench.hub import checks
+        from vlaquantbench.models import trained_home
+
+        training = trained_home.verify(folder.parent, f"checkpoint {self.config.checkpoint}")
+        if training["revision"] != self.config.revision:
+            raise UserError(f"checkpoint {self.config.checkpoint}: {folder.parent} holds revision {training['revision']}, "
+                            f"but the cell pins {self.config.revision}: run the cell's checkpoint rule again")
+        recorded = training["tokenizer"]
+        tokenizer, provenance = checks.load_snapshot_tokenizer(
+            AutoTokenizer, trained_home.tokenizer_folder(folder.parent), recorded["repo"], checks.TOKENIZER_FILES)
+        return tokenizer, {**provenance, "revision": recorded["revision"]}
 
     @staticmethod
     def _widths_provenance(folder: Path) -> dict:

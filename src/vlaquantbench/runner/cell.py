@@ -60,13 +60,7 @@ def load_policy(cfg: CellConfig | CalibrationConfig, stamp: CheckpointStamp | No
     loaded from its checkpoint `stamp` (None: the cell's own weights, e.g. random ones), after checking its
     executed chunk length and controller mode."""
     adapter = policy_class(AdapterConfig.from_cell(cfg, stamp.path if stamp is not None else None, policy_class))
-    if stamp is None or stamp.hf_home is None:
-        adapter.load()
-    else:  # a checkpoint trained here: it and the tokenizer its preprocessor names load from its own folder
-        from vlaquantbench.hub.cache import offline_cache
-
-        with offline_cache(stamp.hf_home):
-            adapter.load()
+    adapter.load()
     expected = cfg.runner.executed_chunk
     if adapter.executed_chunk != expected:
         raise CellFailed(

@@ -3,6 +3,8 @@
 The stamp (`checkpoint.json`) is what the rollout rules depend on: it names the checkpoint, the
 revision and the snapshot folder in the Hugging Face cache (`HF_HOME`), plus the tokenizer
 repositories the checkpoint's preprocessor loads by name, fetched too so that no rollout has to.
+A checkpoint trained here is no download: its folder (`models.trained_home`) is verified against its
+training.json and the stamp names its policy folder.
 With `HF_HUB_OFFLINE=1` everything resolves from the cache, e.g. the fixture of `vqb hub-fixture`.
 The demo variant has random weights and no checkpoint to fetch; its stamp says so, so the DAG has
 the same shape for both.
@@ -42,9 +44,9 @@ class CheckpointStamp:
     variant: str
     checkpoint: str | None
     revision: str | None
-    path: str | None  # the snapshot folder in the HF cache; None: random weights, nothing fetched
-    hf_home: str | None = None  # a checkpoint trained here: the HF_HOME folder it loads from, offline
-    tokenizers: dict[str, str] | None = None  # tokenizer repository -> the snapshot fetched for it
+    path: str | None  # the snapshot folder in the HF cache (trained here: its policy folder); None: random weights
+    trained_home: str | None = None  # a checkpoint trained here: its folder (`models.trained_home`)
+    tokenizers: dict[str, str] | None = None  # tokenizer repository -> the revision fetched for it
 
     @classmethod
     def read(cls, stamp: str | Path) -> CheckpointStamp:
@@ -125,21 +127,27 @@ def _snapshot(what: str, repo_id: str, revision: str | None, allow_patterns: lis
 
 
 def download_checkpoint(model: str, variant: str, checkpoint: str | None, revision: str | None, stamp: Path,
-                        hf_home: str | None = None) -> dict:
+                        trained_home: str | None = None) -> dict:
     """Resolve `checkpoint` at `revision` (and its tokenizers) in the HF cache and write the stamp; with
-    `hf_home` (a checkpoint trained here), offline from that folder, which the stamp records for the jobs
-    that load the policy (`runner.cell.load_policy`)."""
-    if hf_home is not None:
-        from vlaquantbench.hub.cache import offline_cache
+    `trained_home` (a checkpoint trained here), verify that folder instead and name its policy folder."""
+    if trained_home is None:
+        return _resolve(model, variant, checkpoint, revision, Path(stamp))
+    from vlaquantbench.models import trained_home as home
 
-        with offline_cache(hf_home):
-            return _resolve(model, variant, checkpoint, revision, Path(stamp), {"hf_home": str(Path(hf_home).absolute())})
-    return _resolve(model, variant, checkpoint, revision, Path(stamp), {})
+    training = home.verify(trained_home, f"study.models.{model}.trained")
+    if (training["checkpoint"], training["revision"]) != (checkpoint, revision):
+        raise UserError(f"study.models.{model}.trained: {trained_home} holds {training['checkpoint']}@"
+                        f"{training['revision']}, not the {checkpoint}@{revision} the cells were planned with: "
+                        "the folder changed since the DAG was built; run again")
+    info = {"model": model, "variant": variant, "checkpoint": checkpoint, "revision": revision,
+            "trained_home": str(Path(trained_home).absolute()),
+            "path": str(home.policy_folder(trained_home).absolute()),
+            "tokenizers": {training["tokenizer"]["repo"]: training["tokenizer"]["revision"]}}
+    return _write_stamp(info, Path(stamp))
 
 
-def _resolve(model: str, variant: str, checkpoint: str | None, revision: str | None, stamp: Path,
-             extra: dict[str, Any]) -> dict:
-    info: dict[str, Any] = {"model": model, "variant": variant, "checkpoint": checkpoint, "revision": revision, **extra}
+def _resolve(model: str, variant: str, checkpoint: str | None, revision: str | None, stamp: Path) -> dict:
+    info: dict[str, Any] = {"model": model, "variant": variant, "checkpoint": checkpoint, "revision": revision}
     if variant in ("demo", "random") or not get_model_spec(model).components:  # random weights, or no network
         info["path"] = None
     else:
@@ -154,6 +162,10 @@ def _resolve(model: str, variant: str, checkpoint: str | None, revision: str | N
         # without lerobot processors (X-VLA's) carries its tokenizer in its own snapshot.
         named = tokenizer_names(path) if (path / PROCESSOR_FILES[0]).exists() else []
         info["tokenizers"] = {name: _snapshot("tokenizer", name, None, TOKENIZER_PATTERNS).name for name in named}
+    return _write_stamp(info, stamp)
+
+
+def _write_stamp(info: dict[str, Any], stamp: Path) -> dict:
     validate(info, "checkpoint_stamp", str(stamp))
     write_text(stamp, json.dumps(info, indent=2, sort_keys=True) + "\n")
     return info

@@ -20,10 +20,10 @@ with a UserError saying so; the same command continues from it, and the result e
 uninterrupted run's (tests/test_training.py). The state is bound to the dataset and the settings that
 made it: another dataset or section is refused by name.
 
-The result is an HF_HOME folder holding the checkpoint and its tokenizer as two hub repositories,
-the checkpoint at a revision equal to its weights' content hash (SHA-1 of model.safetensors, the
-40 hex digits of a hub commit), and a provenance JSON (dataset manifest hash, steps, batch size,
-seed, loss curve, wall time, device, the weights' SHA-256).
+The result is a plain folder (`models.trained_home`): the policy's `save_pretrained` files, its task
+tokenizer's, and `training.json`, the provenance (a revision equal to the weights' content hash, the
+SHA-1 of model.safetensors: the 40 hex digits of a hub commit; dataset manifest hash, steps, batch size,
+seed, loss curve, wall time, device; every file's SHA-256).
 """
 
 from __future__ import annotations
@@ -194,10 +194,12 @@ class TrainingStep:
 
 
 def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifest: str | Path, output: str | Path,
-                 provenance: str | Path, training: dict[str, Any]) -> dict[str, Any]:
+                 training: dict[str, Any]) -> dict[str, Any]:
     """Train `training["model"]` (the config's `training` section) on the LeRobotDataset `dataset_repo_id`
-    at `dataset_root`; write the HF_HOME folder `output` and the provenance JSON `provenance`; returns
-    the provenance. TrainingPaused at `time_limit_s` before `steps` (state saved; run again to resume)."""
+    at `dataset_root`; write the checkpoint folder `output` (its provenance in `output`/training.json);
+    returns the provenance. TrainingPaused at `time_limit_s` before `steps` (state saved; run again to resume)."""
+    # The time limit counts from here: a call's budget covers loading the dataset too (45 s for 67,662 frames).
+    job_started = time.monotonic()
     import torch
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 
@@ -269,8 +271,9 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
     time_limit_s = training.get("time_limit_s")
     order, order_epoch = None, -1
     logged = started  # when the last log line read the device
+    first_step = step  # every run takes at least one step, so that a call too short to train still progresses
     while step < training["steps"]:
-        if time_limit_s is not None and time.monotonic() - started > time_limit_s:
+        if time_limit_s is not None and step > first_step and time.monotonic() - job_started > time_limit_s:
             wall_s += time.monotonic() - started
             losses += [float(x) for x in torch.stack(pending).tolist()] if pending else []
             state_file.parent.mkdir(parents=True, exist_ok=True)
@@ -299,7 +302,7 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
     wall_s += time.monotonic() - started
 
     record = _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, descriptions, training, output,
-                               provenance, {"root": str(dataset_root), "repo_id": dataset_repo_id, "manifest": dataset_manifest,
+                               {"root": str(dataset_root), "repo_id": dataset_repo_id, "manifest": dataset_manifest,
                                             "frames": dataset.num_frames, "episodes": dataset.num_episodes},
                                losses, wall_s, _device_record(device))
     if state_file.is_file():
@@ -308,7 +311,7 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
 
 
 def checkpoint_from_saved_state(dataset_root: str | Path, dataset_repo_id: str, dataset_manifest: str | Path,
-                                output: str | Path, provenance: str | Path, training: dict[str, Any], why: str,
+                                output: str | Path, training: dict[str, Any], why: str,
                                 device_record: dict[str, Any] | None = None) -> dict[str, Any]:
     """End a paused run where its saved state stands (`<output>/resume/state.pt`): write the checkpoint of
     its weights as `train_policy` writes a finished run's, with `stopped_early` (the step reached, the
@@ -337,7 +340,7 @@ def checkpoint_from_saved_state(dataset_root: str | Path, dataset_repo_id: str, 
     stopped = {"at_step": state["step"], "planned_steps": training["steps"], "why": why,
                "dataset_digest": state["binding"]["dataset"]}
     record = _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, descriptions, training, output,
-                               provenance, {"root": str(dataset_root), "repo_id": dataset_repo_id,
+                               {"root": str(dataset_root), "repo_id": dataset_repo_id,
                                             "manifest": dataset_manifest, "frames": meta.total_frames,
                                             "episodes": meta.total_episodes},
                                state["losses"], state["wall_s"], device_record or {"type": "unknown"},
@@ -347,30 +350,39 @@ def checkpoint_from_saved_state(dataset_root: str | Path, dataset_repo_id: str, 
 
 
 def _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, descriptions, training, output,
-                      provenance, dataset: dict[str, Any], losses, wall_s, device_record,
+                      dataset: dict[str, Any], losses, wall_s, device_record,
                       stopped_early: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The HF_HOME folder `output` (checkpoint at its weights' revision, tokenizer) and the provenance JSON."""
-    from vlaquantbench.hub.cache import tree_revision, write_snapshot
+    """The plain checkpoint folder `output` (`models.trained_home`: policy/, tokenizer/, training.json, whose
+    `files` records every file's SHA-256); returns the provenance. A folder of an earlier run is replaced
+    whole; training.json is written last, so a folder without it is no checkpoint."""
+    import shutil
+
+    from vlaquantbench.hub.cache import tree_revision
+    from vlaquantbench.models import trained_home
     from vlaquantbench.models.paligemma_family import TRAINING_FILE
 
     tokenizers = importlib.import_module(f"vlaquantbench.models.{training['model']}.task_tokenizer")
     trained = importlib.import_module(f"vlaquantbench.models.{training['model']}.trained")
     policy.eval()
-    hub = Path(output) / "hub"
-    with tempfile.TemporaryDirectory() as scratch:
-        tokenizer_folder = tokenizers.write_task_tokenizer(Path(scratch) / "tokenizer", descriptions)
-        tokenizer_revision = tree_revision(tokenizer_folder)
-        write_snapshot(hub, training["tokenizer_repo"], tokenizer_revision, tokenizer_folder)
-        folder = trained.save(Path(scratch) / "checkpoint", policy.to("cpu"), preprocessor, postprocessor, widths)
-        revision = weights_revision(folder / "model.safetensors")
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    trained_home.training_file(output).unlink(missing_ok=True)
+    with tempfile.TemporaryDirectory(dir=output) as scratch:
+        tokenizer_folder = tokenizers.write_task_tokenizer(Path(scratch) / trained_home.TOKENIZER_DIR, descriptions)
+        folder = trained.save(Path(scratch) / trained_home.POLICY_DIR, policy.to("cpu"), preprocessor, postprocessor,
+                              widths)
+        revision = weights_revision(folder / trained_home.WEIGHTS_FILE)
         record = _provenance(training, revision, folder, sum(p.numel() for p in policy.parameters()), tokenizer,
-                             tokenizer_revision, descriptions, dataset, losses, wall_s, device_record)
+                             tree_revision(tokenizer_folder), descriptions, dataset, losses, wall_s, device_record)
         if stopped_early is not None:
             record["stopped_early"] = stopped_early
-        # The snapshot carries it too: the rollout path's headers cite it (PiFamilyAdapter).
+        # The policy folder carries the record too: the rollout path's headers cite it (PiFamilyAdapter).
         write_text(folder / TRAINING_FILE, json.dumps(record, indent=2) + "\n")
-        write_snapshot(hub, training["checkpoint_repo"], revision, folder)
-    write_text(provenance, json.dumps(record, indent=2) + "\n")
+        for name in (trained_home.POLICY_DIR, trained_home.TOKENIZER_DIR):
+            shutil.rmtree(output / name, ignore_errors=True)
+            (Path(scratch) / name).rename(output / name)
+    record["files"] = trained_home.recorded_files(output)
+    write_text(trained_home.training_file(output), json.dumps(record, indent=2) + "\n")
     return record
 
 
