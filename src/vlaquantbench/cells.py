@@ -41,7 +41,7 @@ from typing import Any
 
 from vlaquantbench.config import validate
 from vlaquantbench.config.study import RunnerConfig, StudyConfig
-from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_step_limit
+from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_settings, check_step_limit
 from vlaquantbench.envs.episodes import RUN_SEED_STRIDE
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import ClientConventions, client_conventions, step_limit
@@ -216,6 +216,7 @@ class CellConfig(PolicyRunConfig):
         _check_registries(ref, benchmark, suite, model, fields["preset"], quantizer_method(fields["method"]))
         if model not in study.models:
             raise UserError(f"cell {ref!r}: model {model!r} is not in study.models ({', '.join(study.models) or 'none'})")
+        _check_settings(ref, benchmark, model, study)
         weights = study.models[model]
         if weights.trained is not None:  # checkpoint, revision, input size and chunk from its training.json
             weights = trained_weights(model, weights)
@@ -413,6 +414,18 @@ def _runner_field(study: StudyConfig, model: str, key: str) -> str:
     if key in study.models[model].runner:
         return f"study.models.{model}.runner.{key}"
     return f"study.runner.{key}" if getattr(study.runner, key) is not None else f"{model}'s client {key}"
+
+
+def _check_settings(ref: str, benchmark: str, model: str, study: StudyConfig) -> None:
+    """The env settings the config sets for this cell (`study.runner`, `study.models.<model>.runner`) are its
+    benchmark's (`envs.check_settings`): one it does not declare would be silently unused, so it is refused now,
+    naming the field, before any checkpoint or simulator starts."""
+    given = {key: f"study.runner.{key}" for key in study.runner_given}
+    given |= {key: f"study.models.{model}.runner.{key}" for key in study.models[model].runner}
+    try:
+        check_settings(benchmark, given)
+    except UserError as err:
+        raise UserError(f"cell {ref!r}: {err}") from None
 
 
 def _check_steps(ref: str, benchmark: str, suite: str, model: str, study: StudyConfig, runner: RunnerConfig) -> None:

@@ -118,6 +118,9 @@ class StudyConfig:
     sequential: SequentialConfig | None = None  # None: every cell runs all its episodes
     label: str | None = None
     tables_dir: str | None = None
+    # The runner options the config's `study.runner` names itself (the others are defaults): a cell refuses
+    # those that are another benchmark's env settings (`envs.check_settings`). Derived, not a config key.
+    runner_given: tuple[str, ...] = field(default=(), compare=False, metadata={"derived": "study.runner's keys"})
 
     @classmethod
     def from_dict(cls, raw: dict[str, Any] | None, where: str = "study") -> StudyConfig:
@@ -126,10 +129,12 @@ class StudyConfig:
         validate(raw, "config", where, subschema=("study",))
         tasks = raw.pop("tasks", cls.tasks)
         sequential = raw.pop("sequential", None)
+        runner = raw.pop("runner", {})
         return cls(
             models={name: ModelWeights(**weights) for name, weights in raw.pop("models", {}).items()},
             tasks=tasks if isinstance(tasks, int) else tuple(sorted(set(tasks))),
-            runner=RunnerConfig(**raw.pop("runner", {})),
+            runner=RunnerConfig(**runner),
+            runner_given=tuple(sorted(runner)),
             calibration=_calibration_protocol(raw.pop("calibration", {})),
             execution=ExecutionConfig(**raw.pop("execution", {})),
             sequential=None if sequential is None else SequentialConfig(**sequential),
