@@ -46,7 +46,7 @@ class RunnerConfig:
     # auto | captured | eager (`models.adapter.resolve_sampler`); hashed because the captured and
     # eager samplers order floating-point operations differently, so actions can differ in the last bits.
     sampler: str = "auto"
-    # LIBERO's arm controller ("delta" | "absolute") and the MuJoCo version the cell must run on;
+    # The arm controller ("delta" | "absolute", an env setting of benchmarks with one) and the MuJoCo version the cell must run on;
     # None: the model's released client (X-VLA absolute and 3.1.6, the others delta and 3.3.2)
     control_mode: str | None = None
     mujoco: str | None = None
@@ -84,7 +84,7 @@ class SequentialConfig:
 class ExecutionConfig:
     """How cells run, not what they compute: never hashed, so changing it reruns nothing."""
 
-    num_envs: int = 2  # LIBERO worker processes per rollout job
+    num_envs: int = 2  # simulator worker processes per rollout job
     torch_threads: int | None = 1
     progress: bool = True  # a tqdm bar per cell
     # `interleaved`: round-robin over tasks (round k is episode k of every task), so every prefix of whole

@@ -1,8 +1,8 @@
-"""Each model's released LIBERO client conventions, and the cell values that deviate from them.
+"""Each model's released client conventions, and the cell values that deviate from them.
 
 The paper evaluates every checkpoint under its own released inference client (Sec. 5): how many of
 the predicted actions are executed before observing again, how many episodes a task gets, whether
-LIBERO's arm controller takes delta or absolute end-effector poses, the MuJoCo version the client's
+the arm controller takes delta or absolute end-effector poses, the MuJoCo version the client's
 environment pins, and the fixed model seed of a deterministic head.
 
 A model's `client.py` declares `CLIENT`; `cells.cell_config` fills a cell's runner from it and
@@ -32,7 +32,7 @@ class ClientConventions:
 
     executed_chunk: int  # actions executed per predicted chunk
     episodes_per_task: int
-    control_mode: str  # LIBERO arm controller: "delta" or "absolute" end-effector poses
+    control_mode: str  # arm controller: "delta" or "absolute" end-effector poses
     mujoco: str  # the MuJoCo version the client's environment pins
     model_seed: int | None = None  # fixed model seed of a deterministic head (None: per-episode streams)
     source: str = ""  # where the values come from
