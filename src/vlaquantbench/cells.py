@@ -220,13 +220,13 @@ class CellConfig(PolicyRunConfig):
         weights = study.models[model]
         if weights.trained is not None:  # checkpoint, revision, input size and chunk from its training.json
             weights = trained_weights(model, weights)
-        client = client_conventions(model)
+        client = client_conventions(model, benchmark)
         try:  # the model's step limit on this suite, resolved now: hashed with the cell
             released_limit = step_limit(model, benchmark, suite)
         except UserError as err:
             raise UserError(f"cell {ref!r}: {err}") from None
         runner = _runner(study.runner, weights.runner, client, fields["flow_steps"], released_limit)
-        episodes, _ = episodes_per_task(study, model)
+        episodes, _ = episodes_per_task(study, model, benchmark)
         only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
         seed = study.seed + fields["seed_offset"]
         calibration = _calibration(ref, fields, study, seed)
@@ -379,7 +379,7 @@ def _check_fits_suite(ref: str, benchmark: str, suite: str, model: str, study: S
         else:
             check_ids("study.tasks", study.tasks, size.tasks, f"{suite} has {size.tasks} tasks")
         if episodes > size.init_states:
-            _, field = episodes_per_task(study, model)
+            _, field = episodes_per_task(study, model, benchmark)
             raise UserError(f"{field}: {episodes} episodes per task, but {suite} has {size.init_states} official init "
                             f"states per task (episode i starts from init state i)")
         if calibration is not None:
@@ -398,14 +398,15 @@ def _check_fits_suite(ref: str, benchmark: str, suite: str, model: str, study: S
         raise UserError(f"cell {ref!r}: {err}") from None
 
 
-def episodes_per_task(study: StudyConfig, model: str) -> tuple[int, str]:
-    """The episodes per task of `model`'s cells (episode i of a task starts from init state or variation i) and
-    the config field they come from: the model's own, else the study's, else its released client's."""
+def episodes_per_task(study: StudyConfig, model: str, benchmark: str | None = None) -> tuple[int, str]:
+    """The episodes per task of `model`'s cells on `benchmark` (episode i of a task starts from init state or
+    variation i) and the config field they come from: the model's own, else the study's, else its released
+    client's on that benchmark (`models.client.client_conventions`)."""
     if study.models[model].episodes_per_task:
         return study.models[model].episodes_per_task, f"study.models.{model}.episodes_per_task"
     if study.episodes_per_task:
         return study.episodes_per_task, "study.episodes_per_task"
-    return client_conventions(model).episodes_per_task, f"{model}'s client episodes_per_task"
+    return client_conventions(model, benchmark).episodes_per_task, f"{model}'s client episodes_per_task"
 
 
 def _runner_field(study: StudyConfig, model: str, key: str) -> str:

@@ -5,7 +5,9 @@ the predicted actions are executed before observing again, how many episodes a t
 the arm controller takes delta or absolute end-effector poses, the MuJoCo version the client's
 environment pins, and the fixed model seed of a deterministic head.
 
-A model's `client.py` declares `CLIENT`; `cells.cell_config` fills a cell's runner from it and
+A model's `client.py` declares `CLIENT`, and may declare `BENCHMARK_CLIENTS` (`{benchmark: ClientConventions}`:
+its client's conventions on a benchmark where they differ from `CLIENT`), so conventions are keyed by (model,
+benchmark) and live in the model's folder; `cells.cell_config` fills a cell's runner from its benchmark's and
 records every value the study sets differently under `overrides` in the cell config (and so in the
 header). Adapters and the runner then check that what runs is what the cell says. Beside `CLIENT`, a
 model's `client.py` may declare `STEP_LIMITS` (`{benchmark: {suite: policy steps}}`, its client's
@@ -58,9 +60,20 @@ def _client(model: str):
     return importlib.import_module(f"{model_package(model)}.client")
 
 
-def client_conventions(model: str) -> ClientConventions:
-    """`CLIENT` of the model's `client.py`; UserError for an unknown model."""
-    return _client(model).CLIENT
+def client_conventions(model: str, benchmark: str | None = None) -> ClientConventions:
+    """The model's client conventions on `benchmark`: its `client.py`'s `BENCHMARK_CLIENTS[benchmark]` where it
+    declares one, else its `CLIENT` (also for `benchmark` None); UserError for an unknown model, or for a
+    `BENCHMARK_CLIENTS` key that names no registered benchmark."""
+    module = _client(model)
+    per_benchmark = getattr(module, "BENCHMARK_CLIENTS", {})
+    if per_benchmark:
+        from vlaquantbench.envs import BENCHMARK_SUITES
+
+        unknown = sorted(set(per_benchmark) - set(BENCHMARK_SUITES))
+        if unknown:
+            raise UserError(f"model {model!r}: BENCHMARK_CLIENTS of its client.py names {', '.join(unknown)}; "
+                            f"registered benchmarks: {', '.join(BENCHMARK_SUITES)}")
+    return per_benchmark.get(benchmark, module.CLIENT)
 
 
 def step_limit(model: str, benchmark: str, suite: str) -> int:
