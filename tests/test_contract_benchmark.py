@@ -1,6 +1,7 @@
 """The seam's contract (issue 50): a third benchmark that lives only under tests/ (`tests/contract_benchmark/`: a
 MuJoCo scene it writes itself, a suite, a worker vector env, a declaration that registers itself) runs a cell
-through the real Snakemake workflow, records and a table included, with no file under src/ naming it. Processes
+through the real Snakemake workflow, records and a table included, and a same-observation replay records and
+replays it, with no file under src/ naming it. Processes
 find it through `VQB_BENCHMARKS` (`envs.registry`), the one hook a package outside `envs/` needs.
 
 The policy is the `metaworld_expert` model: the scene's `environment_state` has Meta-World's observation layout,
@@ -113,3 +114,68 @@ def test_a_contract_cell_runs_through_snakemake_into_records_and_a_table(tmp_pat
     summary = pd.read_csv(checkout / "tables" / "summary.csv")
     assert summary[["benchmark", "suite", "model", "episodes"]].values.tolist() == [
         ["contract", "contract_reach", "metaworld_expert", 6]]
+
+
+# Replay records any benchmark from its declared cameras: the pi0.5 policy trained here on Meta-World reads the
+# contract scene's observations (its `main` camera under Meta-World's key, a 4-dim state, 4-dim actions).
+REPLAY = '''
+import json, sys
+from pathlib import Path
+import numpy as np
+from vlaquantbench.diagnostics.collect import collect
+from vlaquantbench.hub.cache import offline_cache, repo_folder
+from vlaquantbench.replay.configuration import replay_configuration
+from vlaquantbench.replay.record import record
+from vlaquantbench.replay.study import RecordSettings
+
+root, folder = Path(sys.argv[1]), Path(sys.argv[2])
+home = root / "checkpoints" / "pi05_metaworld_cpu"
+training = json.loads((home / "training.json").read_text())
+snapshot = str(repo_folder(home / "hub", training["checkpoint"]) / "snapshots" / training["revision"])
+layers = json.loads((root / "results/methods_2026/metaworld/metaworld_mt50/pi05/rtn-W4A4-ah/header.json")
+                    .read_text())["quant_report"]["ah"]["layers"]
+settings = RecordSettings(model="pi05", variant="full", suite="contract_reach", benchmark="contract", tasks=[1],
+                          init_states=[2], observe=["paligemma_with_expert.gemma_expert.model.layers.*.mlp.down_proj"],
+                          checkpoint=training["checkpoint"], revision=training["revision"], checkpoint_dir=snapshot,
+                          max_steps=10, executed_chunk=training["policy"]["n_action_steps"])
+trajectories = [folder / name for name in settings.trajectory_files()]
+out = {}
+with offline_cache(home):
+    meta = record(settings, folder / "records.json", trajectories)
+    with np.load(trajectories[0]) as data:
+        out["files"] = sorted(data.files)
+        out["image"], out["state"] = list(data["image"].shape), list(data["state"].shape)
+        recorded = data["chunk"]
+    out["benchmark"], out["n_steps"] = meta["benchmark"], meta["records"][0]["n_steps"]
+    def replay(preset, n):
+        study = {"model": "pi05", "configurations": {"head": {"scope": "ah", "subset": None, "layers": n}}}
+        return replay_configuration(folder / "records.json", trajectories, study, "head", preset, snapshot)
+    baseline = replay("BASELINE", 0)
+    out["baseline_dev"] = baseline.summary["records"][0]["dev_from_recorded_actions"]
+    out["baseline_exact"] = bool(np.array_equal(baseline.stacked("chunks"), recorded))
+    quantized = replay("W4A4", layers)
+    out["hooks"] = [layers, quantized.summary["hooks"]["selected"], quantized.summary["hooks"]["fired"]]
+    out["quantized_dev"] = quantized.summary["records"][0]["dev_from_recorded_actions"]
+    diagnostics = collect(folder / "records.json", trajectories, "pi05", "ah", "W4A4", folder / "diag.json", snapshot)
+    out["diagnosed_layers"], out["diagnosed_tasks"] = len(diagnostics["layers"]), diagnostics["provenance"]["tasks"]
+print("RESULT " + json.dumps(out))
+'''
+
+
+@pytest.mark.slow
+def test_replay_records_the_contract_benchmark_and_reproduces_it(tmp_path):
+    """Same-observation, same-noise replay on the contract scene: the recording holds its declared camera and the
+    state, a full-precision replay reproduces the recorded chunks exactly, a quantized replay of the action head
+    fires every selected hook and changes them, and the layer diagnostics run on the recording."""
+    run = subprocess.run([sys.executable, "-c", REPLAY, str(ROOT), str(tmp_path)], capture_output=True, text=True,
+                         env=contract_env(), cwd=ROOT, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    [line] = [line for line in run.stdout.splitlines() if line.startswith("RESULT ")]
+    out = json.loads(line.removeprefix("RESULT "))
+    assert out["benchmark"] == "contract" and out["n_steps"] == 10
+    assert {"image", "state"} <= set(out["files"]) and "agentview" not in out["files"]
+    assert out["image"][1:] == [48, 48, 3] and out["state"][1:] == [4] and out["image"][0] == out["state"][0]
+    assert out["baseline_dev"] == 0.0 and out["baseline_exact"]
+    layers, selected, fired = out["hooks"]
+    assert layers > 0 and selected == fired == layers and out["quantized_dev"] > 0
+    assert out["diagnosed_layers"] == layers and out["diagnosed_tasks"] == [1]
