@@ -57,3 +57,62 @@ def test_a_declaration_names_its_cameras_by_role():
         register_benchmark(dataclasses.replace(libero, cameras={"wrist": "wrist"}))
     # what replay records of each benchmark's observations: each declared camera's image, then the state
     assert get_benchmark("metaworld").observed == ("image", "state")
+
+
+def test_each_benchmark_declares_its_env_settings_as_the_vector_envs_keyword_parameters():
+    import inspect
+
+    from vlaquantbench.config.study import RunnerConfig
+    from vlaquantbench.envs import env_settings
+
+    for name in BENCHMARK_SUITES:
+        benchmark = get_benchmark(name)
+        parameters = inspect.signature(benchmark.resolve("env_class")).parameters
+        for setting in dataclasses.fields(benchmark.settings):
+            # each setting is the env's keyword-only parameter of the same name, with the env's default
+            assert parameters[setting.name].kind is inspect.Parameter.KEYWORD_ONLY, (name, setting.name)
+            assert parameters[setting.name].default == setting.default, (name, setting.name)
+    assert get_benchmark("libero").setting_names == ("camera_size", "settle_steps", "control_mode", "mujoco")
+    assert get_benchmark("metaworld").setting_names == ("camera_size", "mujoco")
+    # a cell's env gets exactly its benchmark's declared settings, filled from its runner config
+    runner = RunnerConfig(camera_size=64, settle_steps=3, control_mode="absolute", mujoco="3.3.2")
+    assert env_settings("metaworld", runner) == {"camera_size": 64, "mujoco": "3.3.2"}
+    assert env_settings("metaworld", runner, reads_images=False) == {"camera_size": None, "mujoco": "3.3.2"}
+    assert env_settings("libero", runner) == {"camera_size": 64, "settle_steps": 3, "control_mode": "absolute",
+                                              "mujoco": "3.3.2"}
+
+
+def test_a_declaration_without_a_settings_dataclass_is_refused():
+    libero = get_benchmark("libero")
+    with pytest.raises(UserError, match=r"benchmark 'libero': settings \{'settle_steps': 10\} is not a dataclass"):
+        register_benchmark(dataclasses.replace(libero, settings={"settle_steps": 10}))
+
+
+def test_a_setting_given_for_a_benchmark_that_does_not_declare_it_is_refused_by_field():
+    from vlaquantbench.envs import check_settings
+
+    check_settings("libero", {"settle_steps": "study.runner.settle_steps", "device": "study.runner.device"})
+    check_settings("metaworld", {"camera_size": "study.runner.camera_size", "flow_steps": "study.runner.flow_steps"})
+    with pytest.raises(UserError, match=r"^study\.runner\.settle_steps: 'settle_steps' is not an env setting of "
+                                        r"metaworld \(it takes camera_size, mujoco; settle_steps is libero's\); "
+                                        r"study\.runner\.control_mode: 'control_mode' is not"):
+        check_settings("metaworld", {"settle_steps": "study.runner.settle_steps",
+                                     "control_mode": "study.runner.control_mode"})
+
+
+def test_a_benchmark_outside_envs_is_registered_from_the_module_vqb_benchmarks_names(tmp_path):
+    """The hook a benchmark package outside `src/` (tests/contract_benchmark) registers through."""
+    (tmp_path / "outside_benchmark.py").write_text(
+        "import dataclasses\n"
+        "from vlaquantbench.envs.registry import Benchmark, Horizon, SuiteSize, register_benchmark\n"
+        "@dataclasses.dataclass(frozen=True)\n"
+        "class Settings:\n    camera_size: int = 32\n"
+        "register_benchmark(Benchmark('outside', {'outside_one': SuiteSize(2, 3, 0.1, Horizon(9, 'here'), 9)},\n"
+        "    'x:Suite', 'x:Env', 'x:versions', {'main': 'image'}, Settings))\n")
+    code = "from vlaquantbench.envs import BENCHMARK_SUITES as b; print(sorted(b), b['outside']['outside_one'].tasks)"
+    env = {"PYTHONPATH": f"{ROOT / 'src'}:{tmp_path}", "VQB_BENCHMARKS": "outside_benchmark"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
+    assert out.strip() == "['libero', 'metaworld', 'outside'] 2"
+    env["VQB_BENCHMARKS"] = "no_such_benchmark_module"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert run.returncode != 0 and "VQB_BENCHMARKS: cannot import benchmark declaration module 'no_such_benchmark_module'" in run.stderr

@@ -118,7 +118,7 @@ def test_local_gpus_profile_dry_run_states_the_plan_on_a_machine_without_gpus(tm
     assert "Using profile profiles/local-gpus" in output
     assert ("local GPUs (study.execution.gpus: 2 (nvidia-smi not found: taken on trust, VQB_TRUST_GPUS=1)): 0, 1; at most 2 "
             "rollout/calibrate jobs at once (--resources gpu=2), each on a device of its own") in output
-    assert "each with 4 of 8 cores and 3 LIBERO worker(s) (study.execution.num_envs: 8)" in output
+    assert "each with 4 of 8 cores and 3 simulator worker(s) (study.execution.num_envs: 8)" in output
     jobs = jobs_by_rule(output)
     assert len(jobs["rollout"]) == 22 and len(jobs["calibrate"]) == 1
     for resources in jobs["rollout"]:  # memory for the 3 workers a job starts, not the config's 8

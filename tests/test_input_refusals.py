@@ -76,7 +76,8 @@ def test_the_declared_horizons_are_the_simulators_own():
 def test_a_cell_stepping_past_the_simulators_limit_is_refused_naming_the_field(ref, study, message):
     with pytest.raises(UserError, match=message):
         cell_config(ref, study)
-    at_the_limit = {**study, "runner": {"max_steps": 500, "settle_steps": 0}}
+    # settle steps are LIBERO's env setting only: a Meta-World cell is refused one (test below)
+    at_the_limit = {**study, "runner": {"max_steps": 500, **({"settle_steps": 0} if ref.startswith("libero/") else {})}}
     at_the_limit["models"] = {model: {"variant": w["variant"]} for model, w in study["models"].items()}
     assert cell_config(ref, at_the_limit)["runner"]["max_steps"] == 500
 
@@ -99,6 +100,41 @@ def test_the_dag_refuses_a_meta_world_study_stepping_past_500(tmp_path):
     status, output = dry_run(checkout, "results/demonstrations/metaworld_cpu/manifest.tsv",
                              {"demonstrations": {"max_steps": 600}})
     assert status != 0 and "demonstrations.max_steps: 600 steps is beyond metaworld_mt50's limit" in output
+
+
+# --- 2b. Env settings: a setting the cell's benchmark does not declare is refused by field, not dropped ------
+
+MT50_EXPERT = "metaworld/metaworld_mt50/metaworld_expert/rtn-BASELINE-e2e"
+
+
+@pytest.mark.parametrize(("study", "message"), [
+    ({"models": {"metaworld_expert": {"variant": "full"}}, "tasks": 1, "runner": {"settle_steps": 10}},
+     r"^cell '{ref}': study\.runner\.settle_steps: 'settle_steps' is not an env setting of metaworld \(it takes "
+     r"camera_size, mujoco; settle_steps is libero's\); remove it, or set it under study\.models\.<model>\.runner "
+     r"for the models whose cells run on libero only$"),
+    ({"models": {"metaworld_expert": {"variant": "full", "runner": {"control_mode": "delta"}}}, "tasks": 1},
+     r"^cell '{ref}': study\.models\.metaworld_expert\.runner\.control_mode: 'control_mode' is not an env setting of "
+     r"metaworld \(it takes camera_size, mujoco; control_mode is libero's\); remove it$"),
+])
+def test_an_env_setting_the_benchmark_does_not_declare_is_refused_naming_field_and_benchmark(study, message):
+    with pytest.raises(UserError, match=message.replace("{ref}", MT50_EXPERT.replace("/", "/"))):
+        cell_config(MT50_EXPERT, study)
+    # the settings Meta-World declares, and the policy's runner options, pass; so does LIBERO's settle_steps on LIBERO
+    taken = {"models": {"metaworld_expert": {"variant": "full"}}, "tasks": 1,
+             "runner": {"camera_size": 64, "device": "cpu", "max_steps": 20}}
+    assert cell_config(MT50_EXPERT, taken)["runner"]["camera_size"] == 64
+    libero = {"models": {"pi05": {"variant": "demo", "runner": {"control_mode": "delta"}}}, "tasks": 1,
+              "runner": {"settle_steps": 3}}
+    assert cell_config("libero/libero_spatial/pi05/rtn-BASELINE-e2e", libero)["runner"]["settle_steps"] == 3
+
+
+def test_the_dag_refuses_a_meta_world_study_setting_settle_steps(tmp_path):
+    """Before this check `settle_steps` was hashed into a Meta-World cell and never reached its env."""
+    status, output = dry_run(checkout_with_records(tmp_path), "tables/methods_2026.tex",
+                             {"study": {"runner": {"settle_steps": 5}}}, "records_dir=", "manifest=")
+    assert status != 0
+    assert ("/methods_2026.yaml: cell 'metaworld/metaworld_mt50/pi05/" in output
+            and "study.runner.settle_steps: 'settle_steps' is not an env setting of metaworld" in output), output[-3000:]
 
 
 # --- 3. Demonstrations on evaluated variations: every range the config names, by the range that meets ------

@@ -10,7 +10,7 @@ import json
 import pytest
 
 from demo_study import demo_study
-from vlaquantbench.cells import AgainstCell, CellConfig, SequentialSpec
+from vlaquantbench.cells import AgainstCell, CellConfig, SequentialSpec, cell_config
 from vlaquantbench.config.study import StudyConfig
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import ClientConventions, client_conventions
@@ -64,3 +64,24 @@ def test_a_stamp_is_read_once_typed_and_a_malformed_one_is_refused_naming_file_a
     stamp.write_text("{")
     with pytest.raises(UserError, match=str(stamp)):
         CheckpointStamp.read(stamp)
+
+
+def test_client_conventions_are_keyed_by_model_and_benchmark(monkeypatch):
+    """A model's client.py may declare its conventions per benchmark (`BENCHMARK_CLIENTS`); a cell on that benchmark
+    takes them, a cell elsewhere the model's `CLIENT`; a key naming no registered benchmark is refused."""
+    import importlib
+
+    module = importlib.import_module("vlaquantbench.models.metaworld_expert.client")
+    study = {"models": {"metaworld_expert": {"variant": "full"}}, "tasks": 1}
+    ref = "metaworld/metaworld_easy/metaworld_expert/rtn-BASELINE-e2e"
+    assert cell_config(ref, study)["episodes_per_task"] == module.CLIENT.episodes_per_task == 50
+    on_metaworld = dataclasses.replace(module.CLIENT, episodes_per_task=7, source="a Meta-World client")
+    monkeypatch.setattr(module, "BENCHMARK_CLIENTS", {"metaworld": on_metaworld}, raising=False)
+    cfg = cell_config(ref, study)
+    assert cfg["episodes_per_task"] == 7 and cfg["client"] == on_metaworld.as_dict() and cfg["overrides"] == {}
+    assert client_conventions("metaworld_expert") == module.CLIENT  # no benchmark: the model's CLIENT
+    assert client_conventions("metaworld_expert", "libero") == module.CLIENT
+    monkeypatch.setattr(module, "BENCHMARK_CLIENTS", {"robocasa": on_metaworld})
+    with pytest.raises(UserError, match=r"model 'metaworld_expert': BENCHMARK_CLIENTS of its client.py names robocasa; "
+                                        r"registered benchmarks: libero, metaworld"):
+        client_conventions("metaworld_expert", "metaworld")

@@ -41,7 +41,7 @@ from typing import Any
 
 from vlaquantbench.config import validate
 from vlaquantbench.config.study import RunnerConfig, StudyConfig
-from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_step_limit
+from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_settings, check_step_limit
 from vlaquantbench.envs.episodes import RUN_SEED_STRIDE
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import ClientConventions, client_conventions, step_limit
@@ -216,16 +216,17 @@ class CellConfig(PolicyRunConfig):
         _check_registries(ref, benchmark, suite, model, fields["preset"], quantizer_method(fields["method"]))
         if model not in study.models:
             raise UserError(f"cell {ref!r}: model {model!r} is not in study.models ({', '.join(study.models) or 'none'})")
+        _check_settings(ref, benchmark, model, study)
         weights = study.models[model]
         if weights.trained is not None:  # checkpoint, revision, input size and chunk from its training.json
             weights = trained_weights(model, weights)
-        client = client_conventions(model)
+        client = client_conventions(model, benchmark)
         try:  # the model's step limit on this suite, resolved now: hashed with the cell
             released_limit = step_limit(model, benchmark, suite)
         except UserError as err:
             raise UserError(f"cell {ref!r}: {err}") from None
         runner = _runner(study.runner, weights.runner, client, fields["flow_steps"], released_limit)
-        episodes, _ = episodes_per_task(study, model)
+        episodes, _ = episodes_per_task(study, model, benchmark)
         only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
         seed = study.seed + fields["seed_offset"]
         calibration = _calibration(ref, fields, study, seed)
@@ -378,7 +379,7 @@ def _check_fits_suite(ref: str, benchmark: str, suite: str, model: str, study: S
         else:
             check_ids("study.tasks", study.tasks, size.tasks, f"{suite} has {size.tasks} tasks")
         if episodes > size.init_states:
-            _, field = episodes_per_task(study, model)
+            _, field = episodes_per_task(study, model, benchmark)
             raise UserError(f"{field}: {episodes} episodes per task, but {suite} has {size.init_states} official init "
                             f"states per task (episode i starts from init state i)")
         if calibration is not None:
@@ -397,14 +398,15 @@ def _check_fits_suite(ref: str, benchmark: str, suite: str, model: str, study: S
         raise UserError(f"cell {ref!r}: {err}") from None
 
 
-def episodes_per_task(study: StudyConfig, model: str) -> tuple[int, str]:
-    """The episodes per task of `model`'s cells (episode i of a task starts from init state or variation i) and
-    the config field they come from: the model's own, else the study's, else its released client's."""
+def episodes_per_task(study: StudyConfig, model: str, benchmark: str | None = None) -> tuple[int, str]:
+    """The episodes per task of `model`'s cells on `benchmark` (episode i of a task starts from init state or
+    variation i) and the config field they come from: the model's own, else the study's, else its released
+    client's on that benchmark (`models.client.client_conventions`)."""
     if study.models[model].episodes_per_task:
         return study.models[model].episodes_per_task, f"study.models.{model}.episodes_per_task"
     if study.episodes_per_task:
         return study.episodes_per_task, "study.episodes_per_task"
-    return client_conventions(model).episodes_per_task, f"{model}'s client episodes_per_task"
+    return client_conventions(model, benchmark).episodes_per_task, f"{model}'s client episodes_per_task"
 
 
 def _runner_field(study: StudyConfig, model: str, key: str) -> str:
@@ -413,6 +415,18 @@ def _runner_field(study: StudyConfig, model: str, key: str) -> str:
     if key in study.models[model].runner:
         return f"study.models.{model}.runner.{key}"
     return f"study.runner.{key}" if getattr(study.runner, key) is not None else f"{model}'s client {key}"
+
+
+def _check_settings(ref: str, benchmark: str, model: str, study: StudyConfig) -> None:
+    """The env settings the config sets for this cell (`study.runner`, `study.models.<model>.runner`) are its
+    benchmark's (`envs.check_settings`): one it does not declare would be silently unused, so it is refused now,
+    naming the field, before any checkpoint or simulator starts."""
+    given = {key: f"study.runner.{key}" for key in study.runner_given}
+    given |= {key: f"study.models.{model}.runner.{key}" for key in study.models[model].runner}
+    try:
+        check_settings(benchmark, given)
+    except UserError as err:
+        raise UserError(f"cell {ref!r}: {err}") from None
 
 
 def _check_steps(ref: str, benchmark: str, suite: str, model: str, study: StudyConfig, runner: RunnerConfig) -> None:

@@ -3,7 +3,7 @@
     with job_log(snakemake):      # in workflow/scripts/<rule>.py
         write_table(...)
 
-Output is redirected at the file-descriptor level, so LIBERO worker processes, MuJoCo and tqdm land
+Output is redirected at the file-descriptor level, so simulator worker processes, MuJoCo and tqdm land
 in the log too. When the job fails, the log ends with the traceback and one line `error: <cause>`;
 the console gets that cause first, in one line naming the rule and the log, instead of a traceback
 under a list of every input path. The workflow's `onerror:` handler repeats each failed job's cause

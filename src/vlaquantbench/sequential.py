@@ -293,7 +293,7 @@ def saved_fraction(table: pd.DataFrame) -> float:
 
 
 def live_episodes(table: pd.DataFrame, workers: int) -> pd.Series:
-    """Episodes per contrast that the live runner (`runner.stopping`) runs with `workers` LIBERO workers per cell:
+    """Episodes per contrast that the live runner (`runner.stopping`) runs with `workers` simulator workers per cell:
     it runs batches of ceil(workers / tasks) whole rounds, so a decision inside a batch runs the batch out
     (within the cap); one worker per task or fewer runs exactly `episodes_used`."""
     tasks = table["episodes_used"] // table["rounds_used"]

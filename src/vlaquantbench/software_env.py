@@ -8,7 +8,7 @@
 overlay with `pip install --no-deps --target .venv/overlays/<name> -r envs/<name>.lock.txt`. A cell
 runs in the environment its model's folder names (`models.client.environment_name`: `ENVIRONMENT` of
 `models/<model>/client.py`; main otherwise), activated in-process
-before anything imports MuJoCo (`activate`); its header records `describe()`. The LIBERO loader's
+before anything imports MuJoCo (`activate`); its header records `describe()`. A benchmark's
 MuJoCo pin is the environment's.
 
     python -m vlaquantbench.software_env lock    # rewrite envs/main.lock.txt from the installed venv
@@ -59,7 +59,7 @@ class Environment:
 
     @property
     def mujoco(self) -> str:
-        """The MuJoCo version this environment runs LIBERO on."""
+        """The MuJoCo version this environment runs its simulators on."""
         return self.pins().get("mujoco") or Environment(MAIN).pins()["mujoco"]
 
     def describe(self) -> dict[str, str]:
@@ -87,7 +87,7 @@ def active() -> Environment:
 
 
 def activate(env: Environment) -> None:
-    """Put an overlay environment first on this process's path and its children's (LIBERO workers)."""
+    """Put an overlay environment first on this process's path and its children's (simulator workers)."""
     global _active
     if env.overlay is None:
         return

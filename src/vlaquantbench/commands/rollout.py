@@ -9,7 +9,7 @@ Results go to `<checkout>/results/` (the checkout holding this package, as Snake
 
 Fetches the checkpoint and collects calibration statistics first when the cell needs them; an
 interrupted run resumes from its journal. Ctrl-C (SIGINT) or SIGTERM (SLURM's time limit, `kill`)
-prints how many of the cell's episodes are recorded, stops the LIBERO workers and exits 130 or 143;
+prints how many of the cell's episodes are recorded, stops the simulator workers and exits 130 or 143;
 the same command resumes the cell. One process writes a cell at a time: a second `vqb rollout`,
 Snakemake job or SLURM job of the same cell is refused, naming the first (`runner.lock`). Under
 `study.sequential` a cell stops against another cell's records (`runner.stopping`): run that cell first. The config file is validated exactly as Snakemake
@@ -45,7 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "where `snakemake` writes; required when the package is not run from a checkout)",
     )
     parser.add_argument("--num-envs", type=integer_option(field_schema("config", "study", "execution", "num_envs")),
-                        help="LIBERO worker processes (default: study.execution.num_envs); at most what the "
+                        help="simulator worker processes (default: study.execution.num_envs); at most what the "
                              "memory available holds (README: Memory)")
     parser.add_argument("--show", action="store_true", help="print the canonical cell config and its hash, run nothing")
     parser.set_defaults(func=run)

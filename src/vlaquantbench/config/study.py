@@ -46,7 +46,7 @@ class RunnerConfig:
     # auto | captured | eager (`models.adapter.resolve_sampler`); hashed because the captured and
     # eager samplers order floating-point operations differently, so actions can differ in the last bits.
     sampler: str = "auto"
-    # LIBERO's arm controller ("delta" | "absolute") and the MuJoCo version the cell must run on;
+    # The arm controller ("delta" | "absolute", an env setting of benchmarks with one) and the MuJoCo version the cell must run on;
     # None: the model's released client (X-VLA absolute and 3.1.6, the others delta and 3.3.2)
     control_mode: str | None = None
     mujoco: str | None = None
@@ -84,7 +84,7 @@ class SequentialConfig:
 class ExecutionConfig:
     """How cells run, not what they compute: never hashed, so changing it reruns nothing."""
 
-    num_envs: int = 2  # LIBERO worker processes per rollout job
+    num_envs: int = 2  # simulator worker processes per rollout job
     torch_threads: int | None = 1
     progress: bool = True  # a tqdm bar per cell
     # `interleaved`: round-robin over tasks (round k is episode k of every task), so every prefix of whole
@@ -118,6 +118,9 @@ class StudyConfig:
     sequential: SequentialConfig | None = None  # None: every cell runs all its episodes
     label: str | None = None
     tables_dir: str | None = None
+    # The runner options the config's `study.runner` names itself (the others are defaults): a cell refuses
+    # those that are another benchmark's env settings (`envs.check_settings`). Derived, not a config key.
+    runner_given: tuple[str, ...] = field(default=(), compare=False, metadata={"derived": "study.runner's keys"})
 
     @classmethod
     def from_dict(cls, raw: dict[str, Any] | None, where: str = "study") -> StudyConfig:
@@ -126,10 +129,12 @@ class StudyConfig:
         validate(raw, "config", where, subschema=("study",))
         tasks = raw.pop("tasks", cls.tasks)
         sequential = raw.pop("sequential", None)
+        runner = raw.pop("runner", {})
         return cls(
             models={name: ModelWeights(**weights) for name, weights in raw.pop("models", {}).items()},
             tasks=tasks if isinstance(tasks, int) else tuple(sorted(set(tasks))),
-            runner=RunnerConfig(**raw.pop("runner", {})),
+            runner=RunnerConfig(**runner),
+            runner_given=tuple(sorted(runner)),
             calibration=_calibration_protocol(raw.pop("calibration", {})),
             execution=ExecutionConfig(**raw.pop("execution", {})),
             sequential=None if sequential is None else SequentialConfig(**sequential),

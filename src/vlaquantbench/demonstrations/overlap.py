@@ -51,7 +51,7 @@ def study_ranges(study: StudyConfig, cells: Iterable[dict[str, Any]] = ()) -> li
 
     ranges = []
     for model in study.models:
-        episodes, field = episodes_per_task(study, model)
+        episodes, field = episodes_per_task(study, model, "metaworld")  # the demonstrations are Meta-World's
         ranges.append(VariationRange(0, episodes - 1, f"{field} {episodes}: evaluation episode e starts from variation e"))
     calibration = study.calibration
     ranges.append(VariationRange(calibration.first_init_state, calibration.first_init_state + calibration.episodes - 1,

@@ -4,8 +4,9 @@
 importing a simulator, so cell references, task ids and episode counts are checked while the workflow builds
 the DAG (each benchmark's tests compare the sizes with the simulator's own lists). `make_suite` and `make_env` build a benchmark's suite and its batched worker env
 (`envs.workers.WorkerVectorEnv`: reset a slot, submit a chunk, collect, release) from the benchmark's
-name, importing only that benchmark's simulator; `env_settings` picks a cell's env settings from its
-runner config and `simulator_versions` reads (and checks) what a cell header records of the simulator.
+name, importing only that benchmark's simulator; `env_settings` fills a cell's env settings (the typed
+dataclass its benchmark declares) from its runner config, `check_settings` refuses a setting that a config
+gives for a benchmark that does not declare it, and `simulator_versions` reads (and checks) what a cell header records of the simulator.
 The closed-loop runner, rollout calibration and replay recording take their suites, episode specs,
 step limits (`SuiteTasks.max_steps`) and envs from here only.
 
@@ -17,8 +18,9 @@ adding a third one).
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from vlaquantbench.envs.registry import BENCHMARK_SUITES, get_benchmark
@@ -78,13 +80,37 @@ def _settings(env_class: type) -> list[str]:
 
 
 def env_settings(benchmark: str, runner: Any, reads_images: bool = True) -> dict[str, Any]:
-    """The env settings a cell's runner config (`config.study.RunnerConfig`) sets for `benchmark`: those of
-    its fields the benchmark's env takes (the keyword-only parameters of its vector env class). A policy
-    that reads no image (`reads_images`) gets none rendered (camera_size None)."""
-    settings = {name: getattr(runner, name) for name in _settings(get_benchmark(benchmark).resolve("env_class")) if hasattr(runner, name)}
+    """The env settings of a cell of `benchmark`: its declared settings dataclass (`envs.registry.Benchmark.settings`)
+    filled from the cell's runner config (`config.study.RunnerConfig`) where that carries a field of the same name,
+    the declared default elsewhere; a runner option the benchmark does not declare is not passed on (one that a
+    config sets for it is refused while the DAG is built: `check_settings`). A policy that reads no image
+    (`reads_images`) gets none rendered (camera_size None)."""
+    declared = get_benchmark(benchmark).settings
+    typed = declared(**{f.name: getattr(runner, f.name) for f in dataclasses.fields(declared) if hasattr(runner, f.name)})
+    settings = {f.name: getattr(typed, f.name) for f in dataclasses.fields(typed)}
     if not reads_images and "camera_size" in settings:
         settings["camera_size"] = None
     return settings
+
+
+def check_settings(benchmark: str, given: Mapping[str, str]) -> None:
+    """Refuse env settings a config sets for a cell of `benchmark` that it does not declare. `given`: each runner
+    option the config names -> the config field that names it (e.g. `study.runner.settle_steps`). An option that
+    some registered benchmark declares as an env setting but `benchmark` does not would be silently unused by its
+    env: UserError `<field>: ...` naming the setting, the benchmark and the settings it takes. Runner options no
+    benchmark declares (the policy's: device, executed_chunk, ...) pass."""
+    env_names = {name for other in BENCHMARK_SUITES for name in get_benchmark(other).setting_names}
+    declared = get_benchmark(benchmark).setting_names
+    refused = [name for name in given if name in env_names and name not in declared]
+    if refused:
+        takers = {name: [other for other in BENCHMARK_SUITES if name in get_benchmark(other).setting_names]
+                  for name in refused}
+        raise UserError("; ".join(
+            f"{given[name]}: {name!r} is not an env setting of {benchmark} (it takes {', '.join(declared) or 'none'}; "
+            f"{name} is {'/'.join(takers[name])}'s)" for name in refused)
+            + "; remove it" + (f", or set it under study.models.<model>.runner for the models whose cells run on "
+                               f"{'/'.join(sorted({t for ts in takers.values() for t in ts}))} only"
+                               if any(given[name].startswith("study.runner.") for name in refused) else ""))
 
 
 def simulator_versions(benchmark: str, pinned: str | None = None) -> dict[str, Any]:

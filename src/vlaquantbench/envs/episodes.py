@@ -6,9 +6,9 @@ from dataclasses import dataclass
 
 from vlaquantbench.errors import UserError
 
-# The authors' evaluation protocol (their LIBERO records, run seeds 0, 1 and 2): episode e of task t in run seed s
+# The authors' evaluation protocol (their records, run seeds 0, 1 and 2): episode e of task t in run seed s
 # has seed TASK_SEED_STRIDE * t + e + RUN_SEED_STRIDE * s. Both strides are primes. A task's episodes stay below
-# the next task's seeds while e < TASK_SEED_STRIDE (Meta-World's variations are bounded so), and a run's seeds
+# the next task's seeds while e < TASK_SEED_STRIDE (a benchmark's seeded variations are bounded so), and a run's seeds
 # stay below the next run's while TASK_SEED_STRIDE * tasks <= RUN_SEED_STRIDE (up to 991 tasks): two run seeds share
 # no episode seed, so a second run seed repeats every episode on fresh random streams.
 TASK_SEED_STRIDE = 1009
@@ -19,9 +19,9 @@ RUN_SEED_STRIDE = 1_000_003
 class EpisodeSpec:
     """One episode to run in a slot of a vector env.
 
-    `init_state_id` picks the episode's scene: LIBERO's official init state of that index, or
-    Meta-World's task variation of that index (`envs.metaworld.suite.variation_seed`), whatever the run
-    seed. `seed` (`episode_seed`) seeds the policy's random stream and, on LIBERO, the simulator's: under
+    `init_state_id` picks the episode's scene: the benchmark's official init state of that index, or its
+    seeded task variation of that index, whatever the run seed. `seed` (`episode_seed`) seeds the policy's
+    random stream and, where the benchmark seeds its simulator per episode, the simulator's: under
     the fixed init states a run seed varies those streams, not the scene."""
 
     task_id: int

@@ -1,6 +1,6 @@
 """The MuJoCo pin every MuJoCo benchmark runs on, checked when a cell reads its simulator versions.
 
-MuJoCo >= 3.4 changed box-box collisions, and with it how a stored LIBERO-Spatial initial state settles
+MuJoCo >= 3.4 changed box-box collisions, and with it how a stored initial state settles
 (paper, Sec. "Evaluation-Stack Checks"), so evaluating on another version than the software environment's
 (or the cell's `runner.mujoco`) is refused unless the caller overrides the pin explicitly, and the
 override is recorded with the versions.

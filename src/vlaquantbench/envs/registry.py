@@ -1,13 +1,19 @@
 """The benchmark registry: each benchmark package `envs/<benchmark>/` declares itself in its own light
-`benchmark.py` (a `Benchmark`: its suites and their sizes, hard step limits, worker footprints, and where its
-suite class, vector env class and `simulator_versions` live) and registers it with `register_benchmark`.
-Nothing outside a benchmark's folder names it: `BENCHMARK_SUITES` finds every folder's declaration the first
-time it is read, without importing a simulator, so cell references, task ids and episode counts are checked
-while the workflow builds the DAG (`envs.memory` sizes worker pools by the same declarations)."""
+`benchmark.py` (a `Benchmark`: its suites and their sizes, hard step limits, worker footprints, its env settings
+as a typed dataclass, and where its suite class, vector env class and `simulator_versions` live) and registers it
+with `register_benchmark`. Nothing outside a benchmark's folder names it: `BENCHMARK_SUITES` finds every folder's
+declaration the first time it is read, without importing a simulator, so cell references, task ids and episode
+counts are checked while the workflow builds the DAG (`envs.memory` sizes worker pools by the same declarations).
+
+A benchmark package outside `envs/` (a plugin, or a test's own) is found the same way when the environment
+variable `VQB_BENCHMARKS` names its declaration module (comma-separated "package.module" names, importable on
+`sys.path`): every process of a run (the Snakemake workflow, its jobs, the simulator workers) inherits it."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
+import os
 import pkgutil
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -47,7 +53,11 @@ class Benchmark:
     suite class (a `SuiteTasks`), its vector env class (a `WorkerVectorEnv`, whose keyword-only parameters are
     the env settings it takes) and `simulator_versions(pinned)`, imported only when a suite or env is built.
     `cameras` says what its observations show: camera role ("main", and "wrist" where there is one) -> the
-    observation key of that image (beside `state` and `instruction`, which every benchmark's observation has)."""
+    observation key of that image (beside `state` and `instruction`, which every benchmark's observation has).
+    `settings` is its env settings' frozen dataclass (light: no simulator import): each field a keyword-only
+    parameter of its vector env class of the same name, with the env's default. A cell's runner config fills
+    the fields it carries (`envs.env_settings`); a config that sets one of another benchmark's settings for
+    this benchmark's cells is refused, naming it (`envs.check_settings`)."""
 
     name: str
     suites: dict[str, SuiteSize]
@@ -55,6 +65,12 @@ class Benchmark:
     env_class: str
     simulator_versions: str
     cameras: dict[str, str]
+    settings: type
+
+    @property
+    def setting_names(self) -> tuple[str, ...]:
+        """The names of the env settings it declares, in declaration order."""
+        return tuple(f.name for f in dataclasses.fields(self.settings))
 
     @property
     def observed(self) -> tuple[str, ...]:
@@ -81,6 +97,9 @@ def register_benchmark(benchmark: Benchmark) -> Benchmark:
     if unknown or "main" not in benchmark.cameras:
         raise UserError(f"benchmark {benchmark.name!r}: cameras {sorted(benchmark.cameras)}: the roles are "
                         f"{', '.join(CAMERA_ROLES)}, and a main camera is required")
+    if not (isinstance(benchmark.settings, type) and dataclasses.is_dataclass(benchmark.settings)):
+        raise UserError(f"benchmark {benchmark.name!r}: settings {benchmark.settings!r} is not a dataclass (its env "
+                        "settings, each field a keyword-only parameter of its vector env class)")
     held = _REGISTERED.get(benchmark.name)
     if held is not None and held != benchmark:
         raise UserError(f"benchmark {benchmark.name!r} is declared twice ({held.suite_class}, {benchmark.suite_class})")
@@ -88,11 +107,21 @@ def register_benchmark(benchmark: Benchmark) -> Benchmark:
     return benchmark
 
 
+# Declaration modules of benchmarks outside `envs/` (comma-separated module names), imported with the folders'.
+PLUGINS_VARIABLE = "VQB_BENCHMARKS"
+
+
 def _discover() -> None:
-    """Import the `benchmark` module of every benchmark folder beside this file (each registers itself)."""
+    """Import the `benchmark` module of every benchmark folder beside this file, then the modules that
+    `VQB_BENCHMARKS` names (each registers itself); UserError naming a module that cannot be imported."""
     for folder in pkgutil.iter_modules([str(Path(__file__).parent)]):
         if folder.ispkg and (Path(__file__).parent / folder.name / "benchmark.py").is_file():
             importlib.import_module(f"{__package__}.{folder.name}.benchmark")
+    for module in filter(None, (m.strip() for m in os.environ.get(PLUGINS_VARIABLE, "").split(","))):
+        try:
+            importlib.import_module(module)
+        except ImportError as err:
+            raise UserError(f"{PLUGINS_VARIABLE}: cannot import benchmark declaration module {module!r}: {err}") from None
 
 
 class _Registered(Mapping):

@@ -43,7 +43,7 @@ from vlaquantbench.errors import UserError
 _SHUTDOWN_TIMEOUT_S = 10
 # A request (worker start-up, env build, reset, chunk) that gets no reply for this long is a hung worker
 # (e.g. a render context that never comes up when the GPU is out of memory), reported instead of waited
-# on forever. Generous: LIBERO env builds took minutes on a 2-core machine at load 15.
+# on forever. Generous: env builds took minutes on a 2-core machine at load 15.
 REPLY_TIMEOUT_S = 1800.0
 # Workers yield the CPU to the process that drives them: with more workers than cores, the closed-loop
 # runner's main process (which feeds the policy and collects the replies) would otherwise wait for a

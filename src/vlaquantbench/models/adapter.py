@@ -50,7 +50,7 @@ class AdapterConfig:
     checkpoint: str | None = None
     revision: str | None = None  # the revision the cell pins (full variant)
     checkpoint_dir: str | None = None  # local snapshot of `checkpoint` (full variant)
-    suite: str | None = None  # the LIBERO suite (OpenVLA-OFT's statistics are per suite)
+    suite: str | None = None  # the cell's suite (a checkpoint's statistics may be per suite)
     device: str = RunnerConfig.device
     dtype: str = RunnerConfig.dtype
     executed_chunk: int | None = RunnerConfig.executed_chunk  # None: the model's released client
@@ -97,7 +97,7 @@ class PolicyAdapter(Protocol):
     # Set by `load`: the header's `tokenizer` and `normalization` records (what the policy's
     # prompts were tokenized with and its actions unnormalized with, with file hashes).
     checkpoint_provenance: dict
-    control_mode: str  # "delta" or "absolute" end-effector actions (the LIBERO controller's mode)
+    control_mode: str  # "delta" or "absolute" end-effector actions (the arm controller's mode)
     reads_images: bool  # False: the env renders no image for it
     # Glob patterns of scoped linear layers the policy never calls (their hooks cannot fire)
     idle_layers: tuple[str, ...]

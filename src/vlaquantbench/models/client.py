@@ -1,11 +1,13 @@
-"""Each model's released LIBERO client conventions, and the cell values that deviate from them.
+"""Each model's released client conventions, and the cell values that deviate from them.
 
 The paper evaluates every checkpoint under its own released inference client (Sec. 5): how many of
 the predicted actions are executed before observing again, how many episodes a task gets, whether
-LIBERO's arm controller takes delta or absolute end-effector poses, the MuJoCo version the client's
+the arm controller takes delta or absolute end-effector poses, the MuJoCo version the client's
 environment pins, and the fixed model seed of a deterministic head.
 
-A model's `client.py` declares `CLIENT`; `cells.cell_config` fills a cell's runner from it and
+A model's `client.py` declares `CLIENT`, and may declare `BENCHMARK_CLIENTS` (`{benchmark: ClientConventions}`:
+its client's conventions on a benchmark where they differ from `CLIENT`), so conventions are keyed by (model,
+benchmark) and live in the model's folder; `cells.cell_config` fills a cell's runner from its benchmark's and
 records every value the study sets differently under `overrides` in the cell config (and so in the
 header). Adapters and the runner then check that what runs is what the cell says. Beside `CLIENT`, a
 model's `client.py` may declare `STEP_LIMITS` (`{benchmark: {suite: policy steps}}`, its client's
@@ -32,7 +34,7 @@ class ClientConventions:
 
     executed_chunk: int  # actions executed per predicted chunk
     episodes_per_task: int
-    control_mode: str  # LIBERO arm controller: "delta" or "absolute" end-effector poses
+    control_mode: str  # arm controller: "delta" or "absolute" end-effector poses
     mujoco: str  # the MuJoCo version the client's environment pins
     model_seed: int | None = None  # fixed model seed of a deterministic head (None: per-episode streams)
     source: str = ""  # where the values come from
@@ -58,9 +60,20 @@ def _client(model: str):
     return importlib.import_module(f"{model_package(model)}.client")
 
 
-def client_conventions(model: str) -> ClientConventions:
-    """`CLIENT` of the model's `client.py`; UserError for an unknown model."""
-    return _client(model).CLIENT
+def client_conventions(model: str, benchmark: str | None = None) -> ClientConventions:
+    """The model's client conventions on `benchmark`: its `client.py`'s `BENCHMARK_CLIENTS[benchmark]` where it
+    declares one, else its `CLIENT` (also for `benchmark` None); UserError for an unknown model, or for a
+    `BENCHMARK_CLIENTS` key that names no registered benchmark."""
+    module = _client(model)
+    per_benchmark = getattr(module, "BENCHMARK_CLIENTS", {})
+    if per_benchmark:
+        from vlaquantbench.envs import BENCHMARK_SUITES
+
+        unknown = sorted(set(per_benchmark) - set(BENCHMARK_SUITES))
+        if unknown:
+            raise UserError(f"model {model!r}: BENCHMARK_CLIENTS of its client.py names {', '.join(unknown)}; "
+                            f"registered benchmarks: {', '.join(BENCHMARK_SUITES)}")
+    return per_benchmark.get(benchmark, module.CLIENT)
 
 
 def step_limit(model: str, benchmark: str, suite: str) -> int:

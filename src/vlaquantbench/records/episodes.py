@@ -28,7 +28,7 @@ OPTIONAL_COLUMNS = (
     "action_rate",  # smoothness of the executed actions (records.smoothness)
     "jerk",
 )
-# Nullable dtypes: benchmarks without LIBERO init states (CALVIN, SIMPLER) leave init_state_id empty.
+# Nullable dtypes: benchmarks without official init states (CALVIN, SIMPLER) leave init_state_id empty.
 _DTYPES = {
     "suite": "string",
     "task_id": "int64",

@@ -92,7 +92,7 @@ def record(settings: RecordSettings, records_json: str | Path, trajectories: lis
     # Trajectory i of a task starts from init state i; bad task ids / init states fail here, before the model loads.
     specs = [suite.episode_spec(t, i, settings.run_seed) for t in settings.tasks for i in settings.init_states]
     # The model's released client's controller mode and MuJoCo pin; the simulator's own camera and settle steps.
-    client = client_conventions(settings.model)
+    client = client_conventions(settings.model, settings.benchmark)
     runner = RunnerConfig(**{**client.runner(), "executed_chunk": settings.executed_chunk})
     env_options = {k: v for k, v in env_settings(settings.benchmark, runner).items() if k in client.runner()}
     simulator = simulator_versions(settings.benchmark, pinned=client.mujoco)

@@ -1,4 +1,4 @@
-"""Closed-loop rollouts of one cell over batched LIBERO environments, crash-safe and resumable.
+"""Closed-loop rollouts of one cell over batched simulator environments, crash-safe and resumable.
 
 `runner.cell` runs one cell end to end, `runner.loop` is the batched closed loop, `runner.journal`
 makes per-episode appends durable, `runner.checkpoint` fetches pinned checkpoints and

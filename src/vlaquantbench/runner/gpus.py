@@ -185,7 +185,7 @@ def device_record(device: str) -> dict | None:
 @dataclass(frozen=True)
 class LocalGpuPlan:
     """How a local Snakemake runs a study's GPU jobs: at most `jobs` at once, each on a device of its own
-    and `threads` of the node's `cores`, its LIBERO workers capped at `threads - 1` (one core is the policy
+    and `threads` of the node's `cores`, its simulator workers capped at `threads - 1` (one core is the policy
     process's: observations in, CUDA launches out), so that the concurrent jobs' workers fit the node."""
 
     gpus: tuple[Gpu, ...]
@@ -210,7 +210,7 @@ class LocalGpuPlan:
         return (f"local GPUs ({self.source}): {devices}; at most {self.jobs} rollout/calibrate jobs at once "
                 f"(--resources gpu={self.jobs}), each on a device of its own (CUDA_VISIBLE_DEVICES, slots in "
                 f"{SLOTS_DIR}), each with {self.threads} of {self.cores} cores and "
-                f"{self.workers(num_envs)} LIBERO worker(s) (study.execution.num_envs: {num_envs})")
+                f"{self.workers(num_envs)} simulator worker(s) (study.execution.num_envs: {num_envs})")
 
 
 @contextmanager

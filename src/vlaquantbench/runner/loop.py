@@ -53,8 +53,8 @@ class _Episode:
     sent: np.ndarray | None = None  # the actions of the chunk in flight
     nonfinite: bool = False  # the chunk in flight stops before a non-finite action
     latencies: list[float] = field(default_factory=list)
-    # The scene a seeded variation drew (Meta-World's object and goal placement), when the env reports
-    # one at reset; LIBERO's scene is its init state, recorded by id.
+    # The scene a seeded variation drew (e.g. an object and goal placement), when the env reports
+    # one at reset; a scene that is an official init state is recorded by id.
     task_variation: list[float] | None = None
     # Digest of every executed action: reruns and batch sizes can be compared episode by episode.
     digest: Any = field(default_factory=hashlib.sha256)

@@ -1,6 +1,6 @@
 """SIGTERM handled as Ctrl-C is: SLURM sends it at a job's time limit and on preemption, `kill` by
 default. Raised as `Terminated`, a KeyboardInterrupt, every cleanup that runs on Ctrl-C runs for it
-too: the LIBERO workers are closed, the journal is left whole, and `vqb rollout` says how far the
+too: the simulator workers are closed, the journal is left whole, and `vqb rollout` says how far the
 cell got and how to resume it before it exits 128 + 15.
 """
 

@@ -1,7 +1,7 @@
 """The stopping rule live (issue 32): a cell under `study.sequential` stops once its answer is known.
 
 The cell runs its episodes in whole task-interleaved rounds (round k is episode k of every task), in
-batches of the fewest rounds that fill its LIBERO workers. After each batch the anytime-valid test of
+batches of the fewest rounds that fill its simulator workers. After each batch the anytime-valid test of
 `vlaquantbench.sequential` reads the cell's complete rounds paired with the same rounds of the
 `against` cell's records (same tasks, init states and seeds) and the cell stops when it decides
 (`worse`, or `not_worse` by the margin) or at its cap, `episodes_per_task` rounds (`undecided`).

@@ -1,9 +1,29 @@
-"""LIBERO declares itself (`envs.registry`): its four suites, their sizes and worker footprints, and its
-horizon. No simulator import: the workflow reads this while it builds the DAG."""
+"""LIBERO declares itself (`envs.registry`): its four suites, their sizes and worker footprints, its
+horizon and its env settings (`LiberoSettings`). No simulator import: the workflow reads this while it builds the DAG."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from vlaquantbench.envs.registry import Benchmark, Horizon, SuiteSize, register_benchmark
+
+# No-op steps after loading an init state, as in lerobot's LiberoEnv and openpi's LIBERO client.
+SETTLE_STEPS = 10
+CAMERA_SIZE = 256  # the render size of lerobot's and openpi's LIBERO evaluation
+# "delta": actions are end-effector pose deltas (LIBERO's default); "absolute": absolute targets, the
+# worker switching the controller to `use_delta=False` after the settle steps, as X-VLA's client does.
+CONTROL_MODES = ("delta", "absolute")
+
+
+@dataclass(frozen=True)
+class LiberoSettings:
+    """LIBERO's env settings: what a cell's runner config (`study.runner`, `study.models.<model>.runner`) may set
+    for a LIBERO cell, each the keyword-only parameter of `LiberoVectorEnv` of the same name."""
+
+    camera_size: int = CAMERA_SIZE  # both views, square, in pixels
+    settle_steps: int = SETTLE_STEPS  # no-op steps after loading an init state, before the first observation
+    control_mode: str = "delta"  # one of CONTROL_MODES; a cell's comes from its model's client unless set
+    mujoco: str | None = None  # the MuJoCo version the cell must run on (None: the software environment's pin)
 
 # worker_gib, LIBERO: the largest proportional set size (PSS, psutil's memory_full_info; shared libraries counted
 # once across workers) of a LIBERO worker (camera 256, MuJoCo 3.3.2, MUJOCO_GL=egl) after an episode reset and a
@@ -28,4 +48,5 @@ LIBERO = register_benchmark(Benchmark(
     env_class="vlaquantbench.envs.libero.vector_env:LiberoVectorEnv",
     simulator_versions="vlaquantbench.envs.libero.versions:simulator_versions",
     cameras={"main": "agentview", "wrist": "wrist"},  # both rotated 180 degrees, as LIBERO's clients read them
+    settings=LiberoSettings,
 ))

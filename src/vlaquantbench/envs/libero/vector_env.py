@@ -9,6 +9,7 @@ A LIBERO worker seeds the simulator, loads the episode's official init state and
 from __future__ import annotations
 
 from vlaquantbench.envs.episodes import EpisodeSpec
+from vlaquantbench.envs.libero.benchmark import CAMERA_SIZE, CONTROL_MODES, SETTLE_STEPS
 from vlaquantbench.envs.libero.offline import config_dir
 from vlaquantbench.envs.libero.suite import LiberoSuite
 from vlaquantbench.envs.libero.versions import simulator_versions
@@ -20,12 +21,6 @@ __all__ = ["ACTION_DIM", "CAMERA_SIZE", "CONTROL_MODES", "SETTLE_STEPS", "Libero
            "SlotReply"]
 
 ACTION_DIM = 7
-# No-op steps after loading an init state, as in lerobot's LiberoEnv and openpi's LIBERO client.
-SETTLE_STEPS = 10
-CAMERA_SIZE = 256  # the render size of lerobot's and openpi's LIBERO evaluation
-# "delta": actions are end-effector pose deltas (LIBERO's default); "absolute": absolute targets, the
-# worker switching the controller to `use_delta=False` after the settle steps, as X-VLA's client does.
-CONTROL_MODES = ("delta", "absolute")
 
 
 class LiberoWorkerError(WorkerError):

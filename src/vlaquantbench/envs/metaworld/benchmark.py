@@ -1,7 +1,10 @@
 """Meta-World declares itself (`envs.registry`): lerobot's task groups and MT10 / MT50, their sizes, its
-500-step limit and worker footprint. No simulator import: the workflow reads this while it builds the DAG."""
+500-step limit, worker footprint and env settings (`MetaWorldSettings`). No simulator import: the workflow reads
+this while it builds the DAG."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 from vlaquantbench.envs.episodes import TASK_SEED_STRIDE
 from vlaquantbench.envs.registry import Benchmark, Horizon, SuiteSize, register_benchmark
@@ -12,6 +15,20 @@ from vlaquantbench.envs.registry import Benchmark, Horizon, SuiteSize, register_
 # Meta-World's `max_path_length` (its envs refuse to step further), which lerobot's
 # `MetaworldEnv._max_episode_steps` and so lerobot-eval's rollouts use.
 METAWORLD_STEP_LIMIT = 500
+# lerobot's MetaworldEnv renders Meta-World's default 480 x 480 frames (its policies' processors resize).
+CAMERA_SIZE = 480
+
+
+@dataclass(frozen=True)
+class MetaWorldSettings:
+    """Meta-World's env settings: what a cell's runner config may set for a Meta-World cell, each the keyword-only
+    parameter of `MetaWorldVectorEnv` of the same name. It has no settle steps and no controller mode: a config
+    that sets `settle_steps` or `control_mode` for a Meta-World cell is refused (`envs.check_settings`)."""
+
+    camera_size: int | None = CAMERA_SIZE  # `corner2`, square, in pixels; None: no image rendered
+    mujoco: str | None = None  # the MuJoCo version the cell must run on (None: the software environment's pin)
+
+
 METAWORLD_HORIZON = Horizon(METAWORLD_STEP_LIMIT, "Meta-World's max_path_length: it refuses to step on")
 _TASKS = {"metaworld_easy": 28, "metaworld_medium": 11, "metaworld_hard": 6, "metaworld_very_hard": 5,
           "metaworld_mt10": 10, "metaworld_mt50": 50}
@@ -24,4 +41,5 @@ METAWORLD = register_benchmark(Benchmark(
     env_class="vlaquantbench.envs.metaworld.vector_env:MetaWorldVectorEnv",
     simulator_versions="vlaquantbench.envs.metaworld.vector_env:simulator_versions",
     cameras={"main": "image"},  # corner2, as lerobot's Meta-World env renders it; no wrist camera
+    settings=MetaWorldSettings,
 ))

@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib.metadata
 
 from vlaquantbench.envs.episodes import EpisodeSpec
+from vlaquantbench.envs.metaworld.benchmark import CAMERA_SIZE
 from vlaquantbench.envs.metaworld.suite import MetaWorldSuite
 from vlaquantbench.envs.metaworld.worker import EpisodeStart
 from vlaquantbench.envs.mujoco_pin import mujoco_versions
@@ -19,8 +20,6 @@ from vlaquantbench.envs.workers import REPLY_TIMEOUT_S, WorkerError, WorkerVecto
 from vlaquantbench.errors import UserError
 
 ACTION_DIM = 4  # end-effector xyz delta and gripper effort, each in [-1, 1] (lerobot's action space)
-# lerobot's MetaworldEnv renders Meta-World's default 480 x 480 frames (its policies' processors resize).
-CAMERA_SIZE = 480
 
 
 class MetaWorldWorkerError(WorkerError):
