@@ -3,6 +3,7 @@ search over recorded cells (the authors' LIBERO lattice, the pi0.5 trained here)
 and `vqb search`'s refusals."""
 
 import csv
+import re
 import subprocess
 import sys
 
@@ -287,3 +288,48 @@ def test_a_bad_allocation_name_is_refused_before_anything_is_written(tmp_path, c
                  "--allocation", "W4-best"]) == 2
     assert "allocation 'W4-best': study.allocations: 'W4-best' does not match '^[a-z0-9_]+$'" in capsys.readouterr().err
     assert not out.exists() and not chosen.exists()
+
+
+def test_a_named_allocation_reads_the_chosen_cells_records_from_a_records_folder(tmp_path):
+    """From a records folder a cell is read by its reference: `alloc-<name>` reads the records of the cell it
+    stands for (not recorded under its own name), checked by the manifest as that cell; unknown is refused."""
+    from vlaquantbench.workflow import WorkflowConfig
+
+    chosen = tmp_path / "chosen.yaml"
+    chosen.write_text(yaml.safe_dump({"study": {"allocations": {"trained_search": "rtn-W4A8-e2e"}}}))
+    raw = _merged(ROOT / "config/trained_sequential.yaml", ROOT / "config/trained_sequential_fixed.yaml", chosen)
+    workflow = WorkflowConfig.from_snakemake(raw, ROOT)
+    named, spelled = f"{TRAINED}/alloc-trained_search", f"{TRAINED}/rtn-W4A8-e2e"
+    assert workflow.record_refs([named], "t") == [named] and workflow.checked_refs([named], "t") == [named]
+    assert workflow.cell_input(named) == workflow.cell_input(spelled)
+    assert workflow.cell_header(named).endswith("rtn-W4A8-e2e/header.json")
+    unknown = WorkflowConfig.from_snakemake({**raw, "study": {**raw["study"], "allocations": {}}}, ROOT)
+    with pytest.raises(UserError, match="unknown allocation 'trained_search': study.allocations defines none"):
+        unknown.record_refs([named], "t")
+
+
+@pytest.mark.slow
+def test_snakemake_renders_a_table_row_of_the_named_allocation_as_the_chosen_cell(tmp_path):
+    """The search's own tables/search_chosen.yaml, added after the study's configs: a table whose rows are the
+    chosen cell and its name renders them alike, from the committed records (no episode runs)."""
+    checkout, tables = workflow_with_tables(tmp_path)
+    (checkout / "results").mkdir()
+    (checkout / "results/trained_sequential").symlink_to(ROOT / "results/trained_sequential")
+    (checkout / "manifests").mkdir()
+    (checkout / "manifests/trained_sequential_fixed.tsv").symlink_to(ROOT / "manifests/trained_sequential_fixed.tsv")
+    assert main(["search", str(TRAINED_FIXED), "--margin", "20", "--csv", str(tmp_path / "s.csv"),
+                 "--chosen", str(checkout / "chosen.yaml"), "--allocation", "trained_search"]) == 0
+    (tables / "named.yaml").write_text(yaml.safe_dump({
+        "caption": "c", "align": "lrr", "header": [["Cell", "Episodes", "Success"]],
+        "values": [{"stat": "episodes", "cell": "cell"}, {"stat": "rate", "cell": "cell"}],
+        "rows": [{"label": "spelled", "cell": f"{TRAINED}/rtn-W4A8-e2e"},
+                 {"label": "named", "cell": f"{TRAINED}/alloc-trained_search"}]}))
+    result = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "1", "tables/named.tex", "--configfile",
+                             "config/trained_sequential.yaml", "config/trained_sequential_fixed.yaml", "chosen.yaml",
+                             "--config", f"tables_dir={tables}"],
+                            cwd=checkout, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "rule rollout" not in result.stdout + result.stderr
+    body = (checkout / "tables/named.tex").read_text()
+    spelled, named = (re.search(rf"^{label} & (.*)\\\\", body, re.MULTILINE)[1] for label in ("spelled", "named"))
+    assert spelled == named and "60" in named
