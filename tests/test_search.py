@@ -1,6 +1,6 @@
 """Closed-loop precision search (issue 52): costs from the committed layer index, the dominance that prunes, the
 search over recorded cells (the authors' LIBERO lattice, the pi0.5 trained here) against deciding every candidate,
-and `vqb search`'s refusals."""
+`vqb search`'s refusals, the episodes it reports, and the chosen allocation by name (`alloc-<name>` cells)."""
 
 import csv
 import re
@@ -22,6 +22,7 @@ from vlaquantbench.records import find_cells, read_cell
 from vlaquantbench.search import (Candidate, SearchDesign, Verdict, at_least_as_aggressive, exhaustive,
                                   precision_search, records_decider, weight_bits)
 from vlaquantbench.sequential import retrospective
+from vlaquantbench.tables.search import CHOSEN_FILE
 from paths import RECORDS, ROOT
 
 SPATIAL = "libero/libero_spatial/pi05"
@@ -182,7 +183,7 @@ def test_snakemake_searches_the_trained_policy_from_its_committed_records(tmp_pa
     assert table.at[f"{TRAINED}/rtn-W2A2-e2e", "decision"] == "worse"
     assert table.at[f"{TRAINED}/rtn-W4A8-e2e", "status"] == "chosen"
     assert (checkout / "figures/search_pareto.pdf").read_bytes().startswith(b"%PDF")
-    chosen = yaml.safe_load((checkout / "tables/search_chosen.yaml").read_text())
+    chosen = yaml.safe_load((checkout / CHOSEN_FILE).read_text())
     assert chosen == {"study": {"allocations": {"trained_search": "rtn-W4A8-e2e"}}}
     assert [job["rule"] for job in job_audits(audit)] == ["search_table"]
     assert undeclared(audit, checkout) == {}  # the job touched only the files its rule declares

@@ -43,7 +43,7 @@ from vlaquantbench.sequential import Design, full_sample_decision
 from vlaquantbench.stats import task_clustered_bootstrap
 
 COLOURS = {"chosen": "tab:green", "visited": "tab:blue", "baseline": "black"}
-CHOSEN_FILE = "tables/search_chosen.yaml"  # the chosen allocation by name (the Snakemake target's second table)
+CHOSEN_FILE = "tables/search_chosen.yaml"  # the chosen allocation by name: an output of the target tables/search.csv
 DEFAULT_ALLOCATION = "search"
 
 
