@@ -321,8 +321,9 @@ def test_snakemake_renders_a_table_row_of_the_named_allocation_as_the_chosen_cel
     assert main(["search", str(TRAINED_FIXED), "--margin", "20", "--csv", str(tmp_path / "s.csv"),
                  "--chosen", str(checkout / "chosen.yaml"), "--allocation", "trained_search"]) == 0
     (tables / "named.yaml").write_text(yaml.safe_dump({
-        "caption": "c", "align": "lrr", "header": [["Cell", "Episodes", "Success"]],
-        "values": [{"stat": "episodes", "cell": "cell"}, {"stat": "rate", "cell": "cell"}],
+        "caption": "c", "align": "lrrrr", "header": [["Cell", "Episodes", "Success", "Layers", "Params"]],
+        "values": [{"stat": "episodes", "cell": "cell"}, {"stat": "rate", "cell": "cell"},
+                   {"stat": "layers", "cell": "cell"}, {"stat": "params", "cell": "cell", "digits": 2}],
         "rows": [{"label": "spelled", "cell": f"{TRAINED}/rtn-W4A8-e2e"},
                  {"label": "named", "cell": f"{TRAINED}/alloc-trained_search"}]}))
     result = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "1", "tables/named.tex", "--configfile",
@@ -333,4 +334,5 @@ def test_snakemake_renders_a_table_row_of_the_named_allocation_as_the_chosen_cel
     assert "rule rollout" not in result.stdout + result.stderr
     body = (checkout / "tables/named.tex").read_text()
     spelled, named = (re.search(rf"^{label} & (.*)\\\\", body, re.MULTILINE)[1] for label in ("spelled", "named"))
-    assert spelled == named and "60" in named
+    assert spelled == named and named.startswith("60 & ")
+    assert len(named.split("&")) == 4 and named.split("&")[2].strip() != "--"  # the chosen cell's quantized layers
