@@ -171,6 +171,7 @@ def sequential_refs():
 # --- Precision search (rules/search.smk) ----------------------------------------------------------
 SEARCH = config.get("search") or {}
 SEARCH_TARGET = "tables/search.csv"
+SEARCH_CHOSEN = "tables/search_chosen.yaml"  # vlaquantbench.tables.search.CHOSEN_FILE
 SEARCH_CONFIRM = SEARCH.get("confirm") or {}
 CONFIRM_MANIFEST = [SEARCH_CONFIRM["manifest"]] if SEARCH_CONFIRM.get("manifest") else []
 

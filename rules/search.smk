@@ -1,5 +1,6 @@
 # Precision search (issue 52): the cheapest cell of a table's space decided not worse than its baseline.
-# `search` in the config: the table, the baseline, alpha (over the whole search) and margin_pp.
+# `search` in the config: the table, the baseline, alpha (over the whole search) and margin_pp; the chosen
+# allocation by name (search.allocation) in tables/search_chosen.yaml, a config that a later run adds.
 
 
 rule search_table:
@@ -13,6 +14,7 @@ rule search_table:
     output:
         csv=SEARCH_TARGET,
         figure=report("figures/search_pareto.pdf", caption="../workflow/report/search.rst", category="Figures"),
+        chosen=SEARCH_CHOSEN,
     log:
         "logs/tables/search.log",
     params:
@@ -24,6 +26,7 @@ rule search_table:
         held_out_root=SEARCH_CONFIRM.get("records_dir"),
         alpha=SEARCH.get("alpha", 0.05),
         margin_pp=SEARCH.get("margin_pp", 5.0),
+        allocation=SEARCH.get("allocation", "search"),
         report=lambda wc: report_params(SEARCH_TARGET),
     script:
         "../workflow/scripts/search_table.py"

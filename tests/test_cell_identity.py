@@ -58,3 +58,42 @@ def test_a_resumed_cell_may_measure_its_fast_path_probe_anew_but_not_change_its_
     assert resumed.done_keys() == {(0, 0, 0)}
     with pytest.raises(UserError, match="inference: recorded="):
         CellJournal(path, header(RTN, inference={"sampler": "captured", "fast_path_probe": {**probe, "bound": 0.1}}))
+
+
+# --- Named allocations (issue 52): `alloc-<name>` is the cell study.allocations names, under another name ---
+SPELLED = "ablate-W4A4-ah-onlyself_attn"
+ALLOCATED = {**STUDY, "allocations": {"chosen": SPELLED, "other": "rtn-W4A8-ah"}}
+
+
+@pytest.mark.parametrize("prefix", ["", "seed1-", "steps5-", "seed2-steps3-"])
+def test_a_named_allocation_is_the_cell_it_names(prefix):
+    """The same canonical config but for its names, hence one hash, one folder, one job; the allocations enter
+    no other cell's hash."""
+    named = cell_config(f"libero/libero_spatial/pi05/{prefix}alloc-chosen", ALLOCATED)
+    spelled = cell_config(f"libero/libero_spatial/pi05/{prefix}{SPELLED}", STUDY)
+    assert config_hash(named) == config_hash(spelled)
+    assert {key for key in named if named[key] != spelled[key]} == {"ref", "cell"}
+    assert named["cell"] == f"{prefix}alloc-chosen" and named["only"] == spelled["only"] and named["only"]
+    assert config_hash(cell_config(f"libero/libero_spatial/pi05/{prefix}{SPELLED}", ALLOCATED)) == config_hash(spelled)
+    other = cell_config(f"libero/libero_spatial/pi05/{prefix}alloc-other", ALLOCATED)
+    assert (other["method"], other["preset"], other["scope"], other["only"]) == ("rtn", "W4A8", "ah", None)
+    assert config_hash(other) != config_hash(named)
+
+
+@pytest.mark.parametrize("study, ref, message", [
+    (ALLOCATED, "alloc-chosn", "unknown allocation 'chosn': study.allocations defines chosen, other"),
+    (STUDY, "alloc-chosen", "unknown allocation 'chosen': study.allocations defines none"),
+    ({**STUDY, "allocations": {"chosen": "steps5-rtn-W4-e2e"}}, "steps3-alloc-chosen",
+     "allocation 'chosen' is steps5-rtn-W4-e2e, which sets the flow steps already"),
+    ({**STUDY, "allocations": {"chosen": "rtn-W4-e2e-nosuch"}}, "alloc-chosen", "subset 'nosuch'"),
+])
+def test_a_bad_named_allocation_is_refused_naming_it(study, ref, message):
+    with pytest.raises(UserError, match=f"cell 'libero/libero_spatial/pi05/{ref}'.*{message}"):
+        cell_config(f"libero/libero_spatial/pi05/{ref}", study)
+
+
+def test_an_allocation_is_a_cell_name_and_resolves_only_with_its_study():
+    with pytest.raises(UserError, match=r"study.allocations.chosen: 'seed1-rtn-W4-e2e' does not match"):
+        cell_config("libero/libero_spatial/pi05/alloc-chosen", {**STUDY, "allocations": {"chosen": "seed1-rtn-W4-e2e"}})
+    with pytest.raises(UserError, match="'alloc-chosen' names an allocation of study.allocations, which only a study's"):
+        cells.quantized_counts("libero/libero_spatial/pi05/alloc-chosen")

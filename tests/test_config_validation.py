@@ -121,7 +121,7 @@ def demo_config(tmp_path: Path, edit) -> Path:
 
 
 MISSPELT = [
-    (lambda c: c["study"].update(episodes_per_tsak=2), "study: unknown key 'episodes_per_tsak'; allowed keys: calibration, episodes_per_task"),
+    (lambda c: c["study"].update(episodes_per_tsak=2), "study: unknown key 'episodes_per_tsak'; allowed keys: allocations, calibration, episodes_per_task"),
     (lambda c: c["study"]["runner"].update(max_step=3), "study.runner: unknown key 'max_step'; allowed keys: camera_size, control_mode, device"),
     (lambda c: c["study"]["models"]["pi05"].update(varient="full"), "study.models.pi05: unknown key 'varient'; allowed keys: checkpoint, episodes_per_task, revision, runner, trained, variant"),
     (lambda c: c.update(stduy={}), r"\(top level\): unknown key 'stduy'; allowed keys: demonstrations, diagnostics_dir, manifest"),

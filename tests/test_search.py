@@ -1,22 +1,28 @@
 """Closed-loop precision search (issue 52): costs from the committed layer index, the dominance that prunes, the
 search over recorded cells (the authors' LIBERO lattice, the pi0.5 trained here) against deciding every candidate,
-and `vqb search`'s refusals."""
+`vqb search`'s refusals, the episodes it reports, and the chosen allocation by name (`alloc-<name>` cells)."""
 
 import csv
+import re
 import subprocess
 import sys
 
 import pandas as pd
 import pytest
+import yaml
 from file_audit import audited_env, job_audits, undeclared
 from test_dag_trained_checkpoint import workflow_with_tables
 
+from vlaquantbench.cells import cell_config, config_hash
 from vlaquantbench.cli import main
+from vlaquantbench.config.study import StudyConfig
+from vlaquantbench.errors import UserError
 from vlaquantbench.models.layer_index import selected_counts
 from vlaquantbench.records import find_cells, read_cell
 from vlaquantbench.search import (Candidate, SearchDesign, Verdict, at_least_as_aggressive, exhaustive,
                                   precision_search, records_decider, weight_bits)
 from vlaquantbench.sequential import retrospective
+from vlaquantbench.tables.search import CHOSEN_FILE
 from paths import RECORDS, ROOT
 
 SPATIAL = "libero/libero_spatial/pi05"
@@ -147,9 +153,9 @@ def test_live_stopped_records_are_searched_only_at_their_level(tmp_path, capsys)
 
 @pytest.mark.slow
 def test_snakemake_searches_the_trained_policy_from_its_committed_records(tmp_path):
-    """tables/search.csv and figures/search_pareto.pdf through Snakemake from the committed records (no episode
-    runs): the same choice as `vqb search` on the folder and as deciding every candidate; a config without a
-    `search` section is refused naming it."""
+    """tables/search.csv, figures/search_pareto.pdf and tables/search_chosen.yaml through Snakemake from the
+    committed records (no episode runs): the same choice as `vqb search` on the folder and as deciding every
+    candidate, named as search.allocation says; a config without a `search` section is refused naming it."""
     checkout, _ = workflow_with_tables(tmp_path)
     (checkout / "results").mkdir()
     (checkout / "results/trained_sequential").symlink_to(ROOT / "results/trained_sequential")
@@ -177,6 +183,8 @@ def test_snakemake_searches_the_trained_policy_from_its_committed_records(tmp_pa
     assert table.at[f"{TRAINED}/rtn-W2A2-e2e", "decision"] == "worse"
     assert table.at[f"{TRAINED}/rtn-W4A8-e2e", "status"] == "chosen"
     assert (checkout / "figures/search_pareto.pdf").read_bytes().startswith(b"%PDF")
+    chosen = yaml.safe_load((checkout / CHOSEN_FILE).read_text())
+    assert chosen == {"study": {"allocations": {"trained_search": "rtn-W4A8-e2e"}}}
     assert [job["rule"] for job in job_audits(audit)] == ["search_table"]
     assert undeclared(audit, checkout) == {}  # the job touched only the files its rule declares
 
@@ -232,3 +240,99 @@ def test_a_dag_that_runs_the_candidates_live_must_run_the_searchs_rule(tmp_path)
     planned = _dry_run(checkout, level)
     assert planned.returncode == 0, planned.stdout[-3000:]
     assert planned.stdout.count("rule rollout:") == 3 and "rule search_table:" in planned.stdout
+
+
+def _merged(*paths):
+    """The config `snakemake --configfile PATHS...` runs with: each file merged over the last (Snakemake's own merge)."""
+    from snakemake.utils import update_config
+
+    config = {}
+    for path in (ROOT / "config/config.yaml", *paths):
+        update_config(config, yaml.safe_load(path.read_text()))
+    return config
+
+
+def test_the_chosen_allocation_is_a_named_cell_that_runs_as_the_chosen_one(tmp_path, capsys):
+    """`--chosen` writes study.allocations.<name> = the chosen cell's name; added after the study's config, the
+    cell `alloc-<name>` (and its held-out `seed1-alloc-<name>`) hashes as the chosen cell, so it is that cell's
+    folder and records. Every episode is counted: read by the search, recorded, and every candidate in full."""
+    out, chosen = tmp_path / "s.csv", tmp_path / "chosen.yaml"
+    assert main(["search", str(TRAINED_FIXED), "--margin", "20", "--csv", str(out), "--chosen", str(chosen),
+                 "--allocation", "trained"]) == 0
+    assert "recorded: 120 episodes in the 2 candidates' records (100% of every candidate in full)" in capsys.readouterr().out
+    assert yaml.safe_load(chosen.read_text()) == {"study": {"allocations": {"trained": "rtn-W4A8-e2e"}}}
+    assert "# episodes: 93 of 120 that every candidate run in full would need" in chosen.read_text()
+    rows = pd.read_csv(out)
+    assert rows["episodes_used"].iloc[1:].sum() == 93 and list(rows["episodes_full"]) == [60, 60, 60]
+    assert list(rows["episodes_recorded"]) == [60, 60, 60]
+
+    configs = [ROOT / "config/trained_sequential.yaml", ROOT / "config/trained_sequential_fixed.yaml"]
+    study = StudyConfig.from_dict(_merged(*configs, chosen)["study"])
+    for prefix in ("", "seed1-"):
+        named = cell_config(f"{TRAINED}/{prefix}alloc-trained", study)
+        assert config_hash(named) == config_hash(cell_config(f"{TRAINED}/{prefix}rtn-W4A8-e2e", study))
+        assert named["preset"] == "W4A8" and named["scope"] == "e2e"
+    without = StudyConfig.from_dict(_merged(*configs)["study"])
+    with pytest.raises(UserError, match="unknown allocation 'trained': study.allocations defines none"):
+        cell_config(f"{TRAINED}/alloc-trained", without)
+
+    # Nothing decided not_worse (5 pp): no allocation is named, so the name is refused
+    assert main(["search", str(TRAINED_FIXED), "--csv", str(out), "--chosen", str(chosen), "--allocation", "trained"]) == 0
+    assert yaml.safe_load(chosen.read_text()) == {"study": {"allocations": {}}}
+    with pytest.raises(UserError, match="unknown allocation 'trained'"):
+        cell_config(f"{TRAINED}/alloc-trained", StudyConfig.from_dict(_merged(*configs, chosen)["study"]))
+
+
+def test_a_bad_allocation_name_is_refused_before_anything_is_written(tmp_path, capsys):
+    out, chosen = tmp_path / "s.csv", tmp_path / "chosen.yaml"
+    assert main(["search", str(TRAINED_FIXED), "--margin", "20", "--csv", str(out), "--chosen", str(chosen),
+                 "--allocation", "W4-best"]) == 2
+    assert "allocation 'W4-best': study.allocations: 'W4-best' does not match '^[a-z0-9_]+$'" in capsys.readouterr().err
+    assert not out.exists() and not chosen.exists()
+
+
+def test_a_named_allocation_reads_the_chosen_cells_records_from_a_records_folder(tmp_path):
+    """From a records folder a cell is read by its reference: `alloc-<name>` reads the records of the cell it
+    stands for (not recorded under its own name), checked by the manifest as that cell; unknown is refused."""
+    from vlaquantbench.workflow import WorkflowConfig
+
+    chosen = tmp_path / "chosen.yaml"
+    chosen.write_text(yaml.safe_dump({"study": {"allocations": {"trained_search": "rtn-W4A8-e2e"}}}))
+    raw = _merged(ROOT / "config/trained_sequential.yaml", ROOT / "config/trained_sequential_fixed.yaml", chosen)
+    workflow = WorkflowConfig.from_snakemake(raw, ROOT)
+    named, spelled = f"{TRAINED}/alloc-trained_search", f"{TRAINED}/rtn-W4A8-e2e"
+    assert workflow.record_refs([named], "t") == [named] and workflow.checked_refs([named], "t") == [named]
+    assert workflow.cell_input(named) == workflow.cell_input(spelled)
+    assert workflow.cell_header(named).endswith("rtn-W4A8-e2e/header.json")
+    unknown = WorkflowConfig.from_snakemake({**raw, "study": {**raw["study"], "allocations": {}}}, ROOT)
+    with pytest.raises(UserError, match="unknown allocation 'trained_search': study.allocations defines none"):
+        unknown.record_refs([named], "t")
+
+
+@pytest.mark.slow
+def test_snakemake_renders_a_table_row_of_the_named_allocation_as_the_chosen_cell(tmp_path):
+    """The search's own tables/search_chosen.yaml, added after the study's configs: a table whose rows are the
+    chosen cell and its name renders them alike, from the committed records (no episode runs)."""
+    checkout, tables = workflow_with_tables(tmp_path)
+    (checkout / "results").mkdir()
+    (checkout / "results/trained_sequential").symlink_to(ROOT / "results/trained_sequential")
+    (checkout / "manifests").mkdir()
+    (checkout / "manifests/trained_sequential_fixed.tsv").symlink_to(ROOT / "manifests/trained_sequential_fixed.tsv")
+    assert main(["search", str(TRAINED_FIXED), "--margin", "20", "--csv", str(tmp_path / "s.csv"),
+                 "--chosen", str(checkout / "chosen.yaml"), "--allocation", "trained_search"]) == 0
+    (tables / "named.yaml").write_text(yaml.safe_dump({
+        "caption": "c", "align": "lrrrr", "header": [["Cell", "Episodes", "Success", "Layers", "Params"]],
+        "values": [{"stat": "episodes", "cell": "cell"}, {"stat": "rate", "cell": "cell"},
+                   {"stat": "layers", "cell": "cell"}, {"stat": "params", "cell": "cell", "digits": 2}],
+        "rows": [{"label": "spelled", "cell": f"{TRAINED}/rtn-W4A8-e2e"},
+                 {"label": "named", "cell": f"{TRAINED}/alloc-trained_search"}]}))
+    result = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "1", "tables/named.tex", "--configfile",
+                             "config/trained_sequential.yaml", "config/trained_sequential_fixed.yaml", "chosen.yaml",
+                             "--config", f"tables_dir={tables}"],
+                            cwd=checkout, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "rule rollout" not in result.stdout + result.stderr
+    body = (checkout / "tables/named.tex").read_text()
+    spelled, named = (re.search(rf"^{label} & (.*)\\\\", body, re.MULTILINE)[1] for label in ("spelled", "named"))
+    assert spelled == named and named.startswith("60 & ")
+    assert len(named.split("&")) == 4 and named.split("&")[2].strip() != "--"  # the chosen cell's quantized layers

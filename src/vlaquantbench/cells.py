@@ -12,6 +12,11 @@ A cell reference is `<benchmark>/<suite>/<model>/<cell>`; the cell name follows 
     scope   ve | mp | llm | ah | e2e | ve_mp_llm
     subset  a named subset of `config/scopes.yaml` for this model (its only/exclude patterns)
 
+A named allocation stands for a cell name: `[seed<N>-][steps<N>-]alloc-<name>` is the cell
+`study.allocations[<name>]` (`[steps<N>-]<method>-<preset>-<scope>[-<subset>]`, e.g. the one the precision search
+chose, `tables/search_chosen.yaml`) after the same prefixes: the same canonical config but for its names (`ref`,
+`cell`), so the same config hash, folder and records (`resolve_allocation`).
+
 `seed<N>` adds N to the study's run seed (an evaluation-seed repeat, `envs.episodes.episode_seed`);
 `steps<N>` sets the number of flow-matching integration steps. `calib_set<k>` collects calibration statistics on init states
 `first + 2k, first + 2k + 1` (the paper's disjoint calibration sets). Methods that need statistics
@@ -74,11 +79,39 @@ _CALIB_METHOD = re.compile(
 )
 
 
+_ALLOCATION = re.compile(r"^(?P<seed>seed\d+-)?(?P<steps>steps\d+-)?alloc-(?P<name>[a-z0-9_]+)$")
+
+
+def resolve_allocation(name: str, allocations: dict[str, str], ref: str | None = None) -> str:
+    """The cell name `name` stands for: itself, or for `[seed<N>-][steps<N>-]alloc-<allocation>` the cell name
+    `allocations[<allocation>]` (a study's `study.allocations`) after the same prefixes. UserError naming the
+    allocation and where allocations are defined when it is not one, or when both set the flow steps."""
+    match = _ALLOCATION.match(name)
+    if match is None:
+        return name
+    cell, allocation = ref or name, match["name"]
+    if allocation not in allocations:
+        raise UserError(f"cell {cell!r}: unknown allocation {allocation!r}: study.allocations defines "
+                        f"{', '.join(sorted(allocations)) or 'none'} (the precision search writes the one it chose to "
+                        "tables/search_chosen.yaml, a config to add after the study's with --configfile)")
+    spelled = allocations[allocation]
+    if match["steps"] and spelled.startswith("steps"):
+        raise UserError(f"cell {cell!r}: allocation {allocation!r} is {spelled}, which sets the flow steps already: "
+                        "drop the cell's steps<N>- prefix")
+    if _ALLOCATION.match(spelled) or spelled.startswith("seed"):
+        raise UserError(f"cell {cell!r}: study.allocations.{allocation} is {spelled!r}: an allocation names a cell "
+                        "[steps<N>-]<method>-<preset>-<scope>[-<subset>], not another allocation or a run seed")
+    return f"{match['seed'] or ''}{match['steps'] or ''}{spelled}"
+
+
 def parse_cell_name(name: str, ref: str | None = None) -> dict[str, Any]:
     """Split a cell name into its fields; UserError naming the cell (its reference `ref` when given)
     and the grammar on a mismatch."""
     cell = ref or name
     match = _CELL_NAME.match(name)
+    if not match and _ALLOCATION.match(name):
+        raise UserError(f"cell {cell!r}: {name!r} names an allocation of study.allocations, which only a study's "
+                        "cells resolve (here no study is known): name the cell it stands for")
     if not match:
         raise UserError(
             f"cell {cell!r}: name {name!r} does not follow "
@@ -212,7 +245,8 @@ class CellConfig(PolicyRunConfig):
     def from_ref(cls, ref: str, study: StudyConfig) -> CellConfig:
         """The cell `ref` under `study`; UserError naming the reference and the bad field first."""
         benchmark, suite, model, name = parse_ref(ref)
-        fields = parse_cell_name(name, ref)
+        spelled = resolve_allocation(name, study.allocations, ref)  # a named allocation: the cell it stands for
+        fields = parse_cell_name(spelled, ref)
         _check_registries(ref, benchmark, suite, model, fields["preset"], quantizer_method(fields["method"]))
         if model not in study.models:
             raise UserError(f"cell {ref!r}: model {model!r} is not in study.models ({', '.join(study.models) or 'none'})")
@@ -255,7 +289,7 @@ class CellConfig(PolicyRunConfig):
             runner=runner,
             client=client,
             overrides=_overrides(client, runner, episodes, released_limit),
-            sequential=_sequential(ref, benchmark, suite, model, name, study, seed),
+            sequential=_sequential(ref, benchmark, suite, model, spelled, study, seed),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -315,7 +349,7 @@ def _sequential(ref: str, benchmark: str, suite: str, model: str, name: str, stu
     The `against` cell is of the same benchmark, suite, model and tasks; a cell of other episode seeds (another
     `seed<N>-` prefix) is refused, naming both seeds: its rounds would pair episodes of different scenes."""
     design = study.sequential
-    if design is None or name == design.against:
+    if design is None or name == resolve_allocation(design.against, study.allocations, ref):
         return None
     against = f"{benchmark}/{suite}/{model}/{design.against}"
     try:
@@ -547,7 +581,8 @@ def canonical_json(cfg: dict[str, Any]) -> str:
 
 
 # A cell's names: two cells that differ only here run the same experiment (`rtn-W4A4-ah` and
-# `ablate-W4A4-ah`, or two subsets with the same patterns) and share one folder and one job.
+# `ablate-W4A4-ah`, two subsets with the same patterns, or `alloc-<name>` and the cell it stands for) and share
+# one folder and one job.
 NAME_FIELDS = ("ref", "cell", "subset")
 
 

@@ -3,7 +3,8 @@
 A cell is named by a reference `<benchmark>/<suite>/<model>/<cell>` in the authors' naming
 (e.g. `libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn`). With `records_dir` set, its
 records are read from there (the authors' `<ref>.jsonl` or this project's `<ref>/` folder);
-without it, the DAG produces the cell under `results/cells/<config-hash>/`.
+without it, the DAG produces the cell under `results/cells/<config-hash>/`. A named allocation
+(`.../alloc-<name>`, `study.allocations`) reads the records of the cell it stands for either way.
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ class WorkflowConfig:
 
             config_hash = cells.config_hash(cells.cell_config(ref, self.study))
             return f"{CELLS_DIR}/{config_hash}/episodes.parquet"
-        found = self._recorded_cells().get(ref)
+        found = self._recorded_cells().get(self.recorded_ref(ref))
         if found is None:
             raise UserError(
                 f"cell {ref} is not in records_dir {self.records_dir}: "
@@ -145,6 +146,17 @@ class WorkflowConfig:
         value = self.raw.get("success_summary")
         return Path(value) if value else None
 
+    def recorded_ref(self, ref: str) -> str:
+        """The reference under which `records_dir` holds the records of cell `ref`: `ref`, or for a named allocation
+        (`[seed<N>-][steps<N>-]alloc-<name>`) not recorded under its own name, the cell it stands for
+        (`study.allocations`; an unknown name is refused naming it)."""
+        group, _, name = ref.rpartition("/")
+        if self.records_dir is None or "alloc-" not in name or ref in self._recorded_cells():
+            return ref
+        from vlaquantbench.cells import resolve_allocation  # the cell grammar, only for a cell named so
+
+        return f"{group}/{resolve_allocation(name, self.study.allocations, ref)}"
+
     def record_refs(self, refs: list[str], target: str) -> list[str]:
         """Of `target`'s cells `refs`, those read from episode records. With `records_dir` set, a cell without
         records comes from `success_summary`; a cell in neither is an error naming it (at DAG build, before any job)."""
@@ -152,7 +164,7 @@ class WorkflowConfig:
         if self.records_dir is None:
             return refs
         recorded = self._recorded_cells()
-        absent = [ref for ref in refs if ref not in recorded]
+        absent = [ref for ref in refs if self.recorded_ref(ref) not in recorded]
         if absent:
             from vlaquantbench.records.summary import read_summary
 
@@ -161,7 +173,7 @@ class WorkflowConfig:
                 if ref not in summarized:
                     where = f"nor in success_summary {self.success_summary}" if self.success_summary else "and no success_summary is set"
                     raise UserError(f"{target}: cell {ref} is neither in records_dir {self.records_dir} {where}")
-        return [ref for ref in refs if ref in recorded]
+        return [ref for ref in refs if self.recorded_ref(ref) in recorded]
 
     def summary_input(self, refs: list[str], target: str) -> list[str]:
         """`[success_summary]` when some of `target`'s cells `refs` come from it, else `[]` (a rule input)."""
@@ -222,7 +234,7 @@ class WorkflowConfig:
     def checked_refs(self, refs: list[str], target: str) -> list[str]:
         """`refs` of `target`, provided the manifest check covers them all (so no table reads an unchecked record)."""
         covered = set(self.cell_refs())
-        unchecked = [ref for ref in refs if ref not in covered]
+        unchecked = [ref for ref in refs if ref not in covered and self.recorded_ref(ref) not in covered]
         if unchecked:
             raise UserError(
                 f"{target} reads cell {unchecked[0]}, which the manifest check does not cover: "

@@ -17,5 +17,6 @@ with job_log(sm):
     held = {ref: read_checked_cell(ref, path) for ref, path in zip(sm.params.held_out_refs, held_files)}
     report = write_search(cells, sm.params.baseline, SearchDesign(sm.params.alpha, sm.params.margin_pp),
                           sm.output.csv, sm.output.figure, decide_all=True, held=held,
-                          confirm_seed=sm.params.confirm_seed)
+                          confirm_seed=sm.params.confirm_seed, chosen=sm.output.chosen,
+                          allocation=sm.params.allocation)
     print("\n".join(report.summary()))

@@ -8,7 +8,9 @@ each one's recorded rounds against the baseline at alpha / K, prunes after `wors
 `not_worse`. The CSV has one row per candidate in search order (status, decision, episodes read, A - B and the
 success rate at the stop with confidence sequences, Pareto front) after the baseline's row; `--exhaustive` also
 decides every candidate and reports whether the search chose what deciding them all would have; `--confirm-seed N`
-contrasts the chosen cell with the baseline on run seed N's records (`seed<N>-<cell>`, in `--confirm-dir`).
+contrasts the chosen cell with the baseline on run seed N's records (`seed<N>-<cell>`, in `--confirm-dir`);
+`--chosen FILE` writes the chosen allocation by name (`study.allocations.<--allocation>`, a config to add after the
+study's, so that a cell `alloc-<name>` is the chosen cell).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import re
 from vlaquantbench.errors import UserError
 
 DEFAULT_BASELINE = "rtn-BASELINE-e2e"
+DEFAULT_ALLOCATION = "search"  # vlaquantbench.tables.search's (not imported here: registering the parser imports no pandas)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -43,6 +46,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "seed<N>-<cell>, run in full), never used by the search")
     parser.add_argument("--confirm-dir", metavar="DIR", help="where those records are (default RECORDS_DIR)")
     parser.add_argument("--figure", metavar="PDF", help="also plot success against weight memory (the Pareto front)")
+    parser.add_argument("--chosen", metavar="YAML",
+                        help="also write the chosen allocation by name: a config setting study.allocations.NAME to the "
+                             "chosen cell's name, so that a cell alloc-NAME is that cell")
+    parser.add_argument("--allocation", default=DEFAULT_ALLOCATION, metavar="NAME",
+                        help=f"the name --chosen registers (default {DEFAULT_ALLOCATION}; lower case, digits, _)")
     parser.set_defaults(func=run)
 
 
@@ -74,6 +82,6 @@ def run(args: argparse.Namespace) -> int:
         prefix = f"seed{args.confirm_seed}-"
         held = {ref: read_cell(path) for ref, path in found.items() if ref.rsplit("/", 1)[-1].startswith(prefix)}
     report = write_search({ref: read_cell(cells[ref]) for ref in [baseline, *names]}, baseline, design, args.csv,
-                          args.figure, args.exhaustive, held, args.confirm_seed)
+                          args.figure, args.exhaustive, held, args.confirm_seed, args.chosen, args.allocation)
     print("\n".join(report.summary()))
     return 0

@@ -1,8 +1,9 @@
 """The typed study config: the `study` section of a workflow config, after schema validation.
 
 These dataclasses are the one place where study defaults live; the schema
-(`schemas/config.schema.yaml`) only says what is allowed. Everything except `label`, `tables_dir`
-and `execution` enters each cell's canonical config (`vlaquantbench.cells.CellConfig`).
+(`schemas/config.schema.yaml`) only says what is allowed. Everything except `label`, `tables_dir`,
+`execution` and `allocations` enters each cell's canonical config (`vlaquantbench.cells.CellConfig`);
+`allocations` (named allocations, `alloc-<name>` cells) enters only as the cell a name stands for.
 """
 
 from __future__ import annotations
@@ -118,6 +119,8 @@ class StudyConfig:
     sequential: SequentialConfig | None = None  # None: every cell runs all its episodes
     label: str | None = None
     tables_dir: str | None = None
+    # name -> the cell name a cell `[seed<N>-][steps<N>-]alloc-<name>` stands for (`cells.resolve_allocation`)
+    allocations: dict[str, str] = field(default_factory=dict)
     # The runner options the config's `study.runner` names itself (the others are defaults): a cell refuses
     # those that are another benchmark's env settings (`envs.check_settings`). Derived, not a config key.
     runner_given: tuple[str, ...] = field(default=(), compare=False, metadata={"derived": "study.runner's keys"})

@@ -76,12 +76,16 @@ def _si(count: int, digits: int) -> str:
     return f"{count / scale:.{digits}f}{prefix}"
 
 
-def _counted(ref: str) -> dict[str, int]:
+def _counted(ref: str, cell: AnyCell | None = None) -> dict[str, int]:
     # cells (the cell-name grammar and its registries) only where a table counts layers: every other table job
     # skips importing it.
     from vlaquantbench.cells import quantized_counts
 
-    return quantized_counts(ref)
+    group, name = ref.rsplit("/", 1)
+    config = cell.header.get("config") if isinstance(cell, Cell) else None
+    if config and "alloc-" in name:  # a named allocation (study.allocations): the cell its recorded config names
+        name = "-".join(config[key] for key in ("method", "preset", "scope", "subset") if config[key])
+    return quantized_counts(f"{group}/{name}")
 
 
 def _text(cell: AnyCell, key: str, ref: str) -> str:
@@ -195,7 +199,7 @@ def _format(spec: ColumnSpec, row: dict, cells: Mapping[str, AnyCell], bootstrap
     elif spec.stat == "layers":  # a summary row has no run header: counted on the model's layer index
         text = str(_counted(ref)["layers"] if isinstance(cell, SummaryCell) else cell.quantized_layers)
     elif spec.stat == "params":
-        params = _counted(ref)["params"]
+        params = _counted(ref, cell)["params"]
         text = _si(params, spec.digits) if params else MISSING
     elif spec.stat == "header":
         text = _header_number(cell, spec.key, ref, spec.digits)

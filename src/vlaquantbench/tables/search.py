@@ -6,6 +6,17 @@ Each candidate's row: its search order, weight-memory ratio to the BF16 model, s
 confidence sequences at the candidate's level (alpha / K), and `pareto` (on the cost-success front of the decided
 rows). The baseline's row comes first (its success over all its episodes).
 
+Episodes: each candidate's row says how many it read (`episodes_used`), how many its records hold
+(`episodes_recorded`: fewer than in full where a live rule stopped it; a DAG runs every candidate of the space, each
+under its rule) and how many a run in full needs (`episodes_full`); the summary adds them up against every candidate
+of the space run in full.
+
+The chosen allocation by name (`chosen_allocation`, `tables/search_chosen.yaml`): a config that registers the
+chosen cell's name under `study.allocations.<name>`, to add after the study's config (`--configfile`), so that a cell
+`[seed<N>-]alloc-<name>` is the chosen cell (the same config hash: `vlaquantbench.cells.resolve_allocation`). An
+allocation is one cell: one preset on its scope and subset, every other layer at full precision (a cell has one
+preset, so the space holds no candidate that mixes formats across components).
+
 Confirmation: the chosen cell and the baseline rerun in full on episodes the search never used, another run seed
 (`seed<N>-<cell>`, `held_out`), and contrasted by the paper's fixed-sample task-clustered bootstrap (95%, 5,000
 draws, seed 0): `confirmed_not_worse` when its lower end is above -margin (one pre-specified test after the
@@ -22,6 +33,7 @@ from typing import Mapping
 import pandas as pd
 
 from vlaquantbench.atomic import atomic_write, write_text
+from vlaquantbench.config import validate
 from vlaquantbench.errors import UserError
 from vlaquantbench.records import contrast_mismatch
 from vlaquantbench.records.episodes import Cell
@@ -31,6 +43,8 @@ from vlaquantbench.sequential import Design, full_sample_decision
 from vlaquantbench.stats import task_clustered_bootstrap
 
 COLOURS = {"chosen": "tab:green", "visited": "tab:blue", "baseline": "black"}
+CHOSEN_FILE = "tables/search_chosen.yaml"  # the chosen allocation by name: an output of the target tables/search.csv
+DEFAULT_ALLOCATION = "search"
 
 
 def proxy(header: Mapping) -> float | None:
@@ -90,13 +104,20 @@ class SearchReport:
     exhaustive_choice: str | None  # the cheapest `not_worse` when every candidate is decided ("" when not run)
     confirmation: Confirmation | None = None
 
+    @property
+    def episodes_recorded(self) -> int:
+        """The episodes in the candidates' records: what running them cost (a live DAG runs every candidate)."""
+        return int(self.table.loc[self.table["order"] > 0, "episodes_recorded"].sum())
+
     def summary(self) -> list[str]:
         result, chosen = self.result, self.result.chosen
         lines = [f"{result.design.guarantee(len(result.order))}.",
                  f"chosen: {chosen.ref if chosen else 'none (no candidate decided not_worse)'}"
                  + (f" at {chosen.cost_ratio:.3f} x the BF16 weight memory" if chosen else ""),
                  f"episodes: {result.episodes_spent} of {result.episodes_exhaustive} that every candidate run in full "
-                 f"would need ({len(result.verdicts)} visited, {len(result.pruned_by)} pruned)"]
+                 f"would need ({len(result.verdicts)} visited, {len(result.pruned_by)} pruned)",
+                 f"recorded: {self.episodes_recorded} episodes in the {len(result.order)} candidates' records "
+                 f"({self.episodes_recorded / result.episodes_exhaustive:.0%} of every candidate in full)"]
         if self.exhaustive_choice != "":
             same = self.exhaustive_choice == (chosen.ref if chosen else None)
             lines.append(f"exhaustive: {self.exhaustive_choice or 'none'} ({'the same' if same else 'NOT the same'})")
@@ -126,9 +147,11 @@ def search_records(cells: Mapping[str, Cell], baseline: str, design: SearchDesig
     decide = records_decider({r: c.episodes for r, c in cells.items()}, {r: c.header for r, c in cells.items()},
                              baseline)
     result = precision_search(candidates, decide, design)
-    rows = result.rows()
+    rows = [{**row, "episodes_recorded": len(cells[row["cell"]].episodes), "episodes_full": result.episodes_cap}
+            for row in result.rows()]
     rows.insert(0, {"order": 0, "cell": baseline, "cost_ratio": 1.0, "status": "baseline (runs in full)",
                     "episodes_used": len(cells[baseline].episodes),
+                    "episodes_recorded": len(cells[baseline].episodes), "episodes_full": len(cells[baseline].episodes),
                     "rate_at_stop": 100.0 * cells[baseline].episodes["success"].mean()})
     front = pareto_front(rows)
     table = pd.DataFrame(rows).assign(pareto=lambda t: t["cell"].isin(front))
@@ -144,7 +167,30 @@ def search_records(cells: Mapping[str, Cell], baseline: str, design: SearchDesig
     return SearchReport(result, table, choice, confirmation)
 
 
-def plot_pareto(table: pd.DataFrame, output: str | Path) -> Path:
+def chosen_allocation(report: SearchReport, name: str = DEFAULT_ALLOCATION) -> str:
+    """The chosen allocation by name: a config registering the chosen cell's name as `study.allocations.<name>`
+    (none chosen: no allocation, so a cell `alloc-<name>` is refused naming what study.allocations defines), what
+    the search decided in its comments. UserError naming the name when it is not an allocation name."""
+    import yaml
+
+    chosen = report.result.chosen
+    allocations = {name: chosen.ref.rsplit("/", 1)[-1]} if chosen else {}
+    # The name (and the cell) as study.allocations takes them; with none chosen, the name alone (any cell)
+    validate({"allocations": {name: allocations.get(name, "rtn-BASELINE-e2e")}}, "config", f"allocation {name!r}",
+             subschema=("study",))
+    group = report.table.loc[report.table["order"] == 0, "cell"].iloc[0].rsplit("/", 1)[0]
+    lines = ["The allocation the precision search chose (tables/search.csv, vlaquantbench.search), by name. Add this",
+             "file after the study's config (snakemake --configfile CONFIG tables/search_chosen.yaml, or copy the",
+             f"entry into its study.allocations): a cell {group}/[seed<N>-]alloc-{name} is then the chosen cell",
+             "under another name (the same config hash, folder and records; vlaquantbench.cells).",
+             *report.summary()]
+    if chosen is None:
+        lines.append(f"No candidate was decided not_worse: no allocation is named, and a cell alloc-{name} is refused.")
+    comment = "".join(f"# {line}\n" for line in lines)
+    return comment + yaml.safe_dump({"study": {"allocations": allocations}}, sort_keys=False)
+
+
+def plot_pareto(table: pd.DataFrame, output: str | Path, title: str | None = None) -> Path:
     """Success at the stop (with its confidence sequence) against weight memory, one point per decided row; the
     Pareto front joined, the chosen allocation and the baseline marked."""
     # matplotlib here, not at import: the workflow imports this module while it builds the DAG.
@@ -168,6 +214,8 @@ def plot_pareto(table: pd.DataFrame, output: str | Path) -> Path:
     ax.set_ylabel("success at the stop (%), confidence sequence at alpha / K")
     ax.legend(handles=[plt.Line2D([], [], marker="o", ls="", color=c) for c in COLOURS.values()],
               labels=list(COLOURS), fontsize=7)
+    if title:
+        ax.set_title(title, fontsize=7)
     fig.tight_layout()
     with atomic_write(output, "wb") as handle:
         fig.savefig(handle, format="pdf", metadata={"CreationDate": None})
@@ -177,10 +225,17 @@ def plot_pareto(table: pd.DataFrame, output: str | Path) -> Path:
 
 def write_search(cells: Mapping[str, Cell], baseline: str, design: SearchDesign, csv: str | Path,
                  figure: str | Path | None = None, decide_all: bool = False, held: Mapping[str, Cell] | None = None,
-                 confirm_seed: int | None = None) -> SearchReport:
-    """`search_records`, its CSV and (given `figure`) its Pareto figure."""
+                 confirm_seed: int | None = None, chosen: str | Path | None = None,
+                 allocation: str = DEFAULT_ALLOCATION) -> SearchReport:
+    """`search_records`, its CSV, (given `figure`) its Pareto figure and (given `chosen`) the chosen allocation
+    named `allocation` (`chosen_allocation`)."""
     report = search_records(cells, baseline, design, decide_all, held, confirm_seed)
+    named = chosen_allocation(report, allocation) if chosen is not None else None  # a bad name: before any write
     write_text(csv, report.table.to_csv(index=False, float_format="%.4f"))
     if figure is not None:
-        plot_pareto(report.table, figure)
+        result = report.result
+        plot_pareto(report.table, figure, f"episodes read {result.episodes_spent} of {result.episodes_exhaustive} "
+                    f"(every candidate in full); recorded {report.episodes_recorded}")
+    if named is not None:
+        write_text(chosen, named)
     return report
