@@ -13,6 +13,7 @@ rule, and the device script's own stop, pack, restore and resume through Snakema
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -148,6 +149,25 @@ def test_the_device_call_the_script_documents_fits_the_device_tool():
     assert subprocess.run(["bash", "-n", str(SCRIPT)]).returncode == 0
 
 
+def test_a_cell_finished_in_an_earlier_call_is_no_target_though_its_records_are_not_carried(tmp_path):
+    """The carry holds the baseline's records and the unfinished cells' journals; every other finished cell is known
+    from the carried progress alone, and `plan` (what the next call runs) counts it finished."""
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    for item in ("Snakefile", "rules", "workflow", "config", "src", "checkpoints", "benchmarks"):
+        (checkout / item).symlink_to(ROOT / item)
+    cells = study_cells(LIVE)
+    done = next(key for key, cfg in cells.items() if cfg["ref"] == BASE + "rtn-W2-e2e")
+    (checkout / "results").mkdir()
+    (checkout / "results" / "gpu_study_progress.tsv").write_text(
+        "hash\tref\tpreset\tsequential\tepisodes\tfinished\tdecision\n"
+        f"{done}\t{BASE}rtn-W2-e2e\tW2\t1\t30\t1\tworse\n")
+    result = subprocess.run(["bash", str(SCRIPT), "plan"], cwd=checkout, capture_output=True, text=True, check=True,
+                            env={**os.environ, "PYTHON": sys.executable, "PHASES": LIVE})
+    flags = dict(line.split()[::2] for line in result.stdout.splitlines()[1:])
+    assert len(flags) == 57 and flags.pop(done) == "1" and set(flags.values()) == {"0"}
+
+
 # --- the script across two calls, on the CPU -----------------------------------------------------------------------
 # The committed CPU-trained pi0.5 on two of its tasks, two variations each, one simulator worker (episodes finish one
 # by one, so the stop lands between them), RTN W4A4 end to end under the live rule against the baseline.
@@ -157,7 +177,7 @@ SMALL_STUDY = {
         "models": {"pi05": {"variant": "full", "trained": "checkpoints/pi05_metaworld_cpu", "checkpoint": None,
                             "revision": None}},
         "tasks": [4, 18], "episodes_per_task": 2, "seed": 0,
-        "runner": {"device": "cpu", "max_steps": 25, "flow_steps": 2, "sampler": "eager"},
+        "runner": {"device": "cpu", "max_steps": 15, "flow_steps": 2, "sampler": "eager"},
         "calibration": {"layer_errors": False},
         "sequential": {"alpha": 0.05, "margin_pp": 5, "against": "rtn-BASELINE-e2e"},
         "execution": {"num_envs": 1, "torch_threads": 1, "progress": False, "episode_order": "interleaved"},
@@ -190,6 +210,11 @@ def script(checkout: Path, out: Path, **env) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
+def keep(checkout: Path, out: Path) -> None:
+    """`gpu_study.sh keep`: a call's returned files, kept here as the next call's carry and the records."""
+    subprocess.run(["bash", str(SCRIPT), "keep", str(out)], cwd=checkout, check=True, capture_output=True)
+
+
 def finished(process: subprocess.Popen, timeout: float = 900) -> str:
     try:
         output, _ = process.communicate(timeout=timeout)
@@ -202,9 +227,17 @@ def finished(process: subprocess.Popen, timeout: float = 900) -> str:
 
 
 def cell_folder(checkout: Path, ref: str) -> Path | None:
-    for header in (checkout / "results" / "cells").glob("*/journal.jsonl"):
-        if f'"ref": "{ref}"' in header.open().readline():
-            return header.parent
+    """The cell's folder: its header names it, or while it runs, its journal's first line."""
+    for folder in (checkout / "results" / "cells").glob("*"):
+        for name in ("header.json", "journal.jsonl"):
+            if (folder / name).is_file():
+                try:  # a journal's header line may be half written
+                    text = (folder / name).open().readline() if name == "journal.jsonl" else (folder / name).read_text()
+                    if json.loads(text)["ref"] == ref:
+                        return folder
+                except ValueError:
+                    pass
+                break
     return None
 
 
@@ -238,13 +271,11 @@ def test_a_cell_stopped_in_one_call_and_resumed_from_its_carried_records_equals_
     assert parts and all(part.stat().st_size <= 15_000_000 for part in parts)
     progress = pd.read_csv(tmp_path / "first_out" / "progress.tsv", sep="\t").set_index("ref")
     assert progress.at[CELL, "episodes"] == len(done_first) and progress.at[CELL, "finished"] == 0
+    assert progress.at[BASELINE, "finished"] == 1
 
-    # Call 2, a fresh checkout: the parts carried in as the next call's .carry/gpu_study, the cell resumed.
+    # Call 2, a fresh checkout: the first call's carry kept as the next call's .carry/gpu_study, the cell resumed.
     second = small_checkout(tmp_path, "second")
-    carry = second / ".carry" / "gpu_study"
-    carry.mkdir(parents=True)
-    for path in [*parts, tmp_path / "first_out" / "calls.tsv"]:
-        shutil.copy(path, carry)
+    keep(second, tmp_path / "first_out")
     output = finished(script(second, tmp_path / "second_out"))
     resumed = cell_folder(second, CELL)
     # The baseline carried in finished is not rerun (its records are the first call's, byte for byte) ...
@@ -258,6 +289,12 @@ def test_a_cell_stopped_in_one_call_and_resumed_from_its_carried_records_equals_
     assert read_cell(resumed).header["stopping"] == read_cell(at_once).header["stopping"]
     calls = pd.read_csv(tmp_path / "second_out" / "calls.tsv", sep="\t")
     assert len(calls) == 2 and calls["episodes"].sum() == 8 and calls["total_episodes"].iloc[-1] == 8
-    # The layout to commit: every finished cell by reference (the baseline in both studies' folders).
+
+    # Here, every call's returned records exported to the layout to commit: each finished cell by reference.
+    here = small_checkout(tmp_path, "here")
+    for out in ("first_out", "second_out"):
+        keep(here, tmp_path / out)
+    subprocess.run(["bash", str(SCRIPT), "export"], cwd=here, env={**os.environ, "PYTHON": sys.executable}, check=True)
     for kind, ref in (("live", BASELINE), ("live", CELL), ("fixed", BASELINE)):
-        assert (second / "results" / "gpu_study" / kind / ref / "episodes.parquet").is_file()
+        pd.testing.assert_frame_equal(outcomes(here / "results" / "gpu_study" / kind / ref), outcomes(cell_folder(second, ref)))
+    assert not (here / "results" / "gpu_study" / "fixed" / CELL).exists()
