@@ -249,7 +249,8 @@ case "$CMD" in
   *) echo "usage: [OUT=DIR] bash benchmarks/gpu_study.sh [run|keep FILES_AT|export|plan|restore|pack]" >&2; exit 2 ;;
 esac
 
-at "start on $(nvidia-smi -L 2>/dev/null | head -1)"
+gpu=$(nvidia-smi -L 2>/dev/null | head -1)
+at "start on ${gpu:-no GPU (nvidia-smi lists none)}, $CORES cores"
 if [ -d "$STACK" ] && [ ! -f /tmp/sim/env.sh ]; then
   "$PYTHON" benchmarks/simstack.py unpack --from "$STACK" --target /tmp/sim > logs/unpack.log 2>&1 \
     || { tail -20 logs/unpack.log; exit 1; }

@@ -137,6 +137,16 @@ def test_a_dry_run_of_the_fixed_overlay_plans_its_six_cells_and_the_rules_replay
         assert "results/cells/" not in job["input"]
 
 
+def test_the_study_stack_packs_the_ten_tasks_of_the_study():
+    """benchmarks/simstack.py packs a study config's Meta-World tasks (their meshes and textures) from its task ids."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from simstack import metaworld_tasks
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    assert metaworld_tasks(ROOT / LIVE) == TRAINED["demonstrations"]["tasks"]
+
+
 def test_the_device_call_the_script_documents_fits_the_device_tool():
     """Its header's `run(...)`: a command of at most 2,000 characters, at most 8 carried paths, both git-ignored."""
     header = SCRIPT.read_text().split("\nset -u", 1)[0]
