@@ -240,13 +240,14 @@ phase() {
 
 case "$CMD" in
   restore) restore; exit $? ;;
+  check-hosts) helper check-hosts; exit $? ;;
   keep) keep "${2:-}"; exit $? ;;
   export) export_records; exit $? ;;
   plan) restore > /dev/null && IFS=';' read -r -a phases <<< "$PHASES" \
           && for configs in "${phases[@]}"; do echo "phase $configs:"; helper cells $configs; done; exit $? ;;
   pack) : "${OUT:?OUT: the folder to pack into}"; pack; exit $? ;;
   run) : "${OUT:?OUT: the folder whose files come back}" ;;
-  *) echo "usage: [OUT=DIR] bash benchmarks/gpu_study.sh [run|keep FILES_AT|export|plan|restore|pack]" >&2; exit 2 ;;
+  *) echo "usage: [OUT=DIR] bash benchmarks/gpu_study.sh [run|keep FILES_AT|export|plan|restore|check-hosts|pack]" >&2; exit 2 ;;
 esac
 
 gpu=$(nvidia-smi -L 2>/dev/null | head -1)

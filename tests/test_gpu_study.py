@@ -178,6 +178,26 @@ def test_a_cell_finished_in_an_earlier_call_is_no_target_though_its_records_are_
     assert len(flags) == 57 and flags.pop(done) == "1" and set(flags.values()) == {"0"}
 
 
+def test_an_unfinished_cell_recorded_on_another_host_is_set_aside_and_one_of_this_host_stays(tmp_path):
+    """A journal resumes only on its host's CPU and renderer (runner.journal): the call restarts such a cell, its
+    journal kept in results/cells_set_aside/ (returned with the records) rather than refused mid-call."""
+    from vlaquantbench.runner.provenance import host
+
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    for item in ("src", "benchmarks", "config"):
+        (checkout / item).symlink_to(ROOT / item)
+    for name, recorded in (("elsewhere", {**host(), "cpu": "another CPU"}), ("here", host())):
+        (checkout / "results" / "cells" / name).mkdir(parents=True)
+        (checkout / "results" / "cells" / name / "journal.jsonl").write_text(
+            json.dumps({"kind": "header", "ref": BASE + name, "host": recorded}) + "\n")
+    result = subprocess.run(["bash", str(SCRIPT), "check-hosts"], cwd=checkout, capture_output=True, text=True,
+                            env={**os.environ, "PYTHON": sys.executable}, check=True)
+    assert result.stdout.startswith(f"set aside elsewhere ({BASE}elsewhere): recorded on ")
+    assert [p.name for p in (checkout / "results" / "cells").iterdir()] == ["here"]
+    assert [p.name.split("-")[0] for p in (checkout / "results" / "cells_set_aside").iterdir()] == ["elsewhere"]
+
+
 # --- the script across two calls, on the CPU -----------------------------------------------------------------------
 # The committed CPU-trained pi0.5 on two of its tasks, two variations each, one simulator worker (episodes finish one
 # by one, so the stop lands between them), RTN W4A4 end to end under the live rule against the baseline.
