@@ -3,6 +3,7 @@
     python benchmarks/simstack.py pack --suite libero_spatial --out .simstack
     python benchmarks/simstack.py pack --benchmark metaworld --config config/trained_study.yaml --out .gpuwork/demos-stack
     python benchmarks/simstack.py pack --benchmark metaworld --closed-loop --config config/trained_cpu.yaml --out .gpuwork/closed-loop-stack
+    python benchmarks/simstack.py pack --benchmark metaworld --closed-loop --config config/gpu_study.yaml --out .gpuwork/study-stack
     python3 benchmarks/simstack.py unpack --from .simstack --target /tmp/sim   # on the GPU machine
     . /tmp/sim/env.sh && python3 benchmarks/simstack.py check --target /tmp/sim
 
@@ -274,12 +275,19 @@ def _record():
         json.dump({"argv": sys.argv, "modules": modules, "opened": sorted(opened), "mapped": mapped}, handle)
 """
 def metaworld_tasks(config: Path) -> list[str]:
-    """The tasks of a workflow config's `demonstrations` section."""
+    """The tasks of a workflow config's `demonstrations` section, else (a study config, config/gpu_study.yaml)
+    its study's task ids of metaworld_mt50."""
     import yaml
 
     from vlaquantbench.demonstrations import DemonstrationConfig
 
-    return list(DemonstrationConfig.from_dict(yaml.safe_load(config.read_text())["demonstrations"]).tasks)
+    raw = yaml.safe_load(config.read_text())
+    if "demonstrations" not in raw:
+        from vlaquantbench.envs.metaworld.suite import suite_task_names
+
+        names = suite_task_names("metaworld_mt50")
+        return [names[task] for task in raw["study"]["tasks"]]
+    return list(DemonstrationConfig.from_dict(raw["demonstrations"]).tasks)
 
 
 def probe_metaworld(config: Path, closed_loop: bool = False) -> dict:
@@ -338,7 +346,8 @@ def _closed_loop_probe(config: Path, root: Path, tmp: Path, snakemake: list[str]
     first_task = raw["study"]["tasks"][0] if isinstance(raw["study"]["tasks"], list) else 0
     (tmp / "probe.yaml").write_text(yaml.safe_dump({
         "records_dir": None, "manifest": None, "tables_dir": str(tmp / "tables"),
-        "study": {"tasks": [first_task], "episodes_per_task": 1, "runner": {"max_steps": 10},
+        # On this machine's CPU whatever the study's device (a cuda study's DAG refuses a node without a GPU).
+        "study": {"tasks": [first_task], "episodes_per_task": 1, "runner": {"max_steps": 10, "device": "cpu"},
                   "calibration": {"tasks": [first_task], "episodes": 1}}}))
     (tmp / "work").mkdir()
     (tmp / "work" / "checkpoints").symlink_to(root / "checkpoints")
