@@ -351,35 +351,58 @@ def test_the_closed_loop_script_refuses_an_argument_before_loading_the_policy(tm
     assert not out.exists()
 
 
-# --- A checkpoint trained here: its folder verified against its training.json before the DAG plans a cell ---
+# --- A checkpoint trained here: its folder verified against its training.json before anything reads it ------
 
 
-@pytest.mark.parametrize(("change", "message"), [
-    ("edit", "policy/policy_postprocessor.json has SHA-256 {found}, but training.json records {recorded}"),
-    ("extra", "tokenizer/special_tokens_map.json is not recorded in training.json"),
-    ("remove", "tokenizer/tokenizer_config.json is recorded in training.json but missing"),
-])
-def test_a_changed_trained_checkpoint_folder_is_refused_while_the_dag_is_built(tmp_path, change, message):
+def copied_cpu_home(root: Path) -> tuple[Path, dict]:
     import json
     import shutil
 
-    from vlaquantbench.hub.checks import sha256
-
-    checkout = checkout_with_records(tmp_path)
-    (checkout / "checkpoints").unlink()
-    (checkout / "checkpoints").mkdir()
-    home = checkout / "checkpoints" / "pi05_metaworld_cpu"
+    home = root / "checkpoints" / "pi05_metaworld_cpu"
     shutil.copytree(ROOT / "checkpoints" / "pi05_metaworld_cpu", home)
-    training = json.loads((home / "training.json").read_text())
+    return home, json.loads((home / "training.json").read_text())
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ("edit", "policy/policy_postprocessor.json has SHA-256 {found}, but training.json records {recorded}: restore the file or retrain"),
+    ("extra", "tokenizer/special_tokens_map.json is not recorded in training.json: remove it or retrain"),
+    ("remove", "tokenizer/tokenizer_config.json is recorded in training.json but missing"),
+    ("weights", "policy/model.safetensors is not the weights of this revision (its SHA-1 is {sha1}): restore the file or retrain"),
+])
+def test_a_changed_trained_checkpoint_folder_is_refused_naming_the_file(tmp_path, change, message):
+    import hashlib
+
+    from vlaquantbench.hub.checks import sha256
+    from vlaquantbench.models.trained_home import verify
+
+    home, training = copied_cpu_home(tmp_path)
     if change == "edit":
         edited = home / "policy" / "policy_postprocessor.json"
         edited.write_text(edited.read_text() + " ")
         message = message.format(found=sha256(edited), recorded=training["files"]["policy/policy_postprocessor.json"])
     elif change == "extra":
         (home / "tokenizer" / "special_tokens_map.json").write_text("{}")
-    else:
+    elif change == "remove":
         (home / "tokenizer" / "tokenizer_config.json").unlink()
+    else:  # one byte of the weights file's payload: a file that still parses
+        weights = home / "policy" / "model.safetensors"
+        data = bytearray(weights.read_bytes())
+        data[-1] ^= 0x80
+        weights.write_bytes(bytes(data))
+        message = message.format(sha1=hashlib.sha1(data).hexdigest())
+    with pytest.raises(UserError) as refused:
+        verify(home, "study.models.pi05.trained")
+    assert str(refused.value) == (f"study.models.pi05.trained: {training['checkpoint']}@{training['revision']} ({home}): "
+                                  f"{home}/{message}")
+
+
+def test_a_changed_trained_checkpoint_folder_is_refused_while_the_dag_is_built(tmp_path):
+    checkout = checkout_with_records(tmp_path)
+    (checkout / "checkpoints").unlink()
+    home, training = copied_cpu_home(checkout)
+    (home / "tokenizer" / "tokenizer_config.json").unlink()
     status, output = dry_run(checkout, "tables/methods_2026.tex", {}, "records_dir=", "manifest=")
     assert status != 0
-    assert (f"study.models.pi05.trained: {training['checkpoint']}@{training['revision']} "
-            f"(checkpoints/pi05_metaworld_cpu): checkpoints/pi05_metaworld_cpu/{message}") in output, output[-3000:]
+    assert (f"study.models.pi05.trained: {training['checkpoint']}@{training['revision']} (checkpoints/pi05_metaworld_cpu): "
+            "checkpoints/pi05_metaworld_cpu/tokenizer/tokenizer_config.json is recorded in training.json but missing"
+            ) in output, output[-3000:]
