@@ -123,7 +123,7 @@ import json, sys
 from pathlib import Path
 import numpy as np
 from vlaquantbench.diagnostics.collect import collect
-from vlaquantbench.hub.cache import offline_cache, repo_folder
+from vlaquantbench.models.trained_home import policy_folder
 from vlaquantbench.replay.configuration import replay_configuration
 from vlaquantbench.replay.record import record
 from vlaquantbench.replay.study import RecordSettings
@@ -131,7 +131,7 @@ from vlaquantbench.replay.study import RecordSettings
 root, folder = Path(sys.argv[1]), Path(sys.argv[2])
 home = root / "checkpoints" / "pi05_metaworld_cpu"
 training = json.loads((home / "training.json").read_text())
-snapshot = str(repo_folder(home / "hub", training["checkpoint"]) / "snapshots" / training["revision"])
+snapshot = str(policy_folder(home))
 layers = json.loads((root / "results/methods_2026/metaworld/metaworld_mt50/pi05/rtn-W4A4-ah/header.json")
                     .read_text())["quant_report"]["ah"]["layers"]
 settings = RecordSettings(model="pi05", variant="full", suite="contract_reach", benchmark="contract", tasks=[1],
@@ -140,24 +140,23 @@ settings = RecordSettings(model="pi05", variant="full", suite="contract_reach", 
                           max_steps=10, executed_chunk=training["policy"]["n_action_steps"])
 trajectories = [folder / name for name in settings.trajectory_files()]
 out = {}
-with offline_cache(home):
-    meta = record(settings, folder / "records.json", trajectories)
-    with np.load(trajectories[0]) as data:
-        out["files"] = sorted(data.files)
-        out["image"], out["state"] = list(data["image"].shape), list(data["state"].shape)
-        recorded = data["chunk"]
-    out["benchmark"], out["n_steps"] = meta["benchmark"], meta["records"][0]["n_steps"]
-    def replay(preset, n):
-        study = {"model": "pi05", "configurations": {"head": {"scope": "ah", "subset": None, "layers": n}}}
-        return replay_configuration(folder / "records.json", trajectories, study, "head", preset, snapshot)
-    baseline = replay("BASELINE", 0)
-    out["baseline_dev"] = baseline.summary["records"][0]["dev_from_recorded_actions"]
-    out["baseline_exact"] = bool(np.array_equal(baseline.stacked("chunks"), recorded))
-    quantized = replay("W4A4", layers)
-    out["hooks"] = [layers, quantized.summary["hooks"]["selected"], quantized.summary["hooks"]["fired"]]
-    out["quantized_dev"] = quantized.summary["records"][0]["dev_from_recorded_actions"]
-    diagnostics = collect(folder / "records.json", trajectories, "pi05", "ah", "W4A4", folder / "diag.json", snapshot)
-    out["diagnosed_layers"], out["diagnosed_tasks"] = len(diagnostics["layers"]), diagnostics["provenance"]["tasks"]
+meta = record(settings, folder / "records.json", trajectories)
+with np.load(trajectories[0]) as data:
+    out["files"] = sorted(data.files)
+    out["image"], out["state"] = list(data["image"].shape), list(data["state"].shape)
+    recorded = data["chunk"]
+out["benchmark"], out["n_steps"] = meta["benchmark"], meta["records"][0]["n_steps"]
+def replay(preset, n):
+    study = {"model": "pi05", "configurations": {"head": {"scope": "ah", "subset": None, "layers": n}}}
+    return replay_configuration(folder / "records.json", trajectories, study, "head", preset, snapshot)
+baseline = replay("BASELINE", 0)
+out["baseline_dev"] = baseline.summary["records"][0]["dev_from_recorded_actions"]
+out["baseline_exact"] = bool(np.array_equal(baseline.stacked("chunks"), recorded))
+quantized = replay("W4A4", layers)
+out["hooks"] = [layers, quantized.summary["hooks"]["selected"], quantized.summary["hooks"]["fired"]]
+out["quantized_dev"] = quantized.summary["records"][0]["dev_from_recorded_actions"]
+diagnostics = collect(folder / "records.json", trajectories, "pi05", "ah", "W4A4", folder / "diag.json", snapshot)
+out["diagnosed_layers"], out["diagnosed_tasks"] = len(diagnostics["layers"]), diagnostics["provenance"]["tasks"]
 print("RESULT " + json.dumps(out))
 '''
 
