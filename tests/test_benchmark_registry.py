@@ -59,6 +59,14 @@ def test_a_declaration_names_its_cameras_by_role():
     assert get_benchmark("metaworld").observed == ("image", "state")
 
 
+def test_an_observation_without_a_named_benchmark_has_the_cameras_of_the_declaration_its_keys_fit():
+    from vlaquantbench.envs.registry import cameras_of
+
+    assert cameras_of({"agentview", "wrist", "state", "instruction"}) == get_benchmark("libero").cameras
+    assert cameras_of({"image", "state", "instruction"}) == get_benchmark("metaworld").cameras
+    assert cameras_of({"wrist", "state", "instruction"}) == {}  # no declaration's every camera
+
+
 def test_each_benchmark_declares_its_env_settings_as_the_vector_envs_keyword_parameters():
     import inspect
 

@@ -117,21 +117,22 @@ def test_a_contract_cell_runs_through_snakemake_into_records_and_a_table(tmp_pat
 
 
 # Replay records any benchmark from its declared cameras: the pi0.5 policy trained here on Meta-World reads the
-# contract scene's observations (its `main` camera under Meta-World's key, a 4-dim state, 4-dim actions).
+# contract scene's observations (its `main` camera under a key of its own, `overhead`, found by role; a 4-dim
+# state, 4-dim actions).
 REPLAY = '''
 import json, sys
 from pathlib import Path
 import numpy as np
 from vlaquantbench.diagnostics.collect import collect
-from vlaquantbench.models.trained_home import policy_folder
 from vlaquantbench.replay.configuration import replay_configuration
 from vlaquantbench.replay.record import record
 from vlaquantbench.replay.study import RecordSettings
+from vlaquantbench.models.trained_home import policy_folder
 
 root, folder = Path(sys.argv[1]), Path(sys.argv[2])
 home = root / "checkpoints" / "pi05_metaworld_cpu"
 training = json.loads((home / "training.json").read_text())
-snapshot = str(policy_folder(home))
+snapshot = str(policy_folder(home))  # a plain checkpoint folder (docs/checkpoints.md)
 layers = json.loads((root / "results/methods_2026/metaworld/metaworld_mt50/pi05/rtn-W4A4-ah/header.json")
                     .read_text())["quant_report"]["ah"]["layers"]
 settings = RecordSettings(model="pi05", variant="full", suite="contract_reach", benchmark="contract", tasks=[1],
@@ -143,7 +144,7 @@ out = {}
 meta = record(settings, folder / "records.json", trajectories)
 with np.load(trajectories[0]) as data:
     out["files"] = sorted(data.files)
-    out["image"], out["state"] = list(data["image"].shape), list(data["state"].shape)
+    out["image"], out["state"] = list(data["overhead"].shape), list(data["state"].shape)
     recorded = data["chunk"]
 out["benchmark"], out["n_steps"] = meta["benchmark"], meta["records"][0]["n_steps"]
 def replay(preset, n):
@@ -172,7 +173,7 @@ def test_replay_records_the_contract_benchmark_and_reproduces_it(tmp_path):
     [line] = [line for line in run.stdout.splitlines() if line.startswith("RESULT ")]
     out = json.loads(line.removeprefix("RESULT "))
     assert out["benchmark"] == "contract" and out["n_steps"] == 10
-    assert {"image", "state"} <= set(out["files"]) and "agentview" not in out["files"]
+    assert {"overhead", "state"} <= set(out["files"]) and not {"agentview", "image"} & set(out["files"])
     assert out["image"][1:] == [48, 48, 3] and out["state"][1:] == [4] and out["image"][0] == out["state"][0]
     assert out["baseline_dev"] == 0.0 and out["baseline_exact"]
     layers, selected, fired = out["hooks"]

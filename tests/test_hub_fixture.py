@@ -278,7 +278,7 @@ def test_xvla_prompts_use_the_releases_tokenizer_and_images_its_processor(hub_fi
     assert record["mean"] == list(processor.image_mean) and record["std"] == list(processor.image_std)
     # The adapter's view of a 224 px frame: (pixel / 255 - mean) / std with the file's numbers, by hand.
     frame = np.random.default_rng(0).integers(0, 256, (224, 224, 3), dtype=np.uint8)
-    view = adapter._view([{"agentview": frame}], "agentview")[0].numpy()
+    view = adapter._view([{"agentview": frame, "wrist": frame}], "main")[0].numpy()  # a LIBERO observation
     by_hand = (frame.astype(np.float64) / 255.0 - np.array(processor.image_mean)) / np.array(processor.image_std)
     np.testing.assert_allclose(view, by_hand.transpose(2, 0, 1), rtol=0, atol=1e-5)
     text = "pick up the black bowl between the plate and the ramekin and place it on the plate"

@@ -1,5 +1,9 @@
 """pi-family adapters on the real lerobot architectures (demo variant: reduced widths, random weights)."""
 
+import dataclasses
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -57,3 +61,36 @@ def test_full_variant_without_a_snapshot_names_the_checkpoint():
     adapter = make_adapter(AdapterConfig(model="pi05", variant="full", checkpoint="lerobot/pi05_libero_finetuned_v044"))
     with pytest.raises(UserError, match="lerobot/pi05_libero_finetuned_v044"):
         adapter.load()
+
+
+def test_the_adapter_reads_cameras_by_the_roles_the_config_declares(adapter):
+    """The same images under other observation keys, declared as the main and wrist cameras (a benchmark's
+    `cameras`), give the same chunk: the adapter maps roles to the checkpoint's features, not names; the
+    cameras swapped give another chunk."""
+    obs, config = observations(1), adapter.config
+    expected = adapter.act(obs, [adapter.reset(3)])
+    renamed = [{"front": o["agentview"], "hand": o["wrist"], "state": o["state"], "instruction": o["instruction"]}
+               for o in obs]
+    try:
+        adapter.config = dataclasses.replace(config, cameras={"main": "front", "wrist": "hand"})
+        assert np.array_equal(adapter.act(renamed, [adapter.reset(3)]), expected)
+        adapter.config = dataclasses.replace(config, cameras={"main": "hand", "wrist": "front"})
+        assert not np.array_equal(adapter.act(renamed, [adapter.reset(3)]), expected)
+        adapter.config = dataclasses.replace(config, cameras={"main": "side"})
+        with pytest.raises(UserError, match=r"feed none of the checkpoint's cameras"):
+            adapter.act(renamed, [adapter.reset(3)])
+    finally:
+        adapter.config = config
+
+
+def test_no_adapter_reads_an_observation_by_a_benchmarks_camera_key():
+    from vlaquantbench.envs.registry import BENCHMARK_SUITES, CAMERA_ROLES, get_benchmark
+    from vlaquantbench.models.pi_family_adapter import ROLE_FEATURES
+
+    keys = {key for name in BENCHMARK_SUITES for key in get_benchmark(name).cameras.values()}
+    models = Path(__file__).parents[1] / "src" / "vlaquantbench" / "models"
+    for path in [*models.glob("*adapter.py"), *models.glob("*/adapter.py")]:
+        source = path.read_text()
+        for key in keys:
+            assert not re.search(rf"""\b(obs|observation)\[\s*["']{key}["']""", source), (path, key)
+    assert set(ROLE_FEATURES) == set(CAMERA_ROLES)

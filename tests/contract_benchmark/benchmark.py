@@ -30,6 +30,6 @@ CONTRACT = register_benchmark(Benchmark(
     suite_class="contract_benchmark.suite:ContractSuite",
     env_class="contract_benchmark.vector_env:ContractVectorEnv",
     simulator_versions="contract_benchmark.vector_env:simulator_versions",
-    cameras={"main": "image"},
+    cameras={"main": "overhead"},  # a key no adapter knows: policies find the image by its role
     settings=ContractSettings,
 ))

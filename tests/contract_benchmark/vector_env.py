@@ -24,7 +24,7 @@ def simulator_versions(pinned: str | None = None) -> dict:
 
 class ContractVectorEnv(WorkerVectorEnv):
     """Observations: `state` (hand xyz, gripper 0), `environment_state` (Meta-World's 39-dim layout), `instruction`,
-    `task`, `image` (the `main` camera) unless `camera_size` is None, and at reset `task_variation` (the goal)."""
+    `task`, `overhead` (the `main` camera) unless `camera_size` is None, and at reset `task_variation` (the goal)."""
 
     benchmark = NAME
     simulator = "contract scene"

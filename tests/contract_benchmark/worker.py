@@ -117,7 +117,7 @@ class SlotScene:
                        "instruction": self.instruction, "task": self.task}
         if self.renderer is not None:
             self.renderer.update_scene(self.data, camera="main")
-            observation["image"] = self.renderer.render().copy()
+            observation["overhead"] = self.renderer.render().copy()
         return observation
 
     def close(self) -> None:

@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from vlaquantbench.atomic import write_text
 from vlaquantbench.diagnostics.measures import MEASURES, layer_measures
+from vlaquantbench.envs.registry import get_benchmark
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.quant import parse_preset, select_layers
@@ -78,7 +79,8 @@ def collect(records_json: str | Path, trajectories: list[str | Path], model: str
     adapter = make_adapter(AdapterConfig(model=meta["model"], variant=meta["variant"], checkpoint=meta["checkpoint"],
                                          revision=meta["revision"],
                                          checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"],
-                                         device=meta["device"], flow_steps=meta["flow_steps"]))
+                                         device=meta["device"], flow_steps=meta["flow_steps"],
+                                         cameras=dict(get_benchmark(meta["benchmark"]).cameras)))
     adapter.load()
     layers = select_layers(adapter.model, adapter.components, scope).flat()
     torch.set_num_threads(meta["torch_threads"])

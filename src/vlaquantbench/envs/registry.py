@@ -15,7 +15,7 @@ import dataclasses
 import importlib
 import os
 import pkgutil
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -150,3 +150,20 @@ def get_benchmark(name: str) -> Benchmark:
     """The benchmark `name`; UserError naming the registered ones when it is not."""
     lookup(BENCHMARK_SUITES, name, "benchmark")
     return _REGISTERED[name]
+
+
+def cameras_of(keys: Iterable[str]) -> dict[str, str]:
+    """Camera role -> observation key for an observation with `keys` when no benchmark is named (a policy
+    driven by hand): the declaration of the registered benchmarks whose every camera key `keys` holds, the
+    one declaring the most cameras; {} when none fits. UserError when the declarations that fit best
+    disagree on a role's key (the observation does not say which benchmark it is from)."""
+    keys = set(keys)
+    fitting = [b.cameras for b in (get_benchmark(n) for n in BENCHMARK_SUITES) if set(b.cameras.values()) <= keys]
+    if not fitting:
+        return {}
+    most = max(len(c) for c in fitting)
+    best = {tuple(sorted(c.items())) for c in fitting if len(c) == most}
+    if len(best) > 1:
+        raise UserError(f"an observation with keys {sorted(keys)} fits the cameras of several benchmarks "
+                        f"({sorted(str(dict(c)) for c in best)}): name its benchmark's cameras")
+    return dict(next(iter(best)))

@@ -22,6 +22,7 @@ import torch
 from torch import nn
 
 from vlaquantbench.config.study import RunnerConfig
+from vlaquantbench.envs.registry import cameras_of, get_benchmark
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.registry import adapter_class
 
@@ -35,6 +36,7 @@ class PolicyRun(Protocol):
     variant: str
     checkpoint: str | None
     revision: str | None
+    benchmark: str
     suite: str
     runner: RunnerConfig
 
@@ -59,6 +61,10 @@ class AdapterConfig:
     # "captured" or "eager" (`resolve_sampler`). Eager unless a cell resolves otherwise: the replay
     # and diagnostics probes wrap lerobot's `sample_actions`/`denoise_step`, which only eager calls.
     sampler: str = "eager"
+    # Camera role ("main", "wrist") -> the observation key of its image: the cell's benchmark's declaration
+    # (`envs.registry.Benchmark.cameras`). Adapters read cameras by role only. None (a policy driven by hand):
+    # the declaration of the registered benchmark that the observation's keys fit (`envs.registry.cameras_of`).
+    cameras: dict[str, str] | None = None
 
     @property
     def weights_ran(self) -> tuple[str, str | None]:
@@ -85,6 +91,7 @@ class AdapterConfig:
             executed_chunk=runner.executed_chunk,
             flow_steps=runner.flow_steps,
             sampler=resolve_sampler(cfg, policy_class),
+            cameras=dict(get_benchmark(cfg.benchmark).cameras),
         )
 
 
@@ -161,6 +168,22 @@ class AdapterBase:
 
     def reset(self, seed: int) -> torch.Generator:
         return episode_generator(seed)
+
+    def cameras(self, observation: dict) -> dict[str, str]:
+        """Camera role -> the key of its image in `observation` (and the observations batched with it): the
+        config's `cameras`, else the registered benchmark's that the observation's keys fit."""
+        if self.config.cameras is not None:
+            return self.config.cameras
+        return cameras_of(observation)
+
+    def camera_images(self, observations: Sequence[dict], role: str,
+                      cameras: dict[str, str] | None = None) -> np.ndarray | None:
+        """The images of camera `role` of every observation, stacked (n x H x W x 3, uint8), found through
+        `cameras` (role -> key; default `self.cameras`); None when the observations have no camera of that role."""
+        key = (cameras or self.cameras(observations[0])).get(role)
+        if key is None or key not in observations[0]:
+            return None
+        return np.stack([obs[key] for obs in observations])
 
     def _start_chunk(self, observations: Sequence, generators: Sequence) -> None:
         if len(observations) != len(generators):

@@ -1,9 +1,10 @@
 """What the pi0 and pi0.5 adapters share: lerobot 0.6.1 policies driven like lerobot's evaluation
 (camera images, state, instruction), with the flow noise drawn per episode.
 
-Observation -> lerobot batch (each camera view under the feature name lerobot's datasets of its
-benchmark give it, `CAMERA_FEATURES`: LIBERO's agentview and wrist views, already rotated 180
-degrees by the environment, Meta-World's one `corner2` image; `observation.state`; `task`) -> the
+Observation -> lerobot batch (each camera, found by the role its benchmark declares (`AdapterConfig.cameras`),
+under the feature lerobot's datasets give that role, `ROLE_FEATURES`: the main view as `observation.images.image`
+in two-camera datasets or `observation.image` in one-camera ones, the wrist view as `observation.images.image2`,
+each as the environment renders it; `observation.state`; `task`) -> the
 policy's preprocessor pipeline (normalization, tokenization) -> images resized with padding to the
 model's resolution and mapped to [-1, 1] -> `sample_actions` with noise from each episode's
 generator -> the checkpoint's action dimensions (its config's `action` feature) -> the
@@ -12,7 +13,7 @@ declares; an observation lacking them is refused naming the features.
 
 Full variant: `PI0xPolicy.from_pretrained` and the checkpoint's own processor files (the real
 PaliGemma tokenizer). Demo variant: the reduced-width random-weight model of the model spec, and
-lerobot's processor steps with LIBERO-like normalization ranges and an offline byte-level
+lerobot's processor steps with fixed normalization ranges (`DEMO_STATS`) and an offline byte-level
 tokenizer (the PaliGemma tokenizer cannot be fetched offline; a random-weight policy has no
 vocabulary to match, so this changes nothing it could have learned). Random variant: the released
 architecture at full size (the model spec's "full" build) with seeded random weights, in
@@ -37,17 +38,16 @@ from vlaquantbench.models.paligemma_family import REDUCED_WIDTHS_FILE, TRAINING_
 from vlaquantbench.models.registry import get_model_spec
 from vlaquantbench.quant.steps import attach_flow_clock
 
-# Environment camera view -> the lerobot feature it feeds: the names lerobot's LIBERO datasets
-# (`image`, `image2`) and Meta-World datasets (`observation.image`) give those views.
-CAMERA_FEATURES = {"agentview": "observation.images.image", "wrist": "observation.images.image2",
-                   "image": "observation.image"}
-LIBERO_CAMERAS = ("agentview", "wrist")
+# Camera role (`envs.registry.CAMERA_ROLES`) -> the lerobot features that role's image feeds, the first the
+# checkpoint declares: the names lerobot's two-camera datasets (`image`, `image2`) and one-camera datasets
+# (`observation.image`) give the main and wrist views.
+ROLE_FEATURES = {"main": ("observation.images.image", "observation.image"), "wrist": ("observation.images.image2",)}
 STATE_KEY = "observation.state"
-# The demo and random variants' features: LIBERO's (the released LIBERO finetunes').
+# The demo and random variants' features: the released finetunes' (two cameras, 8-D state, 7-D actions).
 ACTION_DIM = 7
 STATE_DIM = 8
 
-# Demo normalization ranges (not dataset statistics): LIBERO end-effector position (m), axis-angle
+# Demo normalization ranges (not dataset statistics): the released finetunes' end-effector position (m), axis-angle
 # (rad), gripper finger positions (m); actions are already in [-1, 1].
 _STATE_LOW = [-0.4, -0.4, 0.8, -3.2, -3.2, -3.2, -0.05, -0.05]
 _STATE_HIGH = [0.4, 0.4, 1.4, 3.2, 3.2, 3.2, 0.05, 0.05]
@@ -230,7 +230,7 @@ class PiFamilyAdapter(AdapterBase):
             device=self.config.device,
             dtype=dtype,
             input_features={
-                **{CAMERA_FEATURES[view]: image for view in LIBERO_CAMERAS},
+                **{features[0]: image for features in ROLE_FEATURES.values()},
                 STATE_KEY: PolicyFeature(type=FeatureType.STATE, shape=(STATE_DIM,)),
             },
             output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,))},
@@ -272,19 +272,27 @@ class PiFamilyAdapter(AdapterBase):
         actions = self.postprocessor(actions.float())
         return actions.float().cpu().numpy()
 
-    def _lerobot_batch(self, observations: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    def _role_features(self) -> dict[str, str]:
+        """Camera role -> the checkpoint's feature it feeds, for the roles the checkpoint reads."""
+        return {role: feature for role, features in ROLE_FEATURES.items()
+                for feature in [next((f for f in features if f in self.image_keys), None)] if feature is not None}
+
+    def _lerobot_batch(self, observations: Sequence[dict[str, Any]],
+                       cameras: dict[str, str] | None = None) -> dict[str, Any]:
         batch: dict[str, Any] = {}
-        views = [view for view, key in CAMERA_FEATURES.items() if key in self.image_keys and view in observations[0]]
-        if not views:
-            raise UserError(f"{self.name}: the observation's views {sorted(observations[0])} feed none of the "
-                            f"checkpoint's cameras {self.image_keys} ({CAMERA_FEATURES})")
-        for view in views:
-            pixels = np.stack([obs[view] for obs in observations])  # n x H x W x 3, uint8
+        for role, feature in self._role_features().items():
+            pixels = self.camera_images(observations, role, cameras)  # n x H x W x 3, uint8
+            if pixels is None:
+                continue
             # The uint8 pixels travel (a quarter of float32's bytes) and are widened where the policy
             # runs: on a GPU the closed-loop runner's main process, which shares the CPU with the
             # simulator workers, does no per-pixel work (division is exact-rounded on both devices).
             pixels = torch.from_numpy(pixels).to(self._device)
-            batch[CAMERA_FEATURES[view]] = pixels.permute(0, 3, 1, 2).float().div(255.0)
+            batch[feature] = pixels.permute(0, 3, 1, 2).float().div(255.0)
+        if not batch:
+            raise UserError(f"{self.name}: the observation's cameras {cameras or self.cameras(observations[0])} "
+                            f"(keys {sorted(observations[0])}) feed none of the checkpoint's cameras {self.image_keys} "
+                            f"(role -> features: {ROLE_FEATURES})")
         state = np.stack([obs["state"] for obs in observations]).astype(np.float32)
         if state.shape[1] != self.state_dim:
             raise UserError(f"{self.name}: the observation's state has {state.shape[1]} dimensions; the checkpoint's "

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from vlaquantbench.envs.registry import get_benchmark
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 from vlaquantbench.quant import QuantConfig, get_subset, quantize_
@@ -48,7 +49,8 @@ def replay_configuration(records_json, trajectories, study: dict, name: str, pre
     adapter = make_adapter(AdapterConfig(model=meta["model"], variant=meta["variant"], checkpoint=meta["checkpoint"],
                                          revision=meta["revision"],
                                          checkpoint_dir=checkpoint_dir, executed_chunk=meta["chunk"]["executed"],
-                                         device=meta["device"], flow_steps=meta["flow_steps"]))
+                                         device=meta["device"], flow_steps=meta["flow_steps"],
+                                         cameras=dict(get_benchmark(meta["benchmark"]).cameras)))
     adapter.load()
     report = quantize_(adapter.model, cfg, cfg.select(adapter.model, adapter.components))
     layers = sum(c["layers"] for c in report.components.values()) if expected_layers else 0

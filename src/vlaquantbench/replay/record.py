@@ -39,7 +39,8 @@ def adapter_config(settings: RecordSettings) -> AdapterConfig:
     return AdapterConfig(model=settings.model, variant=settings.variant, checkpoint=settings.checkpoint,
                          revision=settings.revision,
                          checkpoint_dir=settings.checkpoint_dir, device=settings.device,
-                         executed_chunk=settings.executed_chunk, flow_steps=settings.flow_steps)
+                         executed_chunk=settings.executed_chunk, flow_steps=settings.flow_steps,
+                         cameras=dict(get_benchmark(settings.benchmark).cameras))
 
 
 def _record_one(adapter, probe: PolicyProbe, env: WorkerVectorEnv, spec: EpisodeSpec, max_steps: int,

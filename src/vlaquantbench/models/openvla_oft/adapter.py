@@ -1,6 +1,7 @@
 """OpenVLA-OFT adapter, driven like the OFT release's LIBERO client (`run_libero_eval.py`).
 
-Observation -> both views as LIBERO renders them rotated 180 degrees (the client's own flip), each
+Observation -> the main and wrist cameras (by the roles their benchmark declares, `AdapterConfig.cameras`)
+as LIBERO renders them rotated 180 degrees (the client's own flip), each
 resized to 224 px, center-cropped to 90% of its area and resized back (the client's `center_crop`),
 normalized for DINOv2 (ImageNet statistics) and for SigLIP (mean 0.5, std 0.5) -> the 8-D state
 normalized to [-1, 1] by the checkpoint's proprio q01/q99 -> the prompt "In: What action should the
@@ -120,9 +121,16 @@ class OpenVLAOFTAdapter(AdapterBase):
         self._start_chunk(observations, generators)
         return np.stack([self._act_one(obs) for obs in observations])
 
+    def _camera(self, obs: dict[str, Any], role: str) -> np.ndarray:
+        pixels = self.camera_images([obs], role)
+        if pixels is None:
+            raise UserError(f"{self.name}: the observation (keys {sorted(obs)}) has no {role} camera "
+                            f"(cameras {self.cameras(obs)}); the policy reads the main and wrist views")
+        return pixels[0]
+
     def _act_one(self, obs: dict[str, Any]) -> np.ndarray:
         dtype = next(self.model.parameters()).dtype
-        views = torch.stack([self._image(obs[view]) for view in ("agentview", "wrist")])
+        views = torch.stack([self._image(self._camera(obs, role)) for role in ("main", "wrist")])
         dino = _normalize(views, _DINO_MEAN, _DINO_STD).to(self._device, dtype)
         siglip = _normalize(views, _SIGLIP_MEAN, _SIGLIP_STD).to(self._device, dtype)
         low, high = (np.asarray(self.statistics["proprio"][k], dtype=np.float64) for k in ("q01", "q99"))

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from vlaquantbench.models.adapter import episode_generator, fast_path_probe, ulp_moved
-from vlaquantbench.models.pi_family_adapter import CAMERA_FEATURES, PiFamilyAdapter
+from vlaquantbench.models.pi_family_adapter import PiFamilyAdapter
 
 
 class Pi05Adapter(PiFamilyAdapter):
@@ -48,17 +48,17 @@ class Pi05Adapter(PiFamilyAdapter):
     @torch.no_grad()
     def fast_path_probe(self) -> dict | None:
         """The captured sampler's first chunk against lerobot's eager `sample_actions` on one fixed
-        observation (seeded random camera images and state, a LIBERO instruction, seed-0 noise),
+        observation (seeded random camera images keyed by role and state, an instruction, seed-0 noise),
         before any episode; the graphs it captured are dropped, so the episodes capture (and count
         their quantizers' runs) afresh."""
         if self.config.sampler != "captured":
             return None
         rng = np.random.default_rng(0)
-        observation = {view: rng.integers(0, 256, (224, 224, 3), dtype=np.uint8)
-                       for view, key in CAMERA_FEATURES.items() if key in self.image_keys}
+        roles = {role: role for role in self._role_features()}  # the probe's observation is keyed by role
+        observation = {role: rng.integers(0, 256, (224, 224, 3), dtype=np.uint8) for role in roles}
         observation |= {"state": rng.uniform(-0.05, 0.05, self.state_dim).astype(np.float32),
                         "instruction": "pick up the black bowl and place it on the plate"}
-        batch = self.preprocessor(self._lerobot_batch([observation]))
+        batch = self.preprocessor(self._lerobot_batch([observation], roles))
         images, image_masks = self._images(batch)
         shape = (1, self.predicted_chunk, int(self.policy_config.max_action_dim))
         noise = torch.randn(shape, generator=episode_generator(0)).to(self._device)

@@ -1,9 +1,9 @@
 """X-VLA adapter (lerobot 0.6.1 `XVLAModel`), driven like X-VLA's released LIBERO client.
 
-Observation -> the primary (agentview) view as LIBERO renders it rotated 180 degrees, the wrist
-view unrotated (the client flips only the primary view; the environment rotates both, so the
-wrist view is turned back), each resized to 224 px and ImageNet-normalized -> the proprio
-vector: end-effector position, the first two columns of its rotation matrix (6-D rotation), a zero,
+Observation -> the main camera (by the role its benchmark declares, `AdapterConfig.cameras`) as LIBERO
+renders it rotated 180 degrees, the wrist camera unrotated (the client flips only the primary view; the
+environment rotates both, so the wrist view is turned back), each resized to 224 px and ImageNet-normalized
+-> the proprio vector: end-effector position, the first two columns of its rotation matrix (6-D rotation), a zero,
 then ten zeros (the client's 20-D ee6d layout) -> the instruction tokenized to 64 tokens -> domain
 id 3 (LIBERO) -> flow matching over `flow_steps` steps from noise drawn from each episode's own
 generator -> per action: absolute target position, the 6-D rotation as axis-angle, the gripper
@@ -130,7 +130,7 @@ class XVLAAdapter(AdapterBase):
         self._start_chunk(observations, generators)
         model, n = self.model, len(observations)
         dtype = next(model.parameters()).dtype
-        images = torch.stack([self._view(observations, "agentview"), self._view(observations, "wrist")], dim=1)
+        images = torch.stack([self._view(observations, "main"), self._view(observations, "wrist")], dim=1)
         mask = torch.ones(n, 2, dtype=torch.bool, device=self._device)
         tokens = self.tokenizer([obs["instruction"] for obs in observations], max_length=TOKENS,
                                 padding="max_length", truncation=True, return_tensors="pt")["input_ids"]
@@ -152,9 +152,12 @@ class XVLAAdapter(AdapterBase):
                     action = model.transformer(domain_id=domain, action_with_noise=x_t_m, proprio=proprio_m, t=t, **enc)
         return self._environment_actions(model.action_space.postprocess(action).float().cpu().numpy())
 
-    def _view(self, observations, view: str) -> torch.Tensor:
-        pixels = np.stack([obs[view] for obs in observations])  # n x H x W x 3, rotated 180 by the env
-        if view == "wrist":
+    def _view(self, observations, role: str) -> torch.Tensor:
+        pixels = self.camera_images(observations, role)  # n x H x W x 3, rotated 180 by the env
+        if pixels is None:
+            raise UserError(f"{self.name}: the observation (keys {sorted(observations[0])}) has no {role} camera "
+                            f"(cameras {self.cameras(observations[0])}); the policy reads the main and wrist views")
+        if role == "wrist":
             pixels = pixels[:, ::-1, ::-1]
         img = torch.from_numpy(np.ascontiguousarray(pixels)).permute(0, 3, 1, 2).float().div(255.0).to(self._device)
         size = self._image["size"]
