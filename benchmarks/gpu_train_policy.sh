@@ -104,6 +104,10 @@ torch.save({k: s[k] for k in ('binding', 'policy', 'step', 'losses', 'wall_s')},
 fi
 if [ -f checkpoints/pi05_metaworld/training.json ]; then
   tar --exclude resume -cf - checkpoints/pi05_metaworld | split -b 15M - $OUT/ckpt.tar.part
+fi
+# The closed-loop check only when the call has room for it; otherwise it runs on the CPU from the returned checkpoint
+# (benchmarks/trained_policy_closed_loop.py, the same arguments with --device cpu).
+if [ -f checkpoints/pi05_metaworld/training.json ] && [ "$(left 585)" -ge "${CLOSED_LOOP_MIN_S:-150}" ]; then
   phase "$(left 585)" logs/closed_loop.log python3 benchmarks/trained_policy_closed_loop.py --home checkpoints/pi05_metaworld \
     --device cuda --workers 16 --episodes 20 --first-variation 0 --max-steps 150 \
     --tasks button-press-topdown-v3 button-press-v3 coffee-button-v3 door-open-v3 door-close-v3 drawer-open-v3 \
