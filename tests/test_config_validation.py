@@ -18,6 +18,7 @@ from vlaquantbench.workflow import WorkflowConfig
 from paths import ROOT
 
 PACKAGE = ROOT / "src" / "vlaquantbench"
+PAPER_STUDY = "pi05_libero_spatial"  # the paper's replay study (vlaquantbench/replay/studies)
 COMMITTED = {
     "config": sorted((ROOT / "config").glob("*.yaml")),
     "table": sorted((ROOT / "config").glob("**/tables/*.yaml")),  # the paper's, the demo's and each study's
@@ -221,7 +222,7 @@ def test_replay_configurations_take_subsets_from_scopes_yaml(tmp_path):
     from vlaquantbench.replay.study import load_study
     from vlaquantbench.quant.subsets import get_subset
 
-    study = load_study()
+    study = load_study(PAPER_STUDY)
     assert study["configurations"]["union"]["layers"] == get_subset("pi05", "attn_adarms").layers == 108
     text = (PACKAGE / "replay/studies/pi05_libero_spatial.yaml").read_text()
     path = tmp_path / "study.yaml"
@@ -270,9 +271,9 @@ def test_replay_trajectories_outside_the_suite_are_refused_while_the_dag_is_buil
     from vlaquantbench.replay.study import RecordSettings, load_study
 
     with pytest.raises(UserError, match=r"^replay.init_states: 50 is outside 0..49 \(libero_spatial has 50 official init "):
-        RecordSettings.from_study(load_study(), {"init_states": [20, 50]})
+        RecordSettings.from_study(load_study(PAPER_STUDY), {"init_states": [20, 50]})
     with pytest.raises(UserError, match=r"^replay.tasks: 10, 11 are outside 0..9 \(libero_spatial has 10 tasks\)"):
-        RecordSettings.from_study(load_study(), {"tasks": [9, 10, 11]})
+        RecordSettings.from_study(load_study(PAPER_STUDY), {"tasks": [9, 10, 11]})
 
 
 CLI_NUMBERS = [  # every numeric option of `vqb`: (arguments, the option and range argparse names)

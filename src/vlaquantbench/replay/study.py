@@ -30,8 +30,9 @@ def load_definition(name_or_path: str | Path, folder: Path, kind: str, schema: s
     return load_yaml(path, schema)
 
 
-def load_study(name_or_path: str | Path = "pi05_libero_spatial") -> dict:
-    """A replay study; a configuration with a subset takes its scope and layer count from config/scopes.yaml."""
+def load_study(name_or_path: str | Path) -> dict:
+    """A replay study, by name (`studies/<name>.yaml` beside this module) or by the path of its YAML; a configuration
+    with a subset takes its scope and layer count from config/scopes.yaml."""
     study = load_definition(name_or_path, STUDIES, "replay study", "replay_study")
     for name, conf in study["configurations"].items():
         if conf["subset"] is not None:
@@ -41,6 +42,11 @@ def load_study(name_or_path: str | Path = "pi05_libero_spatial") -> dict:
                 raise UserError(f"replay study {str(name_or_path)!r}: configurations.{name}.subset: {err}") from None
             conf.update(scope=subset.scope, layers=subset.layers)
     return study
+
+
+def study_name(name_or_path: str | Path) -> str:
+    """What names a replay study's folders (`results/replay/<name>/`): its name, or its YAML file's stem."""
+    return Path(name_or_path).stem
 
 
 def with_formats(study: dict, formats: list[str] | None) -> dict:
@@ -85,10 +91,10 @@ class RecordSettings:
 
     @classmethod
     def from_study(cls, study: dict, options: dict | None = None) -> "RecordSettings":
-        """The study's recording, with the workflow's `replay` options (validated by the config schema:
-        variant, tasks, init_states, max_steps, checkpoint, revision, checkpoint_dir, device, threads,
-        executed_chunk, flow_steps, run_seed) taking precedence."""
-        options = {k: v for k, v in (options or {}).items() if k != "formats"}
+        """The study's recording, with the workflow's `replay` options (validated by the config schema: variant, tasks,
+        init_states, max_steps, checkpoint, revision, checkpoint_dir, device, threads, executed_chunk, flow_steps,
+        run_seed) taking precedence; its `study` and `formats` choose the study and its replays, not the recording's settings."""
+        options = {k: v for k, v in (options or {}).items() if k not in ("formats", "study")}
         base = {"variant": "full", "tasks": study["tasks"], "init_states": study["init_states"]}
         if options.get("variant", "full") == "full":  # a demo policy has random weights, no checkpoint
             base.update(checkpoint=study["checkpoint"], revision=study["revision"])
