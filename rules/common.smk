@@ -121,9 +121,9 @@ def calibration_stats(cfg):
 
 # --- Replay and layer diagnostics (rules/replay.smk) ----------------------------------------------
 REPLAY_OPTIONS = config.get("replay") or {}
-# The replay study (replay.study: a study's name or its YAML's path, on any benchmark; default the paper's) and
-# the name its folders take.
-REPLAY_SOURCE = REPLAY_OPTIONS.get("study") or "pi05_libero_spatial"
+# The replay study (replay.study: the path of its YAML, on any benchmark; default the paper's) and the name its
+# folders take (the file's stem).
+REPLAY_SOURCE = REPLAY_OPTIONS.get("study") or str(Path(workflow.basedir) / "config/replay/pi05_libero_spatial.yaml")
 REPLAY_STUDY = study_name(REPLAY_SOURCE)
 REPLAY = with_formats(load_study(REPLAY_SOURCE), REPLAY_OPTIONS.get("formats"))
 REPLAY_DIR = config.get("replay_analysis_dir") or f"results/replay/{REPLAY_STUDY}"
@@ -143,7 +143,8 @@ def replay_runs(replay_format, suffix):
 
 
 # Layer diagnostics -> proxy audit (tab:proxy_audit)
-PROXY_COHORT = load_cohort("proxy_audit")
+PROXY_COHORT_FILE = str(Path(workflow.basedir) / "config/cohorts/proxy_audit.yaml")  # the paper's cohort
+PROXY_COHORT = load_cohort(PROXY_COHORT_FILE)
 DIAGNOSTICS_DIR = config.get("diagnostics_dir") or "results/diagnostics"
 
 

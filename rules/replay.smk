@@ -153,5 +153,6 @@ rule proxy_audit_table:
     params:
         source=lambda wc: f"the layer diagnostics in {DIAGNOSTICS_DIR} and the success summary {SUCCESS_SUMMARY}",
         models=list(PROXY_COHORT["models"]),
+        cohort=PROXY_COHORT_FILE,
     script:
         "../workflow/scripts/proxy_audit_table.py"

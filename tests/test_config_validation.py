@@ -18,14 +18,14 @@ from vlaquantbench.workflow import WorkflowConfig
 from paths import ROOT
 
 PACKAGE = ROOT / "src" / "vlaquantbench"
-PAPER_STUDY = "pi05_libero_spatial"  # the paper's replay study (vlaquantbench/replay/studies)
+PAPER_STUDY = ROOT / "config" / "replay" / "pi05_libero_spatial.yaml"  # the paper's replay study
 COMMITTED = {
     "config": sorted((ROOT / "config").glob("*.yaml")),
     "table": sorted((ROOT / "config").glob("**/tables/*.yaml")),  # the paper's, the demo's and each study's
     "figure": sorted((ROOT / "config" / "figures").glob("*.yaml")),
     "scopes": [ROOT / "config" / "scopes.yaml"],
-    "cohort": sorted((PACKAGE / "diagnostics" / "cohorts").glob("*.yaml")),
-    "replay_study": sorted((PACKAGE / "replay" / "studies").glob("*.yaml")),
+    "cohort": sorted((ROOT / "config" / "cohorts").glob("*.yaml")),
+    "replay_study": sorted((ROOT / "config" / "replay").glob("*.yaml")),
 }
 COMMITTED["config"].remove(ROOT / "config" / "scopes.yaml")  # the link to the package's subsets
 DEMO_TABLE = ROOT / "config" / "demo" / "tables" / "lattice.yaml"
@@ -69,7 +69,7 @@ BROKEN = [  # (schema, file content, the field path and problem the error must n
      r"pi05.onlyself_attn: unknown key 'layer'; allowed keys: exclude, layers, only, params, scope"),
     ("cohort", {"benchmark": "libero", "suite": "libero_spatial", "models": {}},
      r"models: {} should be non-empty"),
-    ("replay_study", {**yaml.safe_load((PACKAGE / "replay/studies/pi05_libero_spatial.yaml").read_text()), "revision": "main"},
+    ("replay_study", {**yaml.safe_load(PAPER_STUDY.read_text()), "revision": "main"},
      r"revision: 'main' does not match"),
 ]
 
@@ -224,7 +224,7 @@ def test_replay_configurations_take_subsets_from_scopes_yaml(tmp_path):
 
     study = load_study(PAPER_STUDY)
     assert study["configurations"]["union"]["layers"] == get_subset("pi05", "attn_adarms").layers == 108
-    text = (PACKAGE / "replay/studies/pi05_libero_spatial.yaml").read_text()
+    text = PAPER_STUDY.read_text()
     path = tmp_path / "study.yaml"
     path.write_text(text.replace("subset: attn_adarms,", "subset: attn_adarms, layers: 108,"))
     with pytest.raises(UserError, match=rf"^{path}: configurations.union: .* should not be valid"):

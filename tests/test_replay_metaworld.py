@@ -31,7 +31,7 @@ HEAD_LAYERS = json.loads((ROOT / "results/methods_2026/metaworld/metaworld_mt50/
 NAME = "pi05_metaworld_cpu"
 # The paper's replay study but for its policy, benchmark and trajectories: the same configurations (the trained
 # policy has the released module names and depths).
-PAPER = yaml.safe_load((ROOT / "src/vlaquantbench/replay/studies/pi05_libero_spatial.yaml").read_text())
+PAPER = yaml.safe_load((ROOT / "config/replay/pi05_libero_spatial.yaml").read_text())
 STUDY = {**PAPER, "checkpoint": TRAINING["checkpoint"], "revision": TRAINING["revision"], "benchmark": "metaworld",
          "suite": "metaworld_mt50", "tasks": [4], "init_states": [0], "formats": ["W4A4"], "all_formats_order": ["W4A4"],
          "bias_format": "W4A4"}

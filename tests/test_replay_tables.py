@@ -12,7 +12,7 @@ from vlaquantbench.replay.study import StudyResults, analysis_files, load_study,
 from vlaquantbench.replay.tables import write_replay_table
 from paths import ROOT, REFERENCE, PAPER_TEX as PAPER
 
-PAPER_STUDY = "pi05_libero_spatial"  # the paper's replay study (vlaquantbench/replay/studies)
+PAPER_STUDY = ROOT / "config" / "replay" / "pi05_libero_spatial.yaml"  # the paper's replay study
 AUTHORS_REPLAY = REFERENCE / "authors-files/results/replay/pi05_spatial"
 AUTHORS_SUMMARY = REFERENCE / "authors-summary.csv"
 AUTHORS_ANALYSES = analysis_files(AUTHORS_REPLAY, load_study(PAPER_STUDY)["formats"])
