@@ -4,7 +4,8 @@ A cell carries only the env settings its benchmark declares, so Meta-World cells
 `settle_steps` and `control_mode` and their hashes changed once. `vqb rehash` rewrote the committed headers and
 manifests: here every committed header is the cell config its study config builds now, the rewrite reproduces each
 committed header byte for byte from its form before (the two settings back in its runner, the hashes of that form)
-and changes nothing when run again, and it refuses an edited header or a stopping rule's cell it was not given."""
+and changes nothing when run again, and it refuses an edited header, a stopping rule's cell it was not given, or a
+DAG cell folder (named by the hash it would change)."""
 
 from __future__ import annotations
 
@@ -110,3 +111,9 @@ def test_an_edited_header_or_an_against_cell_not_given_is_refused_before_anythin
                                         r"config \([0-9a-f]{12}\): the header was edited; not rewritten"):
         rehash([live])
     assert {path: path.read_bytes() for path in live.rglob("header.json")} == written
+    # a DAG cell folder is named by the hash the rewrite would change
+    dag = tmp_path / "cells"
+    shutil.copytree(baseline.parent, dag / header["config_hash"])
+    with pytest.raises(UserError, match=rf"{header['config_hash']}/header.json: its folder {header['config_hash']} is "
+                                        r"not its reference metaworld/metaworld_mt50/pi05/rtn-BASELINE-e2e"):
+        rehash([dag])

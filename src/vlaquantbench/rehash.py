@@ -45,12 +45,17 @@ def rehash(records_dirs: list[str | Path]) -> list[Rehashed]:
     """Rewrite the headers of every cell under `records_dirs` to the current canonical config and hash (see the
     module); the cells whose hash changed. Several folders are rewritten together when a sequential cell of one stops
     against a cell of another. UserError, before any file is written, when a header's recorded hash is not the hash
-    of its recorded config (an edited header), or when a sequential cell's `against` hash is no recorded cell's."""
+    of its recorded config (an edited header), when a cell's folder is not its reference (a DAG folder named by its
+    hash), or when a sequential cell's `against` hash is no recorded cell's."""
     headers = {}
     for folder in records_dirs:
         for ref, record in sorted(find_cells(folder).items()):
             path = _header_path(record)
             header = json.loads(path.read_text())
+            if ref != header["ref"]:  # a DAG folder, results/cells/<config-hash>/: its name is the hash to change
+                raise UserError(f"{path}: its folder {ref} is not its reference {header['ref']}: rehash rewrites records "
+                                "folders keyed by reference (a records_dir); a folder named by its config hash would "
+                                "keep the old one, so run its cell again instead")
             if config_hash(header["config"]) != header["config_hash"]:
                 raise UserError(f"{path}: config_hash {header['config_hash']} is not the hash of its config "
                                 f"({config_hash(header['config'])}): the header was edited; not rewritten")
