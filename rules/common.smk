@@ -12,7 +12,7 @@ from vlaquantbench import cells as cell_configs  # noqa: E402
 from vlaquantbench.diagnostics.proxy_audit import diagnostics_files, load_cohort  # noqa: E402
 from vlaquantbench.envs.memory import job_memory_mb  # noqa: E402
 from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE, JOURNAL_FILE  # noqa: E402
-from vlaquantbench.replay.study import RecordSettings, analysis_files, load_study, with_formats  # noqa: E402
+from vlaquantbench.replay.study import RecordSettings, analysis_files, load_study, study_name, with_formats  # noqa: E402
 from vlaquantbench.runner.gpus import SLOTS_DIR, LocalGpuPlan, NoGpu  # noqa: E402
 from vlaquantbench.runner.lock import LOCK_FILE  # noqa: E402
 from vlaquantbench.workflow import BUILT_MANIFEST, CELLS_DIR, WorkflowConfig  # noqa: E402
@@ -120,9 +120,12 @@ def calibration_stats(cfg):
 
 
 # --- Replay and layer diagnostics (rules/replay.smk) ----------------------------------------------
-REPLAY_STUDY = "pi05_libero_spatial"
 REPLAY_OPTIONS = config.get("replay") or {}
-REPLAY = with_formats(load_study(REPLAY_STUDY), REPLAY_OPTIONS.get("formats"))
+# The replay study (replay.study: the path of its YAML, on any benchmark; default the paper's) and the name its
+# folders take (the file's stem).
+REPLAY_SOURCE = REPLAY_OPTIONS.get("study") or str(Path(workflow.basedir) / "config/replay/pi05_libero_spatial.yaml")
+REPLAY_STUDY = study_name(REPLAY_SOURCE)
+REPLAY = with_formats(load_study(REPLAY_SOURCE), REPLAY_OPTIONS.get("formats"))
 REPLAY_DIR = config.get("replay_analysis_dir") or f"results/replay/{REPLAY_STUDY}"
 REPLAY_ANALYSES = [str(path) for path in analysis_files(REPLAY_DIR, REPLAY["formats"]).values()]
 # The recording: records.json and one file per (task, init state) trajectory, every one declared.
@@ -140,7 +143,8 @@ def replay_runs(replay_format, suffix):
 
 
 # Layer diagnostics -> proxy audit (tab:proxy_audit)
-PROXY_COHORT = load_cohort("proxy_audit")
+PROXY_COHORT_FILE = str(Path(workflow.basedir) / "config/cohorts/proxy_audit.yaml")  # the paper's cohort
+PROXY_COHORT = load_cohort(PROXY_COHORT_FILE)
 DIAGNOSTICS_DIR = config.get("diagnostics_dir") or "results/diagnostics"
 
 

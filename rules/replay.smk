@@ -1,8 +1,8 @@
-# Record -> replay per configuration -> analysis -> replay tables (issue: same-observation replay).
-# With `replay_analysis_dir` set (e.g. the authors' files), the tables read its
-# `<format>/analysis.json` files; otherwise the DAG records full-precision trajectories in LIBERO,
-# replays every configuration on them (one job each; full precision twice, under `fp/`) and
-# analyses each format under results/replay/<study>/.
+# Record -> replay per configuration -> analysis -> replay tables (same-observation replay) of the study that
+# `replay.study` names (REPLAY_SOURCE; the paper's by default). With `replay_analysis_dir` set (e.g. the authors'
+# files), the tables read its `<format>/analysis.json` files; otherwise the DAG records full-precision trajectories
+# in the study's benchmark (the images of the cameras it declares, and the state), replays every configuration on
+# them (one job each; full precision twice, under `fp/`) and analyses each format under results/replay/<study>/.
 
 
 wildcard_constraints:
@@ -66,7 +66,7 @@ rule replay_composition_table:
         "logs/tables/replay_composition.log",
     params:
         source=lambda wc: f"the replay analysis files in {REPLAY_DIR}",
-        study=REPLAY_STUDY,
+        study=REPLAY_SOURCE,
         formats=REPLAY["formats"],
     script:
         "../workflow/scripts/replay_composition_table.py"
@@ -84,7 +84,7 @@ rule replay_all_formats_table:
         "logs/tables/replay_all_formats.log",
     params:
         source=lambda wc: f"the replay analysis files in {REPLAY_DIR}",
-        study=REPLAY_STUDY,
+        study=REPLAY_SOURCE,
         formats=REPLAY["formats"],
     script:
         "../workflow/scripts/replay_all_formats_table.py"
@@ -101,7 +101,7 @@ rule replay_bias_table:
         "logs/tables/replay_bias.log",
     params:
         source=lambda wc: f"the replay analysis files in {REPLAY_DIR}",
-        study=REPLAY_STUDY,
+        study=REPLAY_SOURCE,
         formats=REPLAY["formats"],
     script:
         "../workflow/scripts/replay_bias_table.py"
@@ -116,7 +116,7 @@ rule replay_formats_figure:
         "logs/figures/replay_formats.log",
     params:
         source=lambda wc: f"the replay analysis files in {REPLAY_DIR}",
-        study=REPLAY_STUDY,
+        study=REPLAY_SOURCE,
         formats=REPLAY["formats"],
     script:
         "../workflow/scripts/replay_formats_figure.py"
@@ -153,5 +153,6 @@ rule proxy_audit_table:
     params:
         source=lambda wc: f"the layer diagnostics in {DIAGNOSTICS_DIR} and the success summary {SUCCESS_SUMMARY}",
         models=list(PROXY_COHORT["models"]),
+        cohort=PROXY_COHORT_FILE,
     script:
         "../workflow/scripts/proxy_audit_table.py"

@@ -114,13 +114,19 @@ def test_a_benchmark_outside_envs_is_registered_from_the_module_vqb_benchmarks_n
         "import dataclasses\n"
         "from vlaquantbench.envs.registry import Benchmark, Horizon, SuiteSize, register_benchmark\n"
         "@dataclasses.dataclass(frozen=True)\n"
-        "class Settings:\n    camera_size: int = 32\n"
+        "class Settings:\n    camera_size: int = 32\n    lighting: float = 1.0\n"
         "register_benchmark(Benchmark('outside', {'outside_one': SuiteSize(2, 3, 0.1, Horizon(9, 'here'), 9)},\n"
         "    'x:Suite', 'x:Env', 'x:versions', {'main': 'image'}, Settings))\n")
     code = "from vlaquantbench.envs import BENCHMARK_SUITES as b; print(sorted(b), b['outside']['outside_one'].tasks)"
     env = {"PYTHONPATH": f"{ROOT / 'src'}:{tmp_path}", "VQB_BENCHMARKS": "outside_benchmark"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
     assert out.strip() == "['libero', 'metaworld', 'outside'] 2"
+    # its `lighting` is no runner option: no config could set it, and its value would go unhashed, so its cells are refused
+    refused = ("from vlaquantbench.cells import cell_runner; from vlaquantbench.config.study import RunnerConfig\n"
+               "try: cell_runner('cell x', 'outside', RunnerConfig())\nexcept Exception as err: print(err)")
+    out = subprocess.run([sys.executable, "-c", refused], capture_output=True, text=True, check=True, env=env).stdout
+    assert out.strip() == ("cell x: benchmark 'outside' declares env setting(s) lighting, which the runner config does not "
+                           "carry (its env settings: camera_size, settle_steps, control_mode, mujoco; config.study.RunnerConfig)")
     env["VQB_BENCHMARKS"] = "no_such_benchmark_module"
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert run.returncode != 0 and "VQB_BENCHMARKS: cannot import benchmark declaration module 'no_such_benchmark_module'" in run.stderr

@@ -4,7 +4,7 @@ version, not the code revision nor the cell's name."""
 import pytest
 
 from vlaquantbench import cells
-from vlaquantbench.cells import cell_config, config_hash
+from vlaquantbench.cells import CellConfig, cell_config, config_hash
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.semantics import QUANT_SEMANTICS
 from vlaquantbench.runner.journal import CellJournal
@@ -27,6 +27,21 @@ def test_one_experiment_under_two_names_is_one_folder():
     assert config_hash(cell_config(RTN, STUDY)) == config_hash(cell_config(ABLATE, STUDY))
     other = ["libero/libero_spatial/pi05/calib_ah-W4A4-ah", "libero/libero_spatial/pi05/rtn-W4A8-ah"]
     assert len({config_hash(cell_config(ref, STUDY)) for ref in [RTN, *other]}) == 3
+
+
+def test_a_cell_holds_and_hashes_only_the_env_settings_its_benchmark_declares():
+    """Meta-World takes no settle steps and no controller mode: its cells hold neither (typed: None), so no value
+    of theirs can split a folder; a LIBERO cell holds all four of LIBERO's settings."""
+    metaworld = cell_config("metaworld/metaworld_mt50/metaworld_expert/rtn-BASELINE-e2e",
+                            {"models": {"metaworld_expert": {"variant": "full"}}, "tasks": 1})
+    env = {"camera_size", "settle_steps", "control_mode", "mujoco"}
+    assert env & set(metaworld["runner"]) == {"camera_size", "mujoco"}
+    assert env <= set(cell_config(RTN, STUDY)["runner"])
+    typed = CellConfig.from_dict(metaworld)
+    assert (typed.runner.settle_steps, typed.runner.control_mode) == (None, None) and typed.to_dict() == metaworld
+    # a header written before (both settings in its runner) reads back into the same cell
+    before = {**metaworld, "runner": {**metaworld["runner"], "settle_steps": 10, "control_mode": "delta"}}
+    assert config_hash(before) != config_hash(metaworld) and CellConfig.from_dict(before).to_dict() == metaworld
 
 
 def test_the_semantics_version_enters_every_hash(monkeypatch):

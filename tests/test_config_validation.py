@@ -18,13 +18,14 @@ from vlaquantbench.workflow import WorkflowConfig
 from paths import ROOT
 
 PACKAGE = ROOT / "src" / "vlaquantbench"
+PAPER_STUDY = ROOT / "config" / "replay" / "pi05_libero_spatial.yaml"  # the paper's replay study
 COMMITTED = {
     "config": sorted((ROOT / "config").glob("*.yaml")),
     "table": sorted((ROOT / "config").glob("**/tables/*.yaml")),  # the paper's, the demo's and each study's
     "figure": sorted((ROOT / "config" / "figures").glob("*.yaml")),
     "scopes": [ROOT / "config" / "scopes.yaml"],
-    "cohort": sorted((PACKAGE / "diagnostics" / "cohorts").glob("*.yaml")),
-    "replay_study": sorted((PACKAGE / "replay" / "studies").glob("*.yaml")),
+    "cohort": sorted((ROOT / "config" / "cohorts").glob("*.yaml")),
+    "replay_study": sorted((ROOT / "config" / "replay").glob("*.yaml")),
 }
 COMMITTED["config"].remove(ROOT / "config" / "scopes.yaml")  # the link to the package's subsets
 DEMO_TABLE = ROOT / "config" / "demo" / "tables" / "lattice.yaml"
@@ -68,7 +69,7 @@ BROKEN = [  # (schema, file content, the field path and problem the error must n
      r"pi05.onlyself_attn: unknown key 'layer'; allowed keys: exclude, layers, only, params, scope"),
     ("cohort", {"benchmark": "libero", "suite": "libero_spatial", "models": {}},
      r"models: {} should be non-empty"),
-    ("replay_study", {**yaml.safe_load((PACKAGE / "replay/studies/pi05_libero_spatial.yaml").read_text()), "revision": "main"},
+    ("replay_study", {**yaml.safe_load(PAPER_STUDY.read_text()), "revision": "main"},
      r"revision: 'main' does not match"),
 ]
 
@@ -221,9 +222,9 @@ def test_replay_configurations_take_subsets_from_scopes_yaml(tmp_path):
     from vlaquantbench.replay.study import load_study
     from vlaquantbench.quant.subsets import get_subset
 
-    study = load_study()
+    study = load_study(PAPER_STUDY)
     assert study["configurations"]["union"]["layers"] == get_subset("pi05", "attn_adarms").layers == 108
-    text = (PACKAGE / "replay/studies/pi05_libero_spatial.yaml").read_text()
+    text = PAPER_STUDY.read_text()
     path = tmp_path / "study.yaml"
     path.write_text(text.replace("subset: attn_adarms,", "subset: attn_adarms, layers: 108,"))
     with pytest.raises(UserError, match=rf"^{path}: configurations.union: .* should not be valid"):
@@ -270,9 +271,9 @@ def test_replay_trajectories_outside_the_suite_are_refused_while_the_dag_is_buil
     from vlaquantbench.replay.study import RecordSettings, load_study
 
     with pytest.raises(UserError, match=r"^replay.init_states: 50 is outside 0..49 \(libero_spatial has 50 official init "):
-        RecordSettings.from_study(load_study(), {"init_states": [20, 50]})
+        RecordSettings.from_study(load_study(PAPER_STUDY), {"init_states": [20, 50]})
     with pytest.raises(UserError, match=r"^replay.tasks: 10, 11 are outside 0..9 \(libero_spatial has 10 tasks\)"):
-        RecordSettings.from_study(load_study(), {"tasks": [9, 10, 11]})
+        RecordSettings.from_study(load_study(PAPER_STUDY), {"tasks": [9, 10, 11]})
 
 
 CLI_NUMBERS = [  # every numeric option of `vqb`: (arguments, the option and range argparse names)

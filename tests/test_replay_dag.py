@@ -95,7 +95,7 @@ def test_tables_render_from_the_demo_analysis(demo_dag):
     assert (demo_dag / "tables/replay_bias.tex").read_text().count(r" \\") == 6  # header + 5 scopes
     assert (demo_dag / "figures/replay_formats.pdf").read_bytes().startswith(b"%PDF")
     all_formats = write_replay_table("all_formats", analysis_files(demo_dag / STUDY, ["W4A4"]), demo_dag / "all.tex",
-                                     formats=["W4A4"])
+                                     study=ROOT / "config/replay/pi05_libero_spatial.yaml", formats=["W4A4"])
     assert r"W4A4 & Attention & 72 & -- & " in all_formats
 
 

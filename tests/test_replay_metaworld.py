@@ -1,14 +1,21 @@
-"""Replay records any benchmark from its declared cameras (issue 50): the pi0.5 policy trained here on Meta-World
-(`checkpoints/pi05_metaworld_cpu`) records one trajectory of a trained task, a full-precision replay reproduces its
-chunks exactly (same observations, same noise), a quantized replay of the action head changes them with every
-hook fired, and the layer diagnostics run on the recording as on LIBERO."""
+"""Replay records any benchmark from its declared cameras, and the replay DAG records any study: a Meta-World replay
+study (written here, named by `replay.study`) of the pi0.5 policy trained here on Meta-World
+(`checkpoints/pi05_metaworld_cpu`) records one trajectory of a trained task through Snakemake, with the benchmark's
+`main` camera and the state. On that recording a full-precision replay reproduces its chunks exactly (same
+observations, same noise), a quantized replay of the action head fires every hook it selects and changes them, and
+the layer diagnostics run as on LIBERO. The replays and diagnostics run in this process: as Snakemake jobs each
+would load torch and the policy anew (about 20 s a job here), and the replay rules run whole on LIBERO in
+tests/test_replay_dag.py."""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
+import yaml
 
 from paths import ROOT
 from vlaquantbench.models.trained_home import policy_folder
@@ -17,53 +24,65 @@ pytestmark = pytest.mark.slow
 
 HOME = ROOT / "checkpoints" / "pi05_metaworld_cpu"
 TRAINING = json.loads((HOME / "training.json").read_text())
-POLICY = policy_folder(HOME)
-OBSERVE = ["paligemma_with_expert.gemma_expert.model.layers.*.mlp.down_proj"]
+POLICY = str(policy_folder(HOME))
 # The action head's linears, as the committed closed-loop cell of the same checkpoint quantized them.
 HEAD_LAYERS = json.loads((ROOT / "results/methods_2026/metaworld/metaworld_mt50/pi05/rtn-W4A4-ah/header.json")
                          .read_text())["quant_report"]["ah"]["layers"]
+NAME = "pi05_metaworld_cpu"
+# The paper's replay study but for its policy, benchmark and trajectories: the same configurations (the trained
+# policy has the released module names and depths).
+PAPER = yaml.safe_load((ROOT / "config/replay/pi05_libero_spatial.yaml").read_text())
+STUDY = {**PAPER, "checkpoint": TRAINING["checkpoint"], "revision": TRAINING["revision"], "benchmark": "metaworld",
+         "suite": "metaworld_mt50", "tasks": [4], "init_states": [0], "formats": ["W4A4"], "all_formats_order": ["W4A4"],
+         "bias_format": "W4A4"}
 
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
-    from vlaquantbench.replay.record import record
-    from vlaquantbench.replay.study import RecordSettings
+    """The recording the replay DAG's `replay_record` job writes for the study `replay.study` names."""
+    work = tmp_path_factory.mktemp("replay_metaworld")
+    for item in ("Snakefile", "rules", "workflow", "config", "src", "manifests"):
+        (work / item).symlink_to(ROOT / item)
+    (work.parent / f"{NAME}.yaml").write_text(yaml.safe_dump(STUDY))
+    config = {"replay": {"study": str(work.parent / f"{NAME}.yaml"), "checkpoint_dir": POLICY, "max_steps": 10,
+                         "executed_chunk": TRAINING["policy"]["n_action_steps"]}}
+    (work.parent / "replay_metaworld.yaml").write_text(yaml.safe_dump(config))
+    folder = work / "results" / "replay" / NAME / "records"
+    run = subprocess.run([sys.executable, "-m", "snakemake", str(folder.relative_to(work) / "records.json"), "--cores", "1",
+                          f"--configfile={work.parent / 'replay_metaworld.yaml'}"],
+                         cwd=work, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-4000:]
+    return folder, [folder / "t4_e0.npz"], work.parent / f"{NAME}.yaml"
 
-    folder = tmp_path_factory.mktemp("metaworld_replay")
-    settings = RecordSettings(model="pi05", variant="full", suite="metaworld_mt50", benchmark="metaworld", tasks=[4],
-                              init_states=[0], observe=OBSERVE, checkpoint=TRAINING["checkpoint"],
-                              revision=TRAINING["revision"], checkpoint_dir=str(POLICY), max_steps=10,
-                              executed_chunk=TRAINING["policy"]["n_action_steps"])
-    trajectories = [folder / name for name in settings.trajectory_files()]
-    meta = record(settings, folder / "records.json", trajectories)
-    return folder, meta, trajectories
 
-
-def _replay(recording, preset, layers=0):
+def _replay(recording, preset, configuration):
     from vlaquantbench.replay.configuration import replay_configuration
+    from vlaquantbench.replay.study import load_study
 
-    folder, _, trajectories = recording
-    study = {"model": "pi05", "configurations": {"head": {"scope": "ah", "subset": None, "layers": layers}}}
-    return replay_configuration(folder / "records.json", trajectories, study, "head", preset, str(POLICY))
+    folder, trajectories, study = recording
+    study = load_study(study)
+    return replay_configuration(folder / "records.json", trajectories, study, configuration, preset, POLICY)
 
 
 def test_the_recording_holds_the_declared_camera_and_the_state(recording):
-    folder, meta, trajectories = recording
-    assert meta["benchmark"] == "metaworld" and meta["records"][0]["n_steps"] == 10
-    with np.load(trajectories[0]) as data:
+    folder, [trajectory], _ = recording
+    meta = json.loads((folder / "records.json").read_text())
+    assert (meta["benchmark"], meta["revision"]) == ("metaworld", TRAINING["revision"])
+    assert [(r["record"], r["n_steps"]) for r in meta["records"]] == [("t4_e0.npz", 10)]
+    with np.load(trajectory) as data:
         assert {"image", "state"} <= set(data.files) and "agentview" not in data.files
         assert data["image"].ndim == 4 and len(data["image"]) == len(data["state"]) == meta["records"][0]["n_chunks"]
 
 
 def test_a_full_precision_replay_reproduces_the_recording_and_a_quantized_one_does_not(recording):
-    _, _, trajectories = recording
-    with np.load(trajectories[0]) as data:
+    _, [trajectory], _ = recording
+    with np.load(trajectory) as data:
         recorded = data["chunk"]
     for _ in range(2):  # twice: the same observations and noise give the same chunks
-        baseline = _replay(recording, "BASELINE")
+        baseline = _replay(recording, "BASELINE", "s167")
         assert baseline.summary["records"][0]["dev_from_recorded_actions"] == 0.0
         np.testing.assert_array_equal(baseline.stacked("chunks"), recorded)
-    quantized = _replay(recording, "W4A4", layers=HEAD_LAYERS)
+    quantized = _replay(recording, "W4A4", "s167")
     assert quantized.summary["hooks"]["selected"] == quantized.summary["hooks"]["fired"] == HEAD_LAYERS
     assert quantized.summary["records"][0]["dev_from_recorded_actions"] > 0
 
@@ -71,7 +90,7 @@ def test_a_full_precision_replay_reproduces_the_recording_and_a_quantized_one_do
 def test_layer_diagnostics_run_on_the_recording(recording, tmp_path):
     from vlaquantbench.diagnostics.collect import collect
 
-    folder, _, trajectories = recording
-    result = collect(folder / "records.json", trajectories, "pi05", "ah", "W4A4", tmp_path / "diag.json", str(POLICY))
+    folder, trajectories, _ = recording
+    result = collect(folder / "records.json", trajectories, "pi05", "ah", "W4A4", tmp_path / "diag.json", POLICY)
     assert len(result["layers"]) == HEAD_LAYERS and result["provenance"]["tasks"] == [4]
     assert result["provenance"]["checkpoint_revision"] == TRAINING["revision"]

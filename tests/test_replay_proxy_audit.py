@@ -24,6 +24,7 @@ from paths import ROOT, REFERENCE
 
 DIAG = REFERENCE / "authors-files" / "diagnostics" / "v2"
 SUMMARY = REFERENCE / "authors-summary.csv"
+COHORT = ROOT / "config" / "cohorts" / "proxy_audit.yaml"  # the paper's cohort
 
 PAPER = {  # tab:proxy_audit: scopes, kurtosis, output error, activation error, dispersion
     "pi05": (19, +0.35, +0.31, +0.46, -0.04),
@@ -36,7 +37,7 @@ DISPERSION_NOT_REPRODUCED = {"pi05", "openvla_oft"}
 
 @pytest.fixture(scope="module")
 def rhos():
-    return correlations(scope_table(load_cohort(), diagnostics_files(load_cohort(), DIAG), success_rates(SUMMARY))).set_index("model")
+    return correlations(scope_table(load_cohort(COHORT), diagnostics_files(load_cohort(COHORT), DIAG), success_rates(SUMMARY))).set_index("model")
 
 
 def test_cohort_is_the_35_seed0_scopes(rhos):
@@ -60,7 +61,7 @@ def test_cohort_subsets_select_what_the_records_selected():
     subset's patterns select, among the diagnostic file's layers, exactly what the header's recorded
     patterns select (the authors' adaRMS patterns differ in spelling, not in selection), and as many
     layers as the header reports."""
-    cohort = load_cohort()
+    cohort = load_cohort(COHORT)
     checked = 0
     for model, spec in cohort["models"].items():
         diag = Diagnostics.read(DIAG / f"{spec['diagnostics']}.json")
@@ -80,7 +81,7 @@ def test_cohort_subsets_select_what_the_records_selected():
 
 def test_cohort_names_only_defined_subsets(tmp_path):
     cohort = tmp_path / "cohort.yaml"
-    text = (ROOT / "src/vlaquantbench/diagnostics/cohorts/proxy_audit.yaml").read_text()
+    text = COHORT.read_text()
     cohort.write_text(text.replace("attn_fc2]", "attn_fc3]"))
     with pytest.raises(UserError, match=r"models.xvla.subsets: unknown subset 'attn_fc3' for model 'xvla'"):
         load_cohort(cohort)
@@ -102,7 +103,7 @@ def test_pattern_selection_on_diagnostic_layer_names():
 
 
 def test_count_mismatch_and_missing_inputs_are_user_errors(tmp_path):
-    cohort = load_cohort()
+    cohort = load_cohort(COHORT)
     cohort["models"] = {"pi0": cohort["models"]["pi0"]}
     with pytest.raises(UserError, match="pi0-ah-W4A4.json does not exist"):
         scope_table(cohort, diagnostics_files(cohort, tmp_path), success_rates(SUMMARY))
@@ -117,7 +118,7 @@ def test_count_mismatch_and_missing_inputs_are_user_errors(tmp_path):
     with pytest.raises(UserError, match="provenance.checkpoint_revision"):
         Diagnostics.read(broken)
     with pytest.raises(UserError, match="success_summary"):
-        write_proxy_audit(diagnostics_files(load_cohort(), DIAG), None, tmp_path / "t.tex")
+        write_proxy_audit(diagnostics_files(load_cohort(COHORT), DIAG), None, tmp_path / "t.tex", cohort=COHORT)
 
 
 @pytest.mark.slow

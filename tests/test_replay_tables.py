@@ -12,9 +12,10 @@ from vlaquantbench.replay.study import StudyResults, analysis_files, load_study,
 from vlaquantbench.replay.tables import write_replay_table
 from paths import ROOT, REFERENCE, PAPER_TEX as PAPER
 
+PAPER_STUDY = ROOT / "config" / "replay" / "pi05_libero_spatial.yaml"  # the paper's replay study
 AUTHORS_REPLAY = REFERENCE / "authors-files/results/replay/pi05_spatial"
 AUTHORS_SUMMARY = REFERENCE / "authors-summary.csv"
-AUTHORS_ANALYSES = analysis_files(AUTHORS_REPLAY, load_study()["formats"])
+AUTHORS_ANALYSES = analysis_files(AUTHORS_REPLAY, load_study(PAPER_STUDY)["formats"])
 
 
 def table_rows(tex: str, label: str) -> list[str]:
@@ -40,17 +41,17 @@ def paper() -> str:
     ],
 )
 def test_rendered_rows_equal_the_paper(tmp_path, paper, table, label, summary):
-    text = write_replay_table(table, AUTHORS_ANALYSES, tmp_path / "t.tex", success_summary=summary)
+    text = write_replay_table(table, AUTHORS_ANALYSES, tmp_path / "t.tex", study=PAPER_STUDY, success_summary=summary)
     assert table_rows(text, label) == table_rows(paper, label)
 
 
 def test_composition_headline_values(tmp_path):
-    rows = table_rows(write_replay_table("composition", AUTHORS_ANALYSES, tmp_path / "t.tex"), "tab:replay_composition")
+    rows = table_rows(write_replay_table("composition", AUTHORS_ANALYSES, tmp_path / "t.tex", study=PAPER_STUDY), "tab:replay_composition")
     assert rows[-1] == r"W4A4 & 2.90 & 0.82 & 0.73 & 0.514 / 0.390 & 99.1 \\"
 
 
 def test_success_column_without_records_prints_dashes(tmp_path):
-    text = write_replay_table("all_formats", AUTHORS_ANALYSES, tmp_path / "t.tex", success_summary=None)
+    text = write_replay_table("all_formats", AUTHORS_ANALYSES, tmp_path / "t.tex", study=PAPER_STUDY, success_summary=None)
     first = table_rows(text, "tab:replay_allformats")[0]
     assert first == r"W4A4 & Attention & 72 & -- & 0.0118 & 0.066 & 0.019 \\"
 
@@ -63,11 +64,11 @@ def test_success_rates_come_from_successes_over_episodes():
 
 def test_bad_inputs_name_the_file(tmp_path):
     with pytest.raises(UserError, match=r"W4A8/analysis.json"):
-        StudyResults.from_files(analysis_files(tmp_path, load_study()["formats"]), load_study())
+        StudyResults.from_files(analysis_files(tmp_path, load_study(PAPER_STUDY)["formats"]), load_study(PAPER_STUDY))
     partial = tmp_path / "partial"
     for fmt in ("W4", "W4A8", "W4A4"):
         shutil.copytree(AUTHORS_REPLAY / fmt, partial / fmt)
-    study = load_study()
+    study = load_study(PAPER_STUDY)
     study["configurations"]["extra"] = {"cell": "x", "layers": 1, "label": "x", "bias_label": "x"}
     with pytest.raises(UserError, match=r"analysis.json has no configurations \['extra'\]"):
         StudyResults.from_files(analysis_files(partial, study["formats"]), study)

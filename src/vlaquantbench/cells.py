@@ -30,7 +30,8 @@ statistics the calibration cannot collect is refused here, naming it.
 
 `CellConfig` holds everything that changes an episode's outcome; its canonical JSON is hashed
 (`config_hash`) and names the cell's output folder, so two cells share a folder exactly when they
-would produce the same records. Every field is checked against the registries (benchmarks and
+would produce the same records. Of the runner's env settings it holds only those its benchmark declares
+(`envs.registry.Benchmark.settings`; `cell_runner`): one the env never reads cannot split two cells' folders. Every field is checked against the registries (benchmarks and
 suites, models, presets, methods, subsets, and the subset patterns against the model's committed
 layer-name index) before any work starts, and without importing torch: the workflow builds the DAG
 from these configs.
@@ -38,6 +39,7 @@ from these configs.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import re
@@ -45,8 +47,9 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from vlaquantbench.config import validate
-from vlaquantbench.config.study import RunnerConfig, StudyConfig
+from vlaquantbench.config.study import ENV_SETTINGS, RunnerConfig, StudyConfig
 from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_settings, check_step_limit
+from vlaquantbench.envs.registry import get_benchmark
 from vlaquantbench.envs.episodes import RUN_SEED_STRIDE
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import ClientConventions, client_conventions, step_limit
@@ -259,7 +262,7 @@ class CellConfig(PolicyRunConfig):
             released_limit = step_limit(model, benchmark, suite)
         except UserError as err:
             raise UserError(f"cell {ref!r}: {err}") from None
-        runner = _runner(study.runner, weights.runner, client, fields["flow_steps"], released_limit)
+        runner = cell_runner(f"cell {ref!r}", benchmark, _runner(study.runner, weights.runner, client, fields["flow_steps"], released_limit))
         episodes, _ = episodes_per_task(study, model, benchmark)
         only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
         seed = study.seed + fields["seed_offset"]
@@ -288,7 +291,7 @@ class CellConfig(PolicyRunConfig):
             episodes_per_task=episodes,
             runner=runner,
             client=client,
-            overrides=_overrides(client, runner, episodes, released_limit),
+            overrides=_overrides(benchmark, client, runner, episodes, released_limit),
             sequential=_sequential(ref, benchmark, suite, model, spelled, study, seed),
         )
 
@@ -299,6 +302,8 @@ class CellConfig(PolicyRunConfig):
                 del cfg["calibration"][optional]
         if cfg["sequential"] is None:
             del cfg["sequential"]
+        for setting in undeclared_settings(self.benchmark):  # None: its benchmark takes no such setting
+            del cfg["runner"][setting]
         return canonical(cfg)
 
     @classmethod
@@ -309,7 +314,8 @@ class CellConfig(PolicyRunConfig):
         calibration = None if cfg["calibration"] is None else CellCalibration.from_dict(cfg["calibration"])
         sequential = cfg.get("sequential")
         return cls(**{**cfg, "only": tuple_or_none(cfg["only"]), "exclude": tuple_or_none(cfg["exclude"]),
-                      "tasks": tuple(cfg["tasks"]), "calibration": calibration, "runner": RunnerConfig(**cfg["runner"]),
+                      "tasks": tuple(cfg["tasks"]), "calibration": calibration,
+                      "runner": cell_runner(f"cell {cfg['ref']!r}", cfg["benchmark"], RunnerConfig(**cfg["runner"])),
                       "client": ClientConventions(**cfg["client"]),
                       "sequential": None if sequential is None else SequentialSpec.from_dict(sequential)})
 
@@ -334,7 +340,8 @@ class CalibrationConfig(PolicyRunConfig):
     @classmethod
     def from_dict(cls, cfg: dict[str, Any]) -> CalibrationConfig:
         return cls(**{**cfg, "calibration": CellCalibration.from_dict(cfg["calibration"]),
-                      "runner": RunnerConfig(**cfg["runner"])})
+                      "runner": cell_runner(f"calibration of {cfg['model']}", cfg["benchmark"],
+                                                RunnerConfig(**cfg["runner"]))})
 
     @property
     def name(self) -> str:
@@ -375,11 +382,31 @@ def _runner(study: RunnerConfig, model: dict[str, Any], client, flow_steps: int 
     return RunnerConfig(**values)
 
 
-def _overrides(client, runner: RunnerConfig, episodes: int, released_limit: int) -> dict[str, dict[str, Any]]:
-    """The cell values that differ from the model's released client: {key: {client, cell}}."""
-    cell = {**{k: getattr(runner, k) for k in client.runner()}, "episodes_per_task": episodes, "max_steps": runner.max_steps}
+def _overrides(benchmark: str, client, runner: RunnerConfig, episodes: int, released_limit: int) -> dict[str, dict[str, Any]]:
+    """The cell values that differ from the model's released client: {key: {client, cell}}; a convention for an
+    env setting the benchmark does not take (`undeclared_settings`) is none of the cell's."""
+    taken = [k for k in client.runner() if k not in undeclared_settings(benchmark)]
+    cell = {**{k: getattr(runner, k) for k in taken}, "episodes_per_task": episodes, "max_steps": runner.max_steps}
     released = {**client.runner(), "episodes_per_task": client.episodes_per_task, "max_steps": released_limit}
     return {k: {"client": released[k], "cell": cell[k]} for k in cell if cell[k] != released[k]}
+
+
+def undeclared_settings(benchmark: str) -> tuple[str, ...]:
+    """The runner's env settings (`config.study.ENV_SETTINGS`) that `benchmark` does not declare."""
+    declared = get_benchmark(benchmark).setting_names
+    return tuple(name for name in ENV_SETTINGS if name not in declared)
+
+
+def cell_runner(where: str, benchmark: str, runner: RunnerConfig) -> RunnerConfig:
+    """`runner` as a cell of `benchmark` carries it: the env settings the benchmark does not declare set to None,
+    so that neither its canonical form nor its hash holds a value its env never reads. UserError (`where` names the
+    cell) when the benchmark declares a setting the runner config lacks: no config could set it, and its value
+    would go unhashed."""
+    lacking = [name for name in get_benchmark(benchmark).setting_names if name not in ENV_SETTINGS]
+    if lacking:
+        raise UserError(f"{where}: benchmark {benchmark!r} declares env setting(s) {', '.join(lacking)}, which the runner "
+                        f"config does not carry (its env settings: {', '.join(ENV_SETTINGS)}; config.study.RunnerConfig)")
+    return dataclasses.replace(runner, **{name: None for name in undeclared_settings(benchmark)})
 
 
 def _check_registries(ref: str, benchmark: str, suite: str, model: str, preset: str, method: str) -> None:
@@ -468,7 +495,7 @@ def _check_steps(ref: str, benchmark: str, suite: str, model: str, study: StudyC
     the simulator at the horizon's step, so a longer `max_steps` is refused now, naming the field."""
     try:
         check_step_limit(_runner_field(study, model, "max_steps"), runner.max_steps, benchmark, suite,
-                         runner.settle_steps, _runner_field(study, model, "settle_steps"))
+                         runner.settle_steps or 0, _runner_field(study, model, "settle_steps"))
     except UserError as err:
         raise UserError(f"cell {ref!r}: {err}") from None
 

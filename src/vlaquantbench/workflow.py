@@ -1,7 +1,7 @@
 """What the Snakemake rules ask of a validated config, in one place.
 
 A cell is named by a reference `<benchmark>/<suite>/<model>/<cell>` in the authors' naming
-(e.g. `libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn`). With `records_dir` set, its
+(the cell name's grammar: `vlaquantbench.cells`). With `records_dir` set, its
 records are read from there (the authors' `<ref>.jsonl` or this project's `<ref>/` folder);
 without it, the DAG produces the cell under `results/cells/<config-hash>/`. A named allocation
 (`.../alloc-<name>`, `study.allocations`) reads the records of the cell it stands for either way.

@@ -8,5 +8,5 @@ from vlaquantbench.rule_log import job_log
 sm = snakemake
 with job_log(sm):
     write_proxy_audit(dict(zip(sm.params.models, sm.input.diagnostics)), sm.input.success, sm.output.table,
-                      scopes_output=sm.output.scopes, html_output=sm.output.html)
+                      scopes_output=sm.output.scopes, cohort=sm.params.cohort, html_output=sm.output.html)
     print(f"{sm.output.table} from {sm.params.source}")

@@ -1,4 +1,4 @@
-"""Rule replay_record: the study's full-precision trajectories in LIBERO and their records.json."""
+"""Rule replay_record: the study's full-precision trajectories in its benchmark and their records.json."""
 # snakemake is injected by Snakemake's script directive.
 # ruff: noqa: F821
 

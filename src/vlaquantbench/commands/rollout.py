@@ -1,6 +1,6 @@
 """`vqb rollout REF`: run one cell outside Snakemake, into the folder the workflow would use.
 
-    vqb rollout libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn            # demo study
+    vqb rollout REF                            # REF <benchmark>/<suite>/<model>/<cell> of the demo study
     vqb rollout REF --config config/paper.yaml --num-envs 8
     vqb rollout REF --show                                                         # config + hash only
 

@@ -30,7 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("records_dir", help="folder of cell records (authors' .jsonl or cell folders)")
     parser.add_argument("--baseline", default=DEFAULT_BASELINE, metavar="CELL",
                         help=f"the full-precision cell: its name (default {DEFAULT_BASELINE}), one such cell in the "
-                             "folder, or its reference (e.g. libero/libero_spatial/pi05/rtn-BASELINE-e2e)")
+                             "folder, or its reference (<benchmark>/<suite>/<model>/<cell>)")
     parser.add_argument("--cells", nargs="+", metavar="PATTERN",
                         help="the candidates: cell names matching any of these patterns (default: every other cell "
                              "of the baseline's model and suite)")

@@ -27,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--baseline", default=DEFAULT_BASELINE, metavar="CELL",
                         help="a cell name: each model's and suite's cell of that name is the baseline of the others of "
                              f"its model and suite (default {DEFAULT_BASELINE}); or one cell, by its reference under "
-                             "RECORDS_DIR (e.g. libero/libero_spatial/pi05/rtn-BASELINE-e2e) or its file: the baseline "
+                             "RECORDS_DIR (<benchmark>/<suite>/<model>/<cell>) or its file: the baseline "
                              "of the cells of its model and suite only")
     parser.add_argument("--alpha", type=float, default=0.05, help="declared level of the rule (default 0.05)")
     parser.add_argument("--margin", type=float, default=5.0, metavar="PP",

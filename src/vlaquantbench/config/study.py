@@ -8,7 +8,7 @@ These dataclasses are the one place where study defaults live; the schema
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 from vlaquantbench.config import validate
@@ -32,9 +32,15 @@ class ModelWeights:
     runner: dict[str, Any] = field(default_factory=dict)
 
 
+# Marks a runner option that is an env setting (`envs.registry.Benchmark.settings`): a cell carries, and hashes,
+# only the env settings its benchmark declares; its other ones are None (`cells.CellConfig`).
+ENV_SETTING = {"env_setting": True}
+
+
 @dataclass(frozen=True)
 class RunnerConfig:
-    """Runner options that change what an episode does, hence hashed into every cell."""
+    """Runner options that change what an episode does, hence hashed into every cell: the policy's, and the env
+    settings (`ENV_SETTING`) of the cell's benchmark."""
 
     device: str = "cpu"
     dtype: str = "float32"
@@ -42,15 +48,19 @@ class RunnerConfig:
     executed_chunk: int | None = None
     flow_steps: int = 10  # flow-matching integration steps (cell prefix steps<N> overrides)
     max_steps: int | None = None  # None: the model's step limit on the suite, resolved into the cell config (cells)
-    camera_size: int = 256
-    settle_steps: int = 10
+    camera_size: int | None = field(default=256, metadata=ENV_SETTING)
+    settle_steps: int | None = field(default=10, metadata=ENV_SETTING)
     # auto | captured | eager (`models.adapter.resolve_sampler`); hashed because the captured and
     # eager samplers order floating-point operations differently, so actions can differ in the last bits.
     sampler: str = "auto"
     # The arm controller ("delta" | "absolute", an env setting of benchmarks with one) and the MuJoCo version the cell must run on;
     # None: the model's released client (X-VLA absolute and 3.1.6, the others delta and 3.3.2)
-    control_mode: str | None = None
-    mujoco: str | None = None
+    control_mode: str | None = field(default=None, metadata=ENV_SETTING)
+    mujoco: str | None = field(default=None, metadata=ENV_SETTING)
+
+
+# The runner options that are env settings, in field order.
+ENV_SETTINGS = tuple(f.name for f in fields(RunnerConfig) if f.metadata.get("env_setting"))
 
 
 @dataclass(frozen=True)

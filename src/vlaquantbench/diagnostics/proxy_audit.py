@@ -17,20 +17,20 @@ from vlaquantbench.quant.subsets import get_subset
 from vlaquantbench.replay.study import load_definition, success_rates
 from vlaquantbench.tables.booktabs import Booktabs
 
-COHORTS = Path(__file__).with_name("cohorts")
 COLUMNS = {"act_kurtosis": "Kurtosis", "out_rel_err": "Output error", "act_rel_err": "Activation error",
            "act_dispersion": "Dispersion"}
 
 
-def load_cohort(name_or_path: str | Path = "proxy_audit") -> dict:
-    """A cohort definition; its subsets must be named subsets of config/scopes.yaml for their model."""
-    cohort = load_definition(name_or_path, COHORTS, "diagnostic cohort", "cohort")
+def load_cohort(path: str | Path) -> dict:
+    """The cohort definition at `path` (a YAML file of the project's config, e.g. `config/cohorts/proxy_audit.yaml`);
+    its subsets must be named subsets of config/scopes.yaml for their model."""
+    cohort = load_definition(path, "diagnostic cohort", "cohort")
     for model, spec in cohort["models"].items():
         for subset in spec["subsets"]:
             try:
                 get_subset(model, subset)
             except UserError as err:
-                raise UserError(f"diagnostic cohort {str(name_or_path)!r}: models.{model}.subsets: {err}") from None
+                raise UserError(f"diagnostic cohort {str(path)!r}: models.{model}.subsets: {err}") from None
     return cohort
 
 
@@ -115,11 +115,13 @@ def write_proxy_audit(
     success_summary: str | Path,
     output: str | Path,
     scopes_output: str | Path | None = None,
-    cohort: str | Path = "proxy_audit",
+    *,
+    cohort: str | Path,
     html_output: str | Path | None = None,
 ) -> pd.DataFrame:
-    """Snakemake entry: `tables/proxy_audit.tex` from `diagnostics` (model -> diagnostics file), the
-    per-scope values as CSV to `scopes_output` (default: `<output>.scopes.csv`) and the browser page."""
+    """Snakemake entry: `tables/proxy_audit.tex` from `diagnostics` (model -> diagnostics file) of the cohort at
+    `cohort` (`load_cohort`), the per-scope values as CSV to `scopes_output` (default: `<output>.scopes.csv`) and the
+    browser page."""
     spec = load_cohort(cohort)
     rates = success_rates(success_summary)
     if not rates:

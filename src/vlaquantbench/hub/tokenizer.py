@@ -5,8 +5,9 @@ repository's `config.json` (model type `paligemma`) and `tokenizer_config.json` 
 `GemmaTokenizer`, transformers' tokenizers-backed Gemma class) and reads `tokenizer.json`: a BPE model
 with byte fallback over SentencePiece-style pieces (spaces become "▁"), Gemma's special tokens at ids
 0-4, bos prepended, and PaliGemma's added `<image>` token. This one has the same structure with a
-vocabulary trained locally (`tokenizers`' BPE trainer) on the prompts the policies build: every LIBERO
-instruction, pi0.5's "Task: ..., State: ...;\\nAction: " frame and the 256 state bins.
+vocabulary trained locally (`tokenizers`' BPE trainer) on the prompts the policies build (`training_corpus`): the
+task instructions a model's hub fixture gives (its released checkpoint's benchmark's), pi0.5's
+"Task: ..., State: ...;\\nAction: " frame and the 256 state bins.
 """
 
 from __future__ import annotations
@@ -18,18 +19,10 @@ REPO_ID = "google/paligemma-3b-pt-224"
 SPECIAL_TOKENS = ("<pad>", "<eos>", "<bos>", "<unk>", "<mask>")  # Gemma's ids 0-4
 IMAGE_TOKEN = "<image>"  # PaliGemma's addition to the Gemma vocabulary
 VOCAB_SIZE = 1024
-from vlaquantbench.envs.libero.suite import SUITES as LIBERO_SUITES  # noqa: E402
 
 
-def libero_instructions() -> list[str]:
-    """Every LIBERO suite's task instructions, sorted."""
-    from vlaquantbench.envs.libero import LiberoSuite
-
-    return sorted({t.instruction for s in LIBERO_SUITES for t in LiberoSuite(s).tasks})
-
-
-def training_corpus() -> list[str]:
-    instructions = libero_instructions()
+def training_corpus(instructions: list[str]) -> list[str]:
+    """The prompts the policies build from `instructions`: each one alone and in pi0.5's frame."""
     bins = " ".join(str(b) for b in range(256))
     return [*instructions, *(f"Task: {text}, State: {bins};\nAction: " for text in instructions)]
 
@@ -53,7 +46,3 @@ def write_paligemma_tokenizer(folder: str | Path, corpus: list[str], vocab_size:
     tokenizer.save_pretrained(folder)
     PaliGemmaConfig().save_pretrained(folder)
     return folder
-
-
-def write_libero_paligemma_tokenizer(folder: str | Path) -> Path:
-    return write_paligemma_tokenizer(folder, training_corpus())

@@ -94,12 +94,19 @@ def write_pi_checkpoint(folder: Path, adapter_class: type, make_processors: str,
 MEAN_STD = {"VISUAL": "IDENTITY", "STATE": "MEAN_STD", "ACTION": "MEAN_STD"}
 
 
+def write_released_tokenizer(folder: Path) -> Path:
+    """PaliGemma's tokenizer, trained on the prompts of the released pi checkpoints (LIBERO's instructions)."""
+    from vlaquantbench.envs.libero import all_instructions
+    from vlaquantbench.hub.tokenizer import training_corpus, write_paligemma_tokenizer
+
+    return write_paligemma_tokenizer(folder, training_corpus(all_instructions()))
+
+
 def pi_fixture(adapter_class: type, make_processors: str, normalization: dict = MEAN_STD):
     """The `HubFixture` of a pi-family model: PaliGemma's tokenizer, then the checkpoint."""
     from vlaquantbench.hub.fixture import HubFixture
-    from vlaquantbench.hub.tokenizer import write_libero_paligemma_tokenizer
 
     return HubFixture(
-        tokenizers={PALIGEMMA_TOKENIZER: write_libero_paligemma_tokenizer},
+        tokenizers={PALIGEMMA_TOKENIZER: write_released_tokenizer},
         write_checkpoint=lambda folder, seed: write_pi_checkpoint(folder, adapter_class, make_processors, normalization, seed),
     )

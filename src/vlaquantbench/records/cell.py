@@ -131,10 +131,15 @@ def write_cell(folder: str | Path, header: dict[str, Any], episodes: pd.DataFram
     rows = episodes.to_dict("records") if isinstance(episodes, pd.DataFrame) else episodes
     check_rows(header, rows, folder / HEADER_FILE, folder / EPISODES_FILE)
     frame = normalize_episodes(episodes, folder / EPISODES_FILE)
-    write_text(folder / HEADER_FILE, json.dumps(header, indent=2, sort_keys=True) + "\n")
+    write_header(folder, header)
     with atomic_write(folder / EPISODES_FILE, "wb") as handle:
         frame.to_parquet(handle, index=False)
     return Cell(header=header, episodes=frame, path=folder)
+
+
+def write_header(folder: str | Path, header: dict[str, Any]) -> Path:
+    """Write a cell folder's header.json atomically, in the one layout every header has."""
+    return write_text(Path(folder) / HEADER_FILE, json.dumps(header, indent=2, sort_keys=True) + "\n")
 
 
 def record_files(path: str | Path) -> list[Path]:

@@ -1,8 +1,8 @@
 """Smoothness of an episode's executed actions (issue 31 item 6): jerk and action rate, in every episode record.
 
-For the T actions a_0 .. a_{T-1} an episode executed (the rows MuJoCo received, on the env's action scale:
-LIBERO's 7-D delta end-effector command, gripper included; control step = the time unit), with ||.|| the
-Euclidean norm over the action's dimensions:
+For the T actions a_0 .. a_{T-1} an episode executed (the rows MuJoCo received, on the env's action scale: every
+dimension of its command, gripper included; control step = the time unit), with ||.|| the Euclidean norm over the
+action's dimensions:
 
     action_rate = 1/(T-1) * sum_{t=1}^{T-1} ||a_t - a_{t-1}||^2                         (first difference)
     jerk        = 1/(T-3) * sum_{t=3}^{T-1} ||a_t - 3 a_{t-1} + 3 a_{t-2} - a_{t-3}||^2   (third difference)

@@ -54,8 +54,9 @@ def plot_formats(results: StudyResults, output: str | Path) -> Path:
 def write_replay_figure(
     analyses: Mapping[str, str | Path],
     output: str | Path,
-    study: str | Path = "pi05_libero_spatial",
+    *,
+    study: str | Path,
     formats: list[str] | None = None,
 ) -> Path:
-    """Snakemake entry: `fig:replay_formats` from `analyses` (format -> analysis.json)."""
+    """Snakemake entry: `fig:replay_formats` from `analyses` (format -> analysis.json) of `study` (`load_study`)."""
     return plot_formats(StudyResults.from_files(analyses, with_formats(load_study(study), formats)), output)

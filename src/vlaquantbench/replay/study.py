@@ -1,5 +1,6 @@
-"""A replay study definition (which configurations, formats and roles) plus the per-format
-`analysis.json` files it produced or the authors published."""
+"""A replay study definition (which configurations, formats and roles; a YAML file of the project's config,
+`config/replay/<name>.yaml`, on any benchmark) plus the per-format `analysis.json` files it produced or the authors
+published."""
 
 from __future__ import annotations
 
@@ -17,30 +18,31 @@ from vlaquantbench.quant.subsets import get_subset
 from vlaquantbench.records.summary import read_summary
 from vlaquantbench.textfiles import read_parsed
 
-STUDIES = Path(__file__).with_name("studies")
 
-
-def load_definition(name_or_path: str | Path, folder: Path, kind: str, schema: str) -> dict:
-    """A YAML definition by name (`<folder>/<name>.yaml`) or by path, validated against `schema`."""
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = folder / f"{name_or_path}.yaml"
-    if not path.exists():
-        raise UserError(f"unknown {kind} {str(name_or_path)!r}: no {path}")
+def load_definition(path: str | Path, kind: str, schema: str) -> dict:
+    """The YAML definition at `path`, validated against `schema`; UserError naming the `kind` when it is missing."""
+    if not Path(path).is_file():
+        raise UserError(f"unknown {kind} {str(path)!r}: no such file")
     return load_yaml(path, schema)
 
 
-def load_study(name_or_path: str | Path = "pi05_libero_spatial") -> dict:
-    """A replay study; a configuration with a subset takes its scope and layer count from config/scopes.yaml."""
-    study = load_definition(name_or_path, STUDIES, "replay study", "replay_study")
+def load_study(path: str | Path) -> dict:
+    """The replay study at `path` (its YAML); a configuration with a subset takes its scope and layer count from
+    config/scopes.yaml."""
+    study = load_definition(path, "replay study", "replay_study")
     for name, conf in study["configurations"].items():
         if conf["subset"] is not None:
             try:
                 subset = get_subset(study["model"], conf["subset"])
             except UserError as err:
-                raise UserError(f"replay study {str(name_or_path)!r}: configurations.{name}.subset: {err}") from None
+                raise UserError(f"replay study {str(path)!r}: configurations.{name}.subset: {err}") from None
             conf.update(scope=subset.scope, layers=subset.layers)
     return study
+
+
+def study_name(path: str | Path) -> str:
+    """What names a replay study's folders (`results/replay/<name>/`): its YAML file's stem."""
+    return Path(path).stem
 
 
 def with_formats(study: dict, formats: list[str] | None) -> dict:
@@ -85,10 +87,10 @@ class RecordSettings:
 
     @classmethod
     def from_study(cls, study: dict, options: dict | None = None) -> "RecordSettings":
-        """The study's recording, with the workflow's `replay` options (validated by the config schema:
-        variant, tasks, init_states, max_steps, checkpoint, revision, checkpoint_dir, device, threads,
-        executed_chunk, flow_steps, run_seed) taking precedence."""
-        options = {k: v for k, v in (options or {}).items() if k != "formats"}
+        """The study's recording, with the workflow's `replay` options (validated by the config schema: variant, tasks,
+        init_states, max_steps, checkpoint, revision, checkpoint_dir, device, threads, executed_chunk, flow_steps,
+        run_seed) taking precedence; its `study` and `formats` choose the study and its replays, not the recording's settings."""
+        options = {k: v for k, v in (options or {}).items() if k not in ("formats", "study")}
         base = {"variant": "full", "tasks": study["tasks"], "init_states": study["init_states"]}
         if options.get("variant", "full") == "full":  # a demo policy has random weights, no checkpoint
             base.update(checkpoint=study["checkpoint"], revision=study["revision"])

@@ -83,13 +83,14 @@ def write_replay_table(
     table: str,
     analyses: Mapping[str, str | Path],
     output: str | Path,
-    study: str | Path = "pi05_libero_spatial",
+    *,
+    study: str | Path,
     success_summary: str | Path | None = None,
     formats: list[str] | None = None,
     html_output: str | Path | None = None,
 ) -> str:
-    """Snakemake entry: render one replay table (`composition`, `all_formats` or `bias`) to `output`
-    from `analyses` (format -> analysis.json, e.g. `analysis_files(folder, formats)`), and its browser
+    """Snakemake entry: render one replay table (`composition`, `all_formats` or `bias`) of `study` (`load_study`)
+    to `output` from `analyses` (format -> analysis.json, e.g. `analysis_files(folder, formats)`), and its browser
     page to `html_output`; returns the LaTeX."""
     results = StudyResults.from_files(analyses, with_formats(load_study(study), formats))
     renderers = {

@@ -67,8 +67,8 @@ def load_policy(cfg: CellConfig | CalibrationConfig, stamp: CheckpointStamp | No
             f"{cfg.name}: adapter executes {adapter.executed_chunk} actions per chunk but the cell config "
             f"says {expected} (predicted {adapter.predicted_chunk})"
         )
-    mode = cfg.runner.control_mode
-    if adapter.control_mode != mode:
+    mode = cfg.runner.control_mode  # None: the cell's benchmark has no controller mode to set
+    if mode is not None and adapter.control_mode != mode:
         raise CellFailed(
             f"{cfg.name}: the policy's actions are {adapter.control_mode} end-effector poses but the "
             f"cell config runs the simulator's controller in {mode!r} mode"

@@ -5,7 +5,7 @@ caption: Action-head subsets under W4A4 ({episodes}) ...   # \\label{tab:<name>}
 align: lrrr                       # LaTeX column alignment
 size: small                       # optional: \\small inside the float; tabcolsep: 4pt likewise
 header: [[Quantized subset, "\\#L", "SR \\% [CI]", "$\\Delta$"]]   # one list per header line
-cells: {baseline: libero/libero_spatial/pi05/rtn-BASELINE-e2e}    # names shared by every row
+cells: {baseline: <benchmark>/<suite>/pi05/rtn-BASELINE-e2e}     # names shared by every row
 values:                           # the columns after the row label(s)
   - {stat: layers, cell: cell}
   - {stat: rate_ci, cell: cell, bold_below: 50}   # \\textbf when the rate is below 50 %
@@ -13,7 +13,7 @@ values:                           # the columns after the row label(s)
   - {stat: rates, cells: [seed0, seed1, seed2]}    # "98.0 / 98.5 / 97.5"; null cells are left out
   - {stat: lowest_within, cells: [A4, A6, A8, none], labels: [A4, A6, A8, none], minus: baseline, within_pp: 5, bold: true}
 rows:
-  - {label: attention, cell: libero/libero_spatial/pi05/ablate-W4A4-ah-onlyself_attn}
+  - {label: attention, cell: <benchmark>/<suite>/pi05/ablate-W4A4-ah-onlyself_attn}
   - {label: [Model, Suite], cell: ...}           # several label columns
   - {section: '\\emph{OpenVLA-OFT}'}            # a full-width line
   - {midrule: true}

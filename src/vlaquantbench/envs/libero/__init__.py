@@ -17,6 +17,7 @@ from vlaquantbench.envs.libero.suite import (
     EpisodeSpec,
     LiberoSuite,
     LiberoTask,
+    all_instructions,
     episode_seed,
 )
 from vlaquantbench.envs.libero.vector_env import (

@@ -15,7 +15,13 @@ from vlaquantbench.errors import UserError
 
 SUITES = LIBERO.suites
 
-__all__ = ["SUITES", "TASK_SEED_STRIDE", "EpisodeSpec", "LiberoSuite", "LiberoTask", "episode_seed"]
+__all__ = ["SUITES", "TASK_SEED_STRIDE", "EpisodeSpec", "LiberoSuite", "LiberoTask", "all_instructions", "episode_seed"]
+
+
+def all_instructions() -> list[str]:
+    """Every LIBERO suite's task instructions, sorted: the prompts of the released LIBERO checkpoints, on which the
+    models' hub fixtures train their stand-in tokenizers."""
+    return sorted({t.instruction for s in SUITES for t in LiberoSuite(s).tasks})
 
 
 @dataclass(frozen=True)

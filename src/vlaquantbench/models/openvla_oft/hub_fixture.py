@@ -49,11 +49,11 @@ def sentencepiece_model() -> bytes:
     """LLaMA-2's trainer settings on OFT's prompts of every LIBERO instruction (trained once per process)."""
     import sentencepiece
 
-    from vlaquantbench.hub.tokenizer import libero_instructions
+    from vlaquantbench.envs.libero import all_instructions
 
     model = io.BytesIO()
     sentencepiece.SentencePieceTrainer.train(
-        sentence_iterator=iter([prompt(text) for text in libero_instructions()]), model_writer=model,
+        sentence_iterator=iter([prompt(text) for text in all_instructions()]), model_writer=model,
         model_type="bpe", vocab_size=PIECES, byte_fallback=True, split_digits=True, unk_id=0, bos_id=1, eos_id=2,
         pad_id=-1, add_dummy_prefix=True, normalization_rule_name="identity", remove_extra_whitespaces=False,
         allow_whitespace_only_pieces=True, character_coverage=1.0, minloglevel=2)

@@ -133,6 +133,7 @@ def write_bart_tokenizer(folder: Path, corpus: list[str], vocab_size: int = TOKE
 def write_checkpoint(folder: Path, seed: int) -> None:
     from safetensors.torch import save_file
 
+    from vlaquantbench.envs.libero import all_instructions
     from vlaquantbench.hub.tokenizer import training_corpus
 
     fields = release_config()
@@ -144,7 +145,7 @@ def write_checkpoint(folder: Path, seed: int) -> None:
     save_file(vendored_state(model.state_dict(), vocab_size), folder / release.WEIGHTS_FILE, metadata={"format": "pt"})
     write_config(folder, fields)
     write_image_processor(folder)
-    write_bart_tokenizer(folder, training_corpus())
+    write_bart_tokenizer(folder, training_corpus(all_instructions()))  # the release's LIBERO prompts
 
 
 FIXTURE = HubFixture(write_checkpoint=write_checkpoint)
