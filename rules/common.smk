@@ -48,17 +48,12 @@ CALIBRATIONS = {
     for calib in map(cell_configs.calibration_config, CELLS.values())
     if calib is not None
 }
-CHECKPOINTS = {
-    cell_configs.checkpoint_key(cfg): {k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}
-    for cfg in CELLS.values()
-}
-# A checkpoint trained here (study.models.<model>.trained) loads from its own folder. Its training.json is read,
-# and the folder verified against it, while the DAG is built (the revision it names is hashed into every cell),
-# so it is no job's input: a missing one is refused then, naming the command that trains it (rule train_policy).
-# As an input it would also rerun the training of a committed checkpoint whose demonstrations are not committed.
-for info in CHECKPOINTS.values():
-    if WF.study.models[info["model"]].trained:
-        info["trained_home"] = WF.study.models[info["model"]].trained
+# A checkpoint trained here (study.models.<model>.trained) loads from its own folder (`trained_home` of
+# cells.checkpoint_request, which `vqb rollout` asks too). Its training.json is read, and the folder verified
+# against it, while the DAG is built (the revision it names is hashed into every cell), so it is no job's input:
+# a missing one is refused then, naming the command that trains it (rule train_policy). As an input it would
+# also rerun the training of a committed checkpoint whose demonstrations are not committed.
+CHECKPOINTS = {cell_configs.checkpoint_key(cfg): cell_configs.checkpoint_request(cfg, WF.study) for cfg in CELLS.values()}
 
 
 def on_gpu(cfg):
