@@ -15,6 +15,7 @@ from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE, JOURNAL_FILE 
 from vlaquantbench.replay.study import RecordSettings, analysis_files, load_study, study_name, with_formats  # noqa: E402
 from vlaquantbench.runner.gpus import SLOTS_DIR, LocalGpuPlan, NoGpu  # noqa: E402
 from vlaquantbench.runner.lock import LOCK_FILE  # noqa: E402
+from vlaquantbench.training.config import TrainingConfig  # noqa: E402
 from vlaquantbench.workflow import BUILT_MANIFEST, CELLS_DIR, WorkflowConfig  # noqa: E402
 
 WF = WorkflowConfig.from_snakemake(config, workflow.basedir)
@@ -216,3 +217,9 @@ def search_held_out():
     found = find_cells(confirm["records_dir"])
     wanted = {held_out(ref, confirm["seed"]) for ref in space}
     return {ref: str(path) for ref, path in found.items() if ref in wanted}
+
+
+# --- Training (rules/training.smk) ----------------------------------------------------------------
+# The typed `training` section, built once here: an unknown or ill-typed field is refused while the DAG is
+# built, naming it.
+TRAINING = TrainingConfig.from_dict(config["training"]) if "training" in config else None
