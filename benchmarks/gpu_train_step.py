@@ -23,6 +23,8 @@ import numpy as np
 import torch
 import yaml
 
+from vlaquantbench.training import TrainingConfig
+
 
 def tiny_dataset(root: Path, image_size: int, tasks: list[str], frames: int = 40):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -42,13 +44,13 @@ def tiny_dataset(root: Path, image_size: int, tasks: list[str], frames: int = 40
     return dataset
 
 
-def _build(training: dict, dataset, tokenizer, device: torch.device, compile_mode: str | None = None):
+def _build(training: TrainingConfig, dataset, tokenizer, device: torch.device, compile_mode: str | None = None):
     from vlaquantbench.models.pi05 import trained
     from vlaquantbench.training.frames import DeviceFrames
     from vlaquantbench.training.loop import compile_policy
 
     torch.manual_seed(0)
-    policy, preprocessor, _, _ = trained.build_policy(dataset.meta, training["policy"], training["tokenizer_repo"],
+    policy, preprocessor, _, _ = trained.build_policy(dataset.meta, training.policy, training.tokenizer_repo,
                                                       tokenizer, str(device))
     compile_policy(policy, compile_mode)
     frames = DeviceFrames(dataset, preprocessor, policy.config.chunk_size, device)
@@ -58,7 +60,7 @@ def _build(training: dict, dataset, tokenizer, device: torch.device, compile_mod
     return policy, frames, optimizer, scheduler, policy.config.get_optimizer_preset().grad_clip_norm
 
 
-def measure(training: dict, dataset, tokenizer, device: torch.device, batches: list[int], precisions: list[str],
+def measure(training: TrainingConfig, dataset, tokenizer, device: torch.device, batches: list[int], precisions: list[str],
             steps: int, compile_modes: list[str | None] = (None,), graphs: list[bool] = (False,)) -> list[dict]:
     from vlaquantbench.training.loop import TrainingStep
 
@@ -69,7 +71,7 @@ def measure(training: dict, dataset, tokenizer, device: torch.device, batches: l
         policy, frames, optimizer, scheduler, clip = _build(training, dataset, tokenizer, device, compile_mode)
         autocast = {"float32": None, "bfloat16": torch.bfloat16}[precision]
         step = TrainingStep(policy, optimizer, scheduler, clip, autocast, cuda_graph=graph)
-        shift = training.get("random_shift_px", 0)
+        shift = training.random_shift_px
 
         def one_step():
             return step(frames.batch(torch.randint(0, len(frames), (batch_size,), device=device), shift))
@@ -94,7 +96,7 @@ def measure(training: dict, dataset, tokenizer, device: torch.device, batches: l
     return results
 
 
-def graph_check(training: dict, dataset, tokenizer, device: torch.device, batch_size: int, steps: int) -> dict:
+def graph_check(training: TrainingConfig, dataset, tokenizer, device: torch.device, batch_size: int, steps: int) -> dict:
     """The captured step against the eager one: two policies from one initialization take `steps` steps on the
     same batches, noise and time (drawn once, before either runs); their losses and final weights, compared."""
     from vlaquantbench.training.loop import TrainingStep, _flow_sample
@@ -107,7 +109,7 @@ def graph_check(training: dict, dataset, tokenizer, device: torch.device, batch_
             torch.manual_seed(1)
             for _ in range(steps):
                 batch = frames.batch(torch.randint(0, len(frames), (batch_size,), device=device),
-                                     training.get("random_shift_px", 0))
+                                     training.random_shift_px)
                 inputs.append((batch, *_flow_sample(policy, batch)))
         step = TrainingStep(policy, optimizer, scheduler, clip, None, cuda_graph=graph)
         losses = torch.stack([step(*item) for item in inputs]).tolist()
@@ -144,22 +146,23 @@ def main() -> None:
     from vlaquantbench.models.pi05 import task_tokenizer
 
     config = yaml.safe_load(args.config.read_text())
+    training = TrainingConfig.from_dict(config["training"], str(args.config))
     device = torch.device(args.device)
     image_size = args.image_size or config["demonstrations"]["image_size"]
     modes = [None if mode == "none" else mode for mode in args.compile_modes]
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
     tasks = ["Press a button from the top", "Push and close a drawer"]
     record = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu", "image_size": image_size,
-              "torch": torch.__version__, "widths": config["training"]["policy"]["widths"]}
+              "torch": torch.__version__, "widths": training.policy["widths"]}
     with tempfile.TemporaryDirectory() as tmp:
         tiny_dataset(Path(tmp) / "data", image_size, tasks)
         dataset = LeRobotDataset("vlaquantbench/step-rate", root=Path(tmp) / "data")
         tokenizer = task_tokenizer.build_task_tokenizer(tasks)
         if args.check_graph_steps:
-            record["graph_check"] = graph_check(config["training"], dataset, tokenizer, device, min(args.batches),
+            record["graph_check"] = graph_check(training, dataset, tokenizer, device, min(args.batches),
                                                 args.check_graph_steps)
             args.out.write_text(json.dumps(record, indent=1) + "\n")
-        record["variants"] = measure(config["training"], dataset, tokenizer, device, args.batches, args.precisions,
+        record["variants"] = measure(training, dataset, tokenizer, device, args.batches, args.precisions,
                                      args.steps, modes, [graph == "on" for graph in args.graphs])
     args.out.write_text(json.dumps(record, indent=1) + "\n")
 

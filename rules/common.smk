@@ -15,6 +15,7 @@ from vlaquantbench.records.cell import EPISODES_FILE, HEADER_FILE, JOURNAL_FILE 
 from vlaquantbench.replay.study import RecordSettings, analysis_files, load_study, study_name, with_formats  # noqa: E402
 from vlaquantbench.runner.gpus import SLOTS_DIR, LocalGpuPlan, NoGpu  # noqa: E402
 from vlaquantbench.runner.lock import LOCK_FILE  # noqa: E402
+from vlaquantbench.training.config import TrainingConfig  # noqa: E402
 from vlaquantbench.workflow import BUILT_MANIFEST, CELLS_DIR, WorkflowConfig  # noqa: E402
 
 WF = WorkflowConfig.from_snakemake(config, workflow.basedir)
@@ -48,17 +49,12 @@ CALIBRATIONS = {
     for calib in map(cell_configs.calibration_config, CELLS.values())
     if calib is not None
 }
-CHECKPOINTS = {
-    cell_configs.checkpoint_key(cfg): {k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}
-    for cfg in CELLS.values()
-}
-# A checkpoint trained here (study.models.<model>.trained) loads from its own folder. Its training.json is read,
-# and the folder verified against it, while the DAG is built (the revision it names is hashed into every cell),
-# so it is no job's input: a missing one is refused then, naming the command that trains it (rule train_policy).
-# As an input it would also rerun the training of a committed checkpoint whose demonstrations are not committed.
-for info in CHECKPOINTS.values():
-    if WF.study.models[info["model"]].trained:
-        info["trained_home"] = WF.study.models[info["model"]].trained
+# A checkpoint trained here (study.models.<model>.trained) loads from its own folder (`trained_home` of
+# cells.checkpoint_request, which `vqb rollout` asks too). Its training.json is read, and the folder verified
+# against it, while the DAG is built (the revision it names is hashed into every cell), so it is no job's input:
+# a missing one is refused then, naming the command that trains it (rule train_policy). As an input it would
+# also rerun the training of a committed checkpoint whose demonstrations are not committed.
+CHECKPOINTS = {cell_configs.checkpoint_key(cfg): cell_configs.checkpoint_request(cfg, WF.study) for cfg in CELLS.values()}
 
 
 def on_gpu(cfg):
@@ -221,3 +217,9 @@ def search_held_out():
     found = find_cells(confirm["records_dir"])
     wanted = {held_out(ref, confirm["seed"]) for ref in space}
     return {ref: str(path) for ref, path in found.items() if ref in wanted}
+
+
+# --- Training (rules/training.smk) ----------------------------------------------------------------
+# The typed `training` section, built once here: an unknown or ill-typed field is refused while the DAG is
+# built, naming it.
+TRAINING = TrainingConfig.from_dict(config["training"]) if "training" in config else None

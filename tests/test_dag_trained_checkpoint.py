@@ -112,6 +112,31 @@ def test_the_dag_runs_a_trained_checkpoint_cell_and_its_header_names_the_revisio
     assert "W4A4 AH & 1 & " in (checkout / "tables" / "trained.tex").read_text()
 
 
+def test_vqb_rollout_runs_a_trained_checkpoint_cell_from_its_folder_into_the_dags_cell_folder(tmp_path):
+    """`vqb rollout` of a full-precision cell on the trained policy (one 10-step episode of drawer-close), offline
+    with an empty HF_HOME: the stamp names the trained folder, as the DAG's checkpoint job writes it (before,
+    the command asked the hub for the checkpoint), and the cell lands in the folder the DAG would use."""
+    from vlaquantbench.cells import checkpoint_key, config_hash
+    from vlaquantbench.config.study import StudyConfig
+    from vlaquantbench.workflow import CELLS_DIR
+
+    ref = "metaworld/metaworld_mt50/pi05/rtn-BASELINE-e2e"
+    entry = study(checkpoint=None, revision=None)
+    config = tmp_path / "trained.yaml"
+    config.write_text(yaml.safe_dump({"study": {**entry, "execution": {"num_envs": 1, "progress": False}}}))
+    env = {k: v for k, v in os.environ.items() if k not in ("HF_HOME", "HF_HUB_CACHE")}
+    env.update(HF_HOME=str(tmp_path / "empty_hf_home"), HF_HUB_OFFLINE="1")  # nothing to fetch from
+    result = subprocess.run([sys.executable, "-m", "vlaquantbench.cli", "rollout", ref, "--config", str(config),
+                             "--results", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    cfg = cell_config(ref, StudyConfig.from_dict(entry))
+    stamp = json.loads((tmp_path / "results" / "checkpoints" / checkpoint_key(cfg) / "checkpoint.json").read_text())
+    assert stamp["trained_home"] == str((ROOT / HOME).absolute()) and stamp["revision"] == TRAINING["revision"]
+    cell = read_cell(tmp_path / CELLS_DIR / config_hash(cfg))
+    assert (cell.header["checkpoint"], cell.header["revision"]) == (TRAINING["checkpoint"], TRAINING["revision"])
+    assert len(cell.episodes) == 1 and cell.episodes["task_name"].tolist() == ["drawer-close-v3"]
+
+
 def test_the_header_stat_prints_a_components_error_from_the_committed_records():
     """tables/methods_2026's MSE columns on the committed records: each method's action-head error (RTN's too: the
     study sets `layer_errors`), `--` for a component outside the scope; a header without the field at all is an

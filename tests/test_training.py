@@ -58,7 +58,7 @@ def trained(tmp_path_factory):
     root = write_tiny_dataset(tmp / "dataset")
     manifest = tmp / "manifest.tsv"
     manifest.write_text("path\tsha256\n")
-    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, tmp / "home", _config())
+    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, _config(tmp / "home"))
     return {"home": tmp / "home", "record": record, "provenance": tmp / "home" / "training.json"}
 
 
@@ -170,10 +170,13 @@ def test_the_rule_trains_on_the_demonstrations_rules_dataset(tmp_path):
     assert (tmp_path / "checkpoints" / "tiny" / "policy" / "model.safetensors").is_file() and (tmp_path / "logs" / "train_policy.log").is_file()
 
 
-def _config(**changes):
-    return {"model": "pi05", "device": "cpu", "seed": 0, "steps": STEPS, "batch_size": 8, "log_every": 1,
-            "checkpoint_repo": "vlaquantbench/pi05-tiny", "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer",
-            "policy": TINY_POLICY, **changes}
+def _config(output, **changes):
+    from vlaquantbench.training import TrainingConfig
+
+    return TrainingConfig.from_dict({
+        "model": "pi05", "output": str(output), "device": "cpu", "seed": 0, "steps": STEPS, "batch_size": 8,
+        "log_every": 1, "checkpoint_repo": "vlaquantbench/pi05-tiny", "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer",
+        "policy": TINY_POLICY, **changes})
 
 
 @pytest.mark.slow
@@ -190,17 +193,17 @@ def test_a_run_paused_at_its_time_limit_resumes_to_the_uninterrupted_runs_weight
     home = tmp_path / "home"
     provenance = home / "training.json"
     with pytest.raises(TrainingPaused, match=r"training.time_limit_s 1e-06: stopped after step 1 of 40"):
-        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, _config(time_limit_s=1e-6))
+        train_policy(root, "vlaquantbench/tiny-demos", manifest, _config(home, time_limit_s=1e-6))
     with pytest.raises(TrainingPaused, match=r"training.time_limit_s 0.5: stopped after step (\d+) of 40") as paused:
-        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, _config(time_limit_s=0.5))
+        train_policy(root, "vlaquantbench/tiny-demos", manifest, _config(home, time_limit_s=0.5))
     state = home / "resume" / "state.pt"
     assert state.is_file() and not provenance.exists()
     assert 1 < int(str(paused.value).split("after step ")[1].split()[0]) < STEPS
     # Settings that change what is trained are refused by name; the saved state stays.
     with pytest.raises(UserError, match=r"saved by a run with other batch_size"):
-        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, _config(batch_size=4))
+        train_policy(root, "vlaquantbench/tiny-demos", manifest, _config(home, batch_size=4))
     assert state.is_file()
-    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, home, _config())
+    record = train_policy(root, "vlaquantbench/tiny-demos", manifest, _config(home))
     assert record["revision"] == trained["record"]["revision"]
     assert record["loss_curve"] == trained["record"]["loss_curve"] and record["steps"] == STEPS
     assert not state.exists()
@@ -324,11 +327,11 @@ def test_a_paused_run_ended_where_its_state_stands_is_a_checkpoint_of_the_saved_
     manifest.write_text("path\tsha256\n")
     home = tmp_path / "home"
     with pytest.raises(TrainingPaused):
-        train_policy(root, "vlaquantbench/tiny-demos", manifest, home, _config(time_limit_s=0.5))
+        train_policy(root, "vlaquantbench/tiny-demos", manifest, _config(home, time_limit_s=0.5))
     saved = torch.load(home / "resume" / "state.pt", weights_only=False)
     with pytest.raises(UserError, match=r"saved by a run with other seed than this training section"):
-        checkpoint_from_saved_state(root, "vlaquantbench/tiny-demos", manifest, home, _config(seed=1), "a test")
-    record = checkpoint_from_saved_state(root, "vlaquantbench/tiny-demos", manifest, home, _config(),
+        checkpoint_from_saved_state(root, "vlaquantbench/tiny-demos", manifest, _config(home, seed=1), "a test")
+    record = checkpoint_from_saved_state(root, "vlaquantbench/tiny-demos", manifest, _config(home),
                                          "the test stops it here", {"type": "cpu"})
     assert record["stopped_early"]["at_step"] == saved["step"] == record["steps"] < STEPS
     assert record["stopped_early"]["why"] == "the test stops it here" and record["planned_steps"] == STEPS
@@ -353,5 +356,5 @@ def test_a_captured_step_is_refused_where_it_cannot_run_before_the_dataset_loads
     (tmp_path / "dataset" / "meta").mkdir(parents=True)
     (tmp_path / "dataset" / "meta" / "info.json").write_text("{}")  # the refusal comes before it is read
     with pytest.raises(UserError, match=refusal):
-        train_policy(tmp_path / "dataset", "vlaquantbench/tiny-demos", tmp_path / "manifest.tsv", tmp_path / "home",
-                     _config(**settings))
+        train_policy(tmp_path / "dataset", "vlaquantbench/tiny-demos", tmp_path / "manifest.tsv",
+                     _config(tmp_path / "home", **settings))

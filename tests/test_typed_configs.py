@@ -1,6 +1,7 @@
 """The cell config is typed to the end (issue 50): its stopping rule (`SequentialSpec`), its client's conventions
-(`ClientConventions`) and the checkpoint stamp a job loads from (`CheckpointStamp`) are dataclasses, each checked
-by the schema rules of the YAML values it stands for, and the typed forms keep every cell's canonical form and hash."""
+(`ClientConventions`), the checkpoint stamp a job loads from (`CheckpointStamp`) and a config's `training` section
+(`TrainingConfig`) are dataclasses, each checked by the schema rules of the YAML values it stands for, and the typed
+forms keep every cell's canonical form and hash, and what training.json records."""
 
 from __future__ import annotations
 
@@ -10,11 +11,13 @@ import json
 import pytest
 
 from demo_study import demo_study
+from paths import ROOT
 from vlaquantbench.cells import AgainstCell, CellConfig, SequentialSpec, cell_config
 from vlaquantbench.config.study import StudyConfig
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import ClientConventions, client_conventions
 from vlaquantbench.runner.checkpoint import CheckpointStamp, download_checkpoint
+from vlaquantbench.training import TrainingConfig
 
 SPATIAL_PI05 = "libero/libero_spatial/pi05"
 
@@ -85,3 +88,46 @@ def test_client_conventions_are_keyed_by_model_and_benchmark(monkeypatch):
     with pytest.raises(UserError, match=r"model 'metaworld_expert': BENCHMARK_CLIENTS of its client.py names robocasa; "
                                         r"registered benchmarks: libero, metaworld"):
         client_conventions("metaworld_expert", "metaworld")
+
+
+def test_the_training_section_is_typed_with_its_defaults_and_keeps_what_training_json_records():
+    """config/trained_cpu.yaml's section, typed: the defaults its training ran with, and the policy settings in the
+    key order the committed checkpoint's training.json records them (written verbatim, so the same section
+    writes the same file)."""
+    from vlaquantbench.config import load_yaml
+
+    raw = load_yaml(ROOT / "config" / "trained_cpu.yaml", "config")["training"]
+    training = TrainingConfig.from_dict(raw, "config/trained_cpu.yaml")
+    assert (training.steps, training.batch_size, training.time_limit_s) == (1500, 16, 660)
+    assert (training.precision, training.random_shift_px, training.compile_mode, training.cuda_graph) == ("float32", 0, None, False)
+    recorded = json.loads((ROOT / training.output / "training.json").read_text())
+    assert json.dumps(recorded["policy"]) == json.dumps(training.policy)
+    assert (recorded["checkpoint"], recorded["planned_steps"], recorded["seed"]) == (training.checkpoint_repo, 1500, 0)
+    assert TrainingConfig.from_dict(training.as_dict()) == training
+
+
+@pytest.mark.parametrize("change, refusal", [
+    ({"step": 10}, r"config/x.yaml: training: unknown key 'step'; allowed keys: batch_size, "),
+    ({"steps": "many"}, r"config/x.yaml: training.steps: 'many' is not of type 'integer'"),
+    ({"cuda_graph": "yes"}, r"config/x.yaml: training.cuda_graph: 'yes' is not of type 'boolean'"),
+    ({"precision": "float16"}, r"config/x.yaml: training.precision: 'float16' is not allowed; allowed values: float32, bfloat16"),
+])
+def test_an_unknown_or_ill_typed_training_field_is_refused_naming_it(change, refusal):
+    raw = load_training()
+    with pytest.raises(UserError, match=refusal):
+        TrainingConfig.from_dict({**raw, **change}, "config/x.yaml")
+
+
+def test_a_training_section_built_in_code_is_held_to_the_same_rules():
+    training = TrainingConfig.from_dict(load_training())
+    with pytest.raises(UserError, match=r"training section \(output 'checkpoints/pi05_metaworld_cpu'\): "
+                                        r"training\.batch_size: 0 is less than the minimum of 1"):
+        dataclasses.replace(training, batch_size=0)
+    with pytest.raises(UserError, match=r"training\.policy\.lr: 0 is less than or equal to the minimum of 0"):
+        dataclasses.replace(training, policy={**training.policy, "lr": 0})
+
+
+def load_training() -> dict:
+    import yaml
+
+    return yaml.safe_load((ROOT / "config" / "trained_cpu.yaml").read_text())["training"]

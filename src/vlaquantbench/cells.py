@@ -653,3 +653,13 @@ def checkpoint_key(cfg: dict[str, Any]) -> str:
     revision = (cfg.get("revision") or "none")[:12]
     return f"{cfg['model']}-{cfg['variant']}-{revision}"
 
+
+def checkpoint_request(cfg: dict[str, Any], study: StudyConfig) -> dict[str, Any]:
+    """What `runner.checkpoint.download_checkpoint` takes for a cell's weights under `study`: model, variant,
+    checkpoint and revision, and for a model trained here (`study.models.<model>.trained`) its folder,
+    `trained_home`, which is verified instead of fetched. The DAG's checkpoint jobs and `vqb rollout` both
+    ask here, so that neither resolves a trained checkpoint differently (from the hub, say)."""
+    request = {k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}
+    trained = study.models[cfg["model"]].trained
+    return {**request, "trained_home": trained} if trained else request
+

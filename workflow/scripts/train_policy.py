@@ -3,8 +3,8 @@
 # ruff: noqa: F821
 
 from vlaquantbench.rule_log import job_log
-from vlaquantbench.training import train_policy
+from vlaquantbench.training import TrainingConfig, train_policy
 
 with job_log(snakemake):
     train_policy(snakemake.input.dataset, snakemake.params.dataset_repo_id, snakemake.input.manifest,
-                 snakemake.params.training["output"], snakemake.params.training)
+                 TrainingConfig.from_dict(snakemake.params.training, "rule train_policy's params"))

@@ -24,7 +24,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import vlaquantbench
-from vlaquantbench.cells import CalibrationConfig, CellConfig, calibration_config, cell_config, checkpoint_key, config_hash
+from vlaquantbench.cells import (CalibrationConfig, CellConfig, calibration_config, cell_config, checkpoint_key,
+                                 checkpoint_request, config_hash)
 from vlaquantbench.config import field_schema, integer_option, load_workflow_config
 from vlaquantbench.config.study import ExecutionConfig, StudyConfig
 from vlaquantbench.envs.memory import affordable_workers
@@ -85,12 +86,12 @@ def run(args: argparse.Namespace) -> int:
         # loads anything.
         with sigterm_interrupts(), writing(out, out / JOURNAL_FILE, args.ref):
             recorded_keys(out / JOURNAL_FILE)  # episodes journaled twice differently: refused now, not after a download
-            return _run(execution, cfg, project)
+            return _run(study, execution, cfg, project)
     except KeyboardInterrupt as stop:
         return report_stop(stop, CellConfig.from_dict(cfg), out, out / JOURNAL_FILE)
 
 
-def _run(execution: ExecutionConfig, cfg: dict, project: Path) -> int:
+def _run(study: StudyConfig, execution: ExecutionConfig, cfg: dict, project: Path) -> int:
     from vlaquantbench.runner.calibration import calibrate
     from vlaquantbench.runner.cell import run_cell
     from vlaquantbench.runner.checkpoint import download_checkpoint
@@ -102,8 +103,8 @@ def _run(execution: ExecutionConfig, cfg: dict, project: Path) -> int:
         raise UserError(f"cell {cfg['ref']} stops against {against['ref']} (study.sequential), which has no records yet "
                         f"({against_records}): run `vqb rollout {against['ref']}` first")
     stamp = project / "results" / "checkpoints" / checkpoint_key(cfg) / "checkpoint.json"
-    if not stamp.exists():
-        download_checkpoint(**{k: cfg[k] for k in ("model", "variant", "checkpoint", "revision")}, stamp=stamp)
+    if not stamp.exists():  # as the DAG's checkpoint job: a checkpoint trained here is verified, not fetched
+        download_checkpoint(**checkpoint_request(cfg, study), stamp=stamp)
     stats = None
     calib = calibration_config(cfg)
     if calib is not None:

@@ -40,6 +40,7 @@ from typing import Any
 
 from vlaquantbench.atomic import write_text
 from vlaquantbench.errors import UserError
+from vlaquantbench.training.config import TrainingConfig
 
 LOG = logging.getLogger(__name__)
 # Points of the recorded loss curve (means over equal spans of steps).
@@ -100,8 +101,8 @@ def _set_rng_state(state: dict[str, Any], device) -> None:
         torch.cuda.set_rng_state(state["cuda"], device)
 
 
-def _binding(training: dict[str, Any], dataset_digest: str) -> dict[str, Any]:
-    return {"dataset": dataset_digest, **{key: training.get(key) for key in STATE_BINDING}}
+def _binding(training: TrainingConfig, dataset_digest: str) -> dict[str, Any]:
+    return {"dataset": dataset_digest, **{key: getattr(training, key) for key in STATE_BINDING}}
 
 
 def _dataset_digest(frames) -> str:
@@ -193,10 +194,10 @@ class TrainingStep:
         return loss.detach()
 
 
-def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifest: str | Path, output: str | Path,
-                 training: dict[str, Any]) -> dict[str, Any]:
-    """Train `training["model"]` (the config's `training` section) on the LeRobotDataset `dataset_repo_id`
-    at `dataset_root`; write the checkpoint folder `output` (its provenance in `output`/training.json);
+def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifest: str | Path,
+                 training: TrainingConfig) -> dict[str, Any]:
+    """Train `training.model` (the config's `training` section) on the LeRobotDataset `dataset_repo_id`
+    at `dataset_root`; write the checkpoint folder `training.output` (its provenance in training.json there);
     returns the provenance. TrainingPaused at `time_limit_s` before `steps` (state saved; run again to resume)."""
     # The time limit counts from here: a call's budget covers loading the dataset too (45 s for 67,662 frames).
     job_started = time.monotonic()
@@ -205,22 +206,22 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
 
     from vlaquantbench.training.frames import DeviceFrames
 
-    dataset_root, output = Path(dataset_root), Path(output)
+    dataset_root, output = Path(dataset_root), Path(training.output)
     if not (dataset_root / "meta" / "info.json").is_file():
         raise UserError(f"training dataset {dataset_root} is not a LeRobotDataset (no meta/info.json)")
-    trained = importlib.import_module(f"vlaquantbench.models.{training['model']}.trained")
-    tokenizers = importlib.import_module(f"vlaquantbench.models.{training['model']}.task_tokenizer")
-    cuda_graph = training.get("cuda_graph", False)
-    if cuda_graph and training.get("compile_mode"):
+    trained = importlib.import_module(f"vlaquantbench.models.{training.model}.trained")
+    tokenizers = importlib.import_module(f"vlaquantbench.models.{training.model}.task_tokenizer")
+    cuda_graph = training.cuda_graph
+    if cuda_graph and training.compile_mode:
         raise UserError("training.cuda_graph and training.compile_mode each speed the step up: set one of them")
-    device = torch.device(training["device"])
+    device = torch.device(training.device)
     if cuda_graph and device.type != "cuda":
-        raise UserError(f"training.cuda_graph: true needs a CUDA device; training.device is {training['device']!r}")
+        raise UserError(f"training.cuda_graph: true needs a CUDA device; training.device is {training.device!r}")
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"training.device: {training['device']!r}, but torch finds no CUDA device on this machine")
-    precision = training.get("precision", "float32")
+        raise UserError(f"training.device: {training.device!r}, but torch finds no CUDA device on this machine")
+    precision = training.precision
     autocast_dtype = {"float32": None, "bfloat16": torch.bfloat16}[precision]
-    seed, batch_size = training["seed"], training["batch_size"]
+    seed, batch_size = training.seed, training.batch_size
     torch.manual_seed(seed)
     # TF32 matmuls on the GPU: what float32 work runs at tensor-core speed.
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
@@ -230,16 +231,16 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
     descriptions = sorted(meta.tasks.index) if hasattr(meta.tasks, "index") else sorted(meta.tasks)
     tokenizer = tokenizers.build_task_tokenizer(descriptions)
     policy, preprocessor, postprocessor, widths = trained.build_policy(
-        meta, training["policy"], training["tokenizer_repo"], tokenizer, str(device))
+        meta, training.policy, training.tokenizer_repo, tokenizer, str(device))
     if meta.total_frames < batch_size:  # before the dataset is loaded onto the device
         raise UserError(f"training.batch_size {batch_size} is larger than the dataset's {meta.total_frames} frames")
-    compile_policy(policy, training.get("compile_mode"))
+    compile_policy(policy, training.compile_mode)
     dataset = LeRobotDataset(dataset_repo_id, root=dataset_root)
     frames = DeviceFrames(dataset, preprocessor, policy.config.chunk_size, device)
     LOG.info("dataset on %s in %.1f s: %d frames, %d episodes, %s images", device, time.monotonic() - loading,
              len(frames), dataset.num_episodes, tuple(frames.images.shape[1:]))
     optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
-    scheduler = policy.config.get_scheduler_preset().build(optimizer, training["steps"])
+    scheduler = policy.config.get_scheduler_preset().build(optimizer, training.steps)
     clip = policy.config.get_optimizer_preset().grad_clip_norm
     n_params = sum(p.numel() for p in policy.parameters())
     LOG.info("policy: %d parameters, %s, batch %d; tasks %s", n_params, precision, batch_size, descriptions)
@@ -260,19 +261,19 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
         scheduler.load_state_dict(state["scheduler"])
         step, losses, wall_s = state["step"], state["losses"], state["wall_s"]
         _set_rng_state(state["rng"], device)
-        LOG.info("resuming at step %d of %d from %s", step, training["steps"], state_file)
+        LOG.info("resuming at step %d of %d from %s", step, training.steps, state_file)
 
     policy.train()
     train_step = TrainingStep(policy, optimizer, scheduler, clip, autocast_dtype, cuda_graph)
     per_epoch = len(frames) // batch_size  # the last incomplete batch of an epoch is dropped
-    shift_px = training.get("random_shift_px", 0)
+    shift_px = training.random_shift_px
     pending: list = []  # this span's losses, still on the device
     started = time.monotonic()
-    time_limit_s = training.get("time_limit_s")
+    time_limit_s = training.time_limit_s
     order, order_epoch = None, -1
     logged = started  # when the last log line read the device
     first_step = step  # every run takes at least one step, so that a call too short to train still progresses
-    while step < training["steps"]:
+    while step < training.steps:
         if time_limit_s is not None and step > first_step and time.monotonic() - job_started > time_limit_s:
             wall_s += time.monotonic() - started
             losses += [float(x) for x in torch.stack(pending).tolist()] if pending else []
@@ -281,7 +282,7 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
                         "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "step": step,
                         "losses": losses, "wall_s": wall_s, "rng": _rng_state(device)}, state_file)
             raise TrainingPaused(f"training.time_limit_s {time_limit_s}: stopped after step {step} of "
-                                 f"{training['steps']}; the state is saved in {state_file}: run the same command "
+                                 f"{training.steps}; the state is saved in {state_file}: run the same command "
                                  "again to resume")
         epoch, position = divmod(step, per_epoch)
         if epoch != order_epoch:
@@ -289,19 +290,19 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
         batch = frames.batch(order[position * batch_size:(position + 1) * batch_size], shift_px)
         pending.append(train_step(batch))
         step += 1
-        if step % training["log_every"] == 0 or step == training["steps"]:
+        if step % training.log_every == 0 or step == training.steps:
             span = torch.stack(pending).tolist()  # the one wait for the device in `log_every` steps
             pending = []
             losses += span
             if not all(map(_finite, span)):
                 raise RuntimeError(f"training loss is not finite within steps {step - len(span) + 1}..{step}")
             now = time.monotonic()
-            LOG.info("step %d/%d loss %.4f lr %.2e (%.1f s, %.2f steps/s)", step, training["steps"], span[-1],
+            LOG.info("step %d/%d loss %.4f lr %.2e (%.1f s, %.2f steps/s)", step, training.steps, span[-1],
                      scheduler.get_last_lr()[0], wall_s + now - started, len(span) / (now - logged))
             logged = now
     wall_s += time.monotonic() - started
 
-    record = _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, descriptions, training, output,
+    record = _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, descriptions, training,
                                {"root": str(dataset_root), "repo_id": dataset_repo_id, "manifest": dataset_manifest,
                                             "frames": dataset.num_frames, "episodes": dataset.num_episodes},
                                losses, wall_s, _device_record(device))
@@ -311,9 +312,9 @@ def train_policy(dataset_root: str | Path, dataset_repo_id: str, dataset_manifes
 
 
 def checkpoint_from_saved_state(dataset_root: str | Path, dataset_repo_id: str, dataset_manifest: str | Path,
-                                output: str | Path, training: dict[str, Any], why: str,
+                                training: TrainingConfig, why: str,
                                 device_record: dict[str, Any] | None = None) -> dict[str, Any]:
-    """End a paused run where its saved state stands (`<output>/resume/state.pt`): write the checkpoint of
+    """End a paused run where its saved state stands (`<training.output>/resume/state.pt`): write the checkpoint of
     its weights as `train_policy` writes a finished run's, with `stopped_early` (the step reached, the
     planned steps, `why`) in the provenance; for when the time to resume is not there. Needs the dataset's
     metadata only (its statistics make the processors); the state must have been saved under `training`'s
@@ -321,25 +322,25 @@ def checkpoint_from_saved_state(dataset_root: str | Path, dataset_repo_id: str, 
     import torch
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
-    dataset_root, output = Path(dataset_root), Path(output)
+    dataset_root, output = Path(dataset_root), Path(training.output)
     state_file = output / RESUME_DIR / STATE_FILE
     if not state_file.is_file():
         raise UserError(f"{state_file}: no saved state to write a checkpoint from")
     state = torch.load(state_file, map_location="cpu", weights_only=False)
-    changed = sorted(k for k in STATE_BINDING if state["binding"].get(k) != training.get(k))
+    changed = sorted(k for k in STATE_BINDING if state["binding"].get(k) != getattr(training, k))
     if changed:
         raise UserError(f"{state_file}: saved by a run with other {', '.join(changed)} than this training section")
-    trained = importlib.import_module(f"vlaquantbench.models.{training['model']}.trained")
-    tokenizers = importlib.import_module(f"vlaquantbench.models.{training['model']}.task_tokenizer")
+    trained = importlib.import_module(f"vlaquantbench.models.{training.model}.trained")
+    tokenizers = importlib.import_module(f"vlaquantbench.models.{training.model}.task_tokenizer")
     meta = LeRobotDatasetMetadata(dataset_repo_id, root=dataset_root)
     descriptions = sorted(meta.tasks.index) if hasattr(meta.tasks, "index") else sorted(meta.tasks)
     tokenizer = tokenizers.build_task_tokenizer(descriptions)
     policy, preprocessor, postprocessor, widths = trained.build_policy(
-        meta, training["policy"], training["tokenizer_repo"], tokenizer, "cpu")
+        meta, training.policy, training.tokenizer_repo, tokenizer, "cpu")
     policy.load_state_dict(state["policy"])
-    stopped = {"at_step": state["step"], "planned_steps": training["steps"], "why": why,
+    stopped = {"at_step": state["step"], "planned_steps": training.steps, "why": why,
                "dataset_digest": state["binding"]["dataset"]}
-    record = _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, descriptions, training, output,
+    record = _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, descriptions, training,
                                {"root": str(dataset_root), "repo_id": dataset_repo_id,
                                             "manifest": dataset_manifest, "frames": meta.total_frames,
                                             "episodes": meta.total_episodes},
@@ -349,10 +350,10 @@ def checkpoint_from_saved_state(dataset_root: str | Path, dataset_repo_id: str, 
     return record
 
 
-def _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, descriptions, training, output,
+def _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, descriptions, training: TrainingConfig,
                       dataset: dict[str, Any], losses, wall_s, device_record,
                       stopped_early: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The plain checkpoint folder `output` (`models.trained_home`: policy/, tokenizer/, training.json, whose
+    """The plain checkpoint folder `training.output` (`models.trained_home`: policy/, tokenizer/, training.json, whose
     `files` records every file's SHA-256); returns the provenance. A folder of an earlier run is replaced
     whole; training.json is written last, so a folder without it is no checkpoint."""
     import shutil
@@ -361,10 +362,10 @@ def _write_checkpoint(policy, preprocessor, postprocessor, widths, tokenizer, de
     from vlaquantbench.models import trained_home
     from vlaquantbench.models.paligemma_family import TRAINING_FILE
 
-    tokenizers = importlib.import_module(f"vlaquantbench.models.{training['model']}.task_tokenizer")
-    trained = importlib.import_module(f"vlaquantbench.models.{training['model']}.trained")
+    tokenizers = importlib.import_module(f"vlaquantbench.models.{training.model}.task_tokenizer")
+    trained = importlib.import_module(f"vlaquantbench.models.{training.model}.trained")
     policy.eval()
-    output = Path(output)
+    output = Path(training.output)
     output.mkdir(parents=True, exist_ok=True)
     trained_home.training_file(output).unlink(missing_ok=True)
     with tempfile.TemporaryDirectory(dir=output) as scratch:
@@ -390,26 +391,26 @@ def _finite(value: float) -> bool:
     return value == value and abs(value) != float("inf")
 
 
-def _provenance(training, revision, folder, n_params, tokenizer, tokenizer_revision, descriptions, dataset,
+def _provenance(training: TrainingConfig, revision, folder, n_params, tokenizer, tokenizer_revision, descriptions, dataset,
                 losses, wall_s, device_record) -> dict[str, Any]:
     from vlaquantbench.hub.checks import sha256
 
     span = max(1, len(losses) // LOSS_CURVE_POINTS)
     return {
-        "checkpoint": training["checkpoint_repo"], "revision": revision,
+        "checkpoint": training.checkpoint_repo, "revision": revision,
         "weights_bytes": (folder / "model.safetensors").stat().st_size,
         "weights_sha256": sha256(folder / "model.safetensors"), "parameters": n_params,
-        "tokenizer": {"repo": training["tokenizer_repo"], "revision": tokenizer_revision, "vocabulary": len(tokenizer),
+        "tokenizer": {"repo": training.tokenizer_repo, "revision": tokenizer_revision, "vocabulary": len(tokenizer),
                       "source": "word-level tokenizer built from the dataset's task descriptions "
                                 "(vlaquantbench.models.pi05.task_tokenizer)"},
         "dataset": {"root": dataset["root"], "repo_id": dataset["repo_id"], "manifest_sha256": sha256(dataset["manifest"]),
                     "frames": dataset["frames"], "episodes": dataset["episodes"], "tasks": descriptions},
-        "steps": len(losses), "planned_steps": training["steps"], "batch_size": training["batch_size"],
-        "seed": training["seed"], "precision": training.get("precision", "float32"),
-        "random_shift_px": training.get("random_shift_px", 0), "compile_mode": training.get("compile_mode"),
-        "cuda_graph": training.get("cuda_graph", False),
+        "steps": len(losses), "planned_steps": training.steps, "batch_size": training.batch_size,
+        "seed": training.seed, "precision": training.precision,
+        "random_shift_px": training.random_shift_px, "compile_mode": training.compile_mode,
+        "cuda_graph": training.cuda_graph,
         "steps_per_s": round(len(losses) / wall_s, 2) if wall_s else None,
-        "policy": training["policy"],
+        "policy": training.policy,
         "loss_curve": {"span_steps": span,
                        "mean_loss": [round(sum(losses[i:i + span]) / len(losses[i:i + span]), 5)
                                      for i in range(0, len(losses), span)]},
