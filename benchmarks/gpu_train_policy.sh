@@ -2,10 +2,11 @@
 # The trained policy from nothing on a GPU machine, over warm calls on the same machine:
 #   run(command="STEPS=config TRAIN_END_S=545 bash benchmarks/gpu_train_policy.sh", carry=[".gpuwork/demos-stack"])
 # then the same command again while the machine is warm (30 s), until $OUT holds ckpt.tar.part*. STEPS=config
-# trains config/trained_study.yaml's steps (18,796: three calls on an H100, benchmarks/results/gpu_train_policy/);
-# without it the steps are sized from the measured step rate to fill this call plus SECOND_CALL_TRAIN_S.
-# with the Meta-World stack (benchmarks/simstack.py pack --benchmark metaworld) in .gpuwork/demos-stack (leave the
-# committed records and checkpoints out of the index for the call: 64 MiB travel). A phase runs only if its output
+# trains config/trained_study.yaml's steps, STEPS=<n> n steps (the cosine decay over them); without it the steps are
+# sized from the measured step rate to fill this call plus SECOND_CALL_TRAIN_S (benchmarks/results/gpu_train_policy/
+# has each run's calls). The Meta-World stack travels as .gpuwork/demos-stack/part1 (benchmarks/simstack.py pack
+# --benchmark metaworld writes .simstack/part1; then mv .simstack .gpuwork/demos-stack); leave the committed records
+# and checkpoints out of the index for the call (64 MiB travel). A phase runs only if its output
 # is missing, so a second call on the machine (warm 30 s after a call) resumes where the first stopped: step rate
 # and graph check (gpu_train_step.py), rule demonstrations, sizing (logs/sized.yaml: the fastest checked variant's
 # steps fill this call's training time plus SECOND_CALL_TRAIN_S), rule train_policy until TRAIN_END_S (then its
@@ -18,13 +19,13 @@
 set -o pipefail
 TRAIN_END_S=${TRAIN_END_S:-440}  # seconds into this call by which training stops
 SECOND_CALL_TRAIN_S=${SECOND_CALL_TRAIN_S:-0}  # training seconds a second call will add (0: one call)
-STEPS=${STEPS:-rate}  # config: the config's steps; rate: sized from the measured step rate
+STEPS=${STEPS:-rate}  # config: the config's steps; a number: that many (and the decay over them); rate: sized from the step rate
 S=$PWD/.gpuwork/demos-stack
 T0=$(date +%s)
 at() { echo "$1 at $(( $(date +%s) - T0 )) s" | tee -a $OUT/timings.txt; }
 left() { echo $(( $1 - ($(date +%s) - T0) )); }
 save_logs() {
-  tar -czf $OUT/.logs.tmp logs results/demonstrations/metaworld/demonstrations.json \
+  tar -czf $OUT/.logs.tmp --exclude logs/paused_state.pt logs results/demonstrations/metaworld/demonstrations.json \
     results/demonstrations/metaworld/manifest.tsv 2>/dev/null; mv -f $OUT/.logs.tmp $OUT/logs.tar.gz
 }
 # phase LIMIT_S LOG COMMAND...: the command in a process group of its own, killed whole after LIMIT_S.
@@ -56,7 +57,7 @@ if [ "$STEPS" = rate ] && [ ! -f logs/step_rate.json ]; then
   at "step rate (rc $?)"; grep '^{' logs/step_rate.log
 fi
 if [ ! -f results/demonstrations/metaworld/manifest.tsv ]; then
-  phase 340 logs/snakemake_demonstrations.log $SNAKEMAKE results/demonstrations/metaworld/manifest.tsv \
+  phase "${DEMOS_LIMIT_S:-420}" logs/snakemake_demonstrations.log $SNAKEMAKE results/demonstrations/metaworld/manifest.tsv \
     --configfile config/trained_study.yaml
   at "demonstrations (rc $?)"; grep "episodes kept\|episodes tried" logs/demonstrations/metaworld.log | tail -2
   [ -f results/demonstrations/metaworld/manifest.tsv ] || { tail -30 logs/demonstrations/metaworld.log; exit 1; }
@@ -66,8 +67,11 @@ if [ ! -f logs/sized.yaml ]; then
   python3 - "$(left $(( TRAIN_END_S - 40 )))" "$SECOND_CALL_TRAIN_S" "$STEPS" > logs/sized.yaml <<'PY' || exit 1
 import json, sys, yaml
 this_call, second_call = float(sys.argv[1]), float(sys.argv[2])
-if sys.argv[3] == "config":  # the config's recipe as it stands
-    print(yaml.safe_dump({"training": yaml.safe_load(open("config/trained_study.yaml"))["training"]}))
+if sys.argv[3] == "config" or sys.argv[3].isdigit():  # the config's recipe, or it with STEPS steps
+    training = yaml.safe_load(open("config/trained_study.yaml"))["training"]
+    if sys.argv[3].isdigit():
+        training["steps"] = training["policy"]["decay_steps"] = int(sys.argv[3])
+    print(yaml.safe_dump({"training": training}))
     sys.exit()
 record = json.load(open("logs/step_rate.json"))
 graph_ok = (record.get("graph_check") or {}).get("max_rel_loss_diff", 1) < 1e-3  # the captured step only if checked
