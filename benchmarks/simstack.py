@@ -315,7 +315,7 @@ def probe_metaworld(config: Path, closed_loop: bool = False) -> dict:
             _closed_loop_probe(config, root, tmp, snakemake, env)
         else:
             (tmp / "probe.yaml").write_text(yaml.safe_dump({"demonstrations": {
-                "dir": "results/probe", "tasks": metaworld_tasks(config), "episodes_per_task": 1,
+                "benchmark": "metaworld", "dir": "results/probe", "tasks": metaworld_tasks(config), "episodes_per_task": 1,
                 "image_size": 32, "image_writer_threads": 1}}))
             subprocess.run([*snakemake[:3], "results/probe/manifest.tsv", *snakemake[3:], str(tmp / "probe.yaml")],
                            check=True, env=env)

@@ -64,6 +64,8 @@ rule paper_table:
 # tab:vla_params needs no records: its counts come from the committed layer index (models/<model>/linears.json),
 # written from the model builders on the meta device and compared with them by tests/test_scopes_counts.py.
 rule vla_params_table:
+    input:
+        definition=WF.layer_index_table_file("vla_params"),  # its caption: an edited one re-renders the table
     output:
         tex="tables/vla_params.tex",
         html=report("tables/vla_params.html", caption="../workflow/report/vla_params.rst", category="Tables",

@@ -1,5 +1,5 @@
-# Scripted-expert Meta-World demonstrations as a LeRobotDataset (issue 30): what the trained policy learns
-# from. Only with a `demonstrations` section (config/trained_study.yaml):
+# Scripted-expert demonstrations of the section's benchmark as a LeRobotDataset (issue 30): what the trained
+# policy learns from. Only with a `demonstrations` section (config/trained_study.yaml: Meta-World's experts):
 #   snakemake --cores 16 results/demonstrations/metaworld/manifest.tsv --configfile config/trained_study.yaml
 # One worker process per core the job gets. A config that would evaluate or calibrate on a variation the
 # demonstrations may record is refused here, while the DAG is built: every range its study names, whether or

@@ -59,6 +59,29 @@ def test_a_declaration_names_its_cameras_by_role():
     assert get_benchmark("metaworld").observed == ("image", "state")
 
 
+def test_the_declared_scripted_expert_is_the_simulators_and_lerobots():
+    """Meta-World's declaration says what its demonstrations hold without importing them: the dims its env
+    steps and observes, lerobot's frame rate for it, an expert model of the registry; LIBERO declares none."""
+    from lerobot.envs.configs import MetaworldEnv
+
+    from vlaquantbench.envs.metaworld import ACTION_DIM
+    from vlaquantbench.envs.metaworld.worker import STATE_DIM
+    from vlaquantbench.models.registry import MODELS
+
+    expert = get_benchmark("metaworld").scripted_expert
+    assert (len(expert.state_names), len(expert.action_names), expert.fps) == (STATE_DIM, ACTION_DIM, MetaworldEnv.fps)
+    assert expert.model in MODELS and expert.suite in get_benchmark("metaworld").suites
+    assert get_benchmark("libero").scripted_expert is None
+
+
+def test_a_scripted_expert_on_a_suite_the_benchmark_lacks_is_refused():
+    metaworld = get_benchmark("metaworld")
+    elsewhere = dataclasses.replace(metaworld.scripted_expert, suite="libero_spatial")
+    with pytest.raises(UserError, match=r"benchmark 'metaworld': its scripted expert's suite 'libero_spatial' is not "
+                                        r"one of its suites \(metaworld_easy, "):
+        register_benchmark(dataclasses.replace(metaworld, scripted_expert=elsewhere))
+
+
 def test_an_observation_without_a_named_benchmark_has_the_cameras_of_the_declaration_its_keys_fit():
     from vlaquantbench.envs.registry import cameras_of
 

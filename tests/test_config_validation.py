@@ -22,6 +22,7 @@ PAPER_STUDY = ROOT / "config" / "replay" / "pi05_libero_spatial.yaml"  # the pap
 COMMITTED = {
     "config": sorted((ROOT / "config").glob("*.yaml")),
     "table": sorted((ROOT / "config").glob("**/tables/*.yaml")),  # the paper's, the demo's and each study's
+    "layer_index_table": sorted((ROOT / "config" / "layer_index_tables").glob("*.yaml")),
     "figure": sorted((ROOT / "config" / "figures").glob("*.yaml")),
     "scopes": [ROOT / "config" / "scopes.yaml"],
     "cohort": sorted((ROOT / "config" / "cohorts").glob("*.yaml")),

@@ -36,8 +36,9 @@ from vlaquantbench.manifest import read_manifest, verify_file_manifest
 pytestmark = pytest.mark.slow
 
 TASKS = ["reach-v3", "handle-press-v3"]
-SECTION = {"dir": "results/demos", "tasks": TASKS, "episodes_per_task": 1, "max_steps": 45, "image_size": 32,
-           "image_writer_threads": 1}
+EXPERTS = {"benchmark": "metaworld"}  # whose scripted experts are recorded
+SECTION = {**EXPERTS, "dir": "results/demos", "tasks": TASKS, "episodes_per_task": 1, "max_steps": 45,
+           "image_size": 32, "image_writer_threads": 1}
 EVALUATION_EPISODES = 50  # lerobot-eval's n_episodes per task, the most a Meta-World study here evaluates
 
 
@@ -143,7 +144,7 @@ def test_demonstration_variations_are_never_evaluated(demos):
 
 
 def test_a_study_evaluating_a_demonstration_variation_is_refused():
-    config = DemonstrationConfig.from_dict({"tasks": TASKS, "first_variation": 20})
+    config = DemonstrationConfig.from_dict({**EXPERTS, "tasks": TASKS, "first_variation": 20})
 
     def study(episodes: int, first_calibration: int) -> StudyConfig:
         return StudyConfig.from_dict({"models": {"pi05": {"variant": "demo"}}, "episodes_per_task": episodes,
@@ -159,9 +160,10 @@ def test_a_study_evaluating_a_demonstration_variation_is_refused():
 
 
 @pytest.mark.parametrize(("section", "message"), [
-    ({"tasks": TASKS, "image_size": 8}, r"demonstrations.image_size: 8 is less than the minimum of 16"),
-    ({"tasks": TASKS, "episodes": 3}, r"workflow config: demonstrations: unknown key 'episodes'; allowed keys: dir, episodes_per_task"),
-    ({"tasks": []}, r"demonstrations.tasks: \[\] should be non-empty"),
+    ({**EXPERTS, "tasks": TASKS, "image_size": 8}, r"demonstrations.image_size: 8 is less than the minimum of 16"),
+    ({**EXPERTS, "tasks": TASKS, "episodes": 3},
+     r"workflow config: demonstrations: unknown key 'episodes'; allowed keys: benchmark, dir, episodes_per_task"),
+    ({**EXPERTS, "tasks": []}, r"demonstrations.tasks: \[\] should be non-empty"),
 ])
 def test_a_bad_section_is_refused_naming_the_field(section, message):
     with pytest.raises(UserError, match=message):
@@ -169,9 +171,9 @@ def test_a_bad_section_is_refused_naming_the_field(section, message):
 
 
 @pytest.mark.parametrize(("section", "message"), [
-    ({"tasks": ["reach-v2"]}, r"unknown task 'reach-v2' in Meta-World suite metaworld_mt50"),
-    ({"tasks": TASKS, "first_variation": 950}, r"first_variation 950 \+ max_attempts_per_task 100 reaches "
-                                               r"variation 1049; a task has variations 0..1008"),
+    ({**EXPERTS, "tasks": ["reach-v2"]}, r"unknown task 'reach-v2' in Meta-World suite metaworld_mt50"),
+    ({**EXPERTS, "tasks": TASKS, "first_variation": 950}, r"first_variation 950 \+ max_attempts_per_task 100 reaches "
+                                                           r"variation 1049; a task has variations 0..1008"),
 ])
 def test_a_bad_task_or_variation_range_is_refused_before_any_worker(section, message, tmp_path):
     with pytest.raises(UserError, match=message):

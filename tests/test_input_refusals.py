@@ -20,7 +20,7 @@ from vlaquantbench.envs import BENCHMARK_SUITES
 from vlaquantbench.errors import UserError
 
 TRAINED_CPU = "config/trained_cpu.yaml"
-DEMONSTRATED_TASKS = ["drawer-close-v3"]
+DEMONSTRATED = {"benchmark": "metaworld", "tasks": ["drawer-close-v3"]}  # a demonstrations section
 
 
 def checkout_with_records(tmp_path: Path) -> Path:
@@ -84,10 +84,29 @@ def test_a_cell_stepping_past_the_simulators_limit_is_refused_naming_the_field(r
 
 def test_demonstrations_stepping_past_meta_worlds_limit_are_refused_naming_the_field():
     with pytest.raises(UserError, match=r"^demonstrations\.max_steps: 600 steps is beyond metaworld_mt50's limit of 500"):
-        DemonstrationConfig.from_dict({"tasks": DEMONSTRATED_TASKS, "max_steps": 600})
-    with pytest.raises(UserError, match=r"unknown Meta-World suite \(demonstrations\.suite\) 'mt50'"):
-        DemonstrationConfig.from_dict({"tasks": DEMONSTRATED_TASKS, "suite": "mt50"})
-    assert DemonstrationConfig.from_dict({"tasks": DEMONSTRATED_TASKS, "max_steps": 500}).max_steps == 500
+        DemonstrationConfig.from_dict({**DEMONSTRATED, "max_steps": 600})
+    with pytest.raises(UserError, match=r"unknown metaworld suite \(demonstrations\.suite\) 'mt50'"):
+        DemonstrationConfig.from_dict({**DEMONSTRATED, "suite": "mt50"})
+    assert DemonstrationConfig.from_dict({**DEMONSTRATED, "max_steps": 500}).max_steps == 500
+
+
+def test_demonstrations_of_a_benchmark_without_a_scripted_expert_are_refused_naming_the_field():
+    """LIBERO declares no scripted expert: a section naming it is refused as it is read, from the light
+    declarations alone (a fresh interpreter imports no simulator on the way); so is an unknown benchmark."""
+    code = ("import sys\n"
+            "from vlaquantbench.demonstrations import DemonstrationConfig\n"
+            "try:\n"
+            "    DemonstrationConfig.from_dict({'benchmark': 'libero', 'tasks': ['pick_up_the_black_bowl']})\n"
+            "except Exception as err:\n"
+            "    print(type(err).__name__, err)\n"
+            "print([m for m in ('libero.libero', 'robosuite', 'metaworld', 'mujoco', 'lerobot') if m in sys.modules])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={"PYTHONPATH": str(ROOT / "src")}).stdout
+    assert out.splitlines() == ["UserError demonstrations.benchmark: libero declares no scripted expert to record "
+                                "demonstrations from (benchmarks with one: metaworld)", "[]"]
+    with pytest.raises(UserError, match=r"^unknown benchmark \(demonstrations\.benchmark\) 'mujoco'; known: libero, "
+                                        r"metaworld$"):
+        DemonstrationConfig.from_dict({**DEMONSTRATED, "benchmark": "mujoco"})
 
 
 def test_the_dag_refuses_a_meta_world_study_stepping_past_500(tmp_path):

@@ -3,11 +3,12 @@ tests/test_scopes_counts.py checks the index against the builders), compared wit
 
 from test_tables_paper import PAPER, latex_rows, paper_rows
 
+from paths import ROOT
 from vlaquantbench.tables.vla_params import vla_params_table
 
 
 def test_vla_params_prints_the_papers_rows_and_caption(tmp_path):
-    table = vla_params_table()
+    table = vla_params_table(ROOT / "config" / "layer_index_tables" / "vla_params.yaml")
     out = table.write(tmp_path / "vla_params.tex", tmp_path / "vla_params.html")
     tex = out.read_text()
     assert latex_rows(tex) == paper_rows("tab:vla_params")

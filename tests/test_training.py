@@ -153,7 +153,7 @@ def test_the_rule_trains_on_the_demonstrations_rules_dataset(tmp_path):
     from paths import ROOT
     from vlaquantbench.hub.checks import sha256
 
-    demonstrations = {"dir": "results/demos", "tasks": ["handle-press-v3"], "episodes_per_task": 2, "image_size": IMAGE,
+    demonstrations = {"benchmark": "metaworld", "dir": "results/demos", "tasks": ["handle-press-v3"], "episodes_per_task": 2, "image_size": IMAGE,
                       "image_writer_threads": 1}
     training = {"model": "pi05", "output": "checkpoints/tiny", "checkpoint_repo": "vlaquantbench/pi05-tiny",
                 "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer", "device": "cpu", "seed": 0, "steps": 2,

@@ -140,6 +140,10 @@ class WorkflowConfig:
 
         return self._definition(Path(self.figure_file(name)), load_figure)
 
+    def layer_index_table_file(self, name: str) -> str:
+        """The definition of a table counted on the models' layer index, without records (tab:vla_params)."""
+        return str(self.basedir / "config" / "layer_index_tables" / f"{name}.yaml")
+
     @property
     def success_summary(self) -> Path | None:
         """The authors' per-cell summary: the source of cells whose episodes are not in `records_dir`."""

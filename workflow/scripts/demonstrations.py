@@ -1,4 +1,4 @@
-"""Rule demonstrations: scripted-expert Meta-World episodes as a LeRobotDataset, one worker per thread."""
+"""Rule demonstrations: a benchmark's scripted-expert episodes as a LeRobotDataset, one worker per thread."""
 # snakemake is injected by Snakemake's script directive.
 # ruff: noqa: F821
 from pathlib import Path

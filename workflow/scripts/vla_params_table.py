@@ -7,5 +7,5 @@ from vlaquantbench.tables.vla_params import write_vla_params
 
 sm = snakemake
 with job_log(sm):
-    write_vla_params(sm.output.tex, sm.output.html)
+    write_vla_params(sm.input.definition, sm.output.tex, sm.output.html)
     print(f"{sm.output.tex}: counted on the models' layer index")

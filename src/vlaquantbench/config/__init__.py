@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 # builds the DAG, and the pure-Python parser made that several seconds.
 YAML_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
-SCHEMAS = ("config", "table", "figure", "scopes", "cohort", "replay_study", "checkpoint_stamp")
+SCHEMAS = ("config", "table", "layer_index_table", "figure", "scopes", "cohort", "replay_study", "checkpoint_stamp")
 # The Snakefile's `configfile:`; `snakemake --configfile FILE` merges FILE over it.
 WORKFLOW_CONFIG = Path("config/config.yaml")
 

@@ -1,15 +1,17 @@
-"""Scripted-expert demonstrations on Meta-World, written as a LeRobotDataset (issue 30, item 1).
+"""Scripted-expert demonstrations of a benchmark, written as a LeRobotDataset (issue 30, item 1).
 
 ```python
+from vlaquantbench.config import load_yaml
 from vlaquantbench.demonstrations import DemonstrationConfig, write_demonstrations
 
-config = DemonstrationConfig.from_dict({"tasks": ["drawer-close-v3", "door-open-v3"], "episodes_per_task": 50})
-write_demonstrations(config, "results/demonstrations/metaworld", workers=16)
+config = DemonstrationConfig.from_dict(load_yaml("config/trained_study.yaml", "config")["demonstrations"])
+write_demonstrations(config, config.dir, workers=16)
 ```
 
-The experts (`models/metaworld_expert`) run through the closed-loop runner on the project's own
-Meta-World env (the worker, camera, flips and step limit the closed loop evaluates with), rendering
-`image_size` pixels. Only successful episodes are kept; every attempt is counted. See `dataset.py`.
+The benchmark's scripted expert (the model its declaration names, `envs.registry.ScriptedExpert`) runs
+through the closed-loop runner on the project's own env of that benchmark (the worker, camera, flips and
+step limit the closed loop evaluates with), rendering `image_size` pixels. Only successful episodes are
+kept; every attempt is counted. See `dataset.py`.
 """
 
 from vlaquantbench.demonstrations.dataset import (

@@ -1,12 +1,14 @@
-"""Meta-World's scripted experts recorded as a LeRobotDataset: what the trained policy learns from.
+"""A benchmark's scripted expert recorded as a LeRobotDataset: what the trained policy learns from. The
+benchmark (`demonstrations.benchmark`) declares its expert and what the dataset holds
+(`envs.registry.ScriptedExpert`); one without an expert is refused when the config is read.
 
-`write_demonstrations(config, out_dir, num_envs)` writes under `out_dir`:
+`write_demonstrations(config, out_dir, workers)` writes under `out_dir`:
   - `dataset/`: a LeRobotDataset (lerobot 0.6.1's `LeRobotDataset.create` / `add_frame` /
-    `save_episode`, local, no hub) with the features lerobot's Meta-World env gives a policy:
-    `observation.image` (the `corner2` camera at `image_size` pixels, lerobot's orientation),
-    `observation.state` (`agent_pos`: hand xyz, gripper opening), `action` (the expert's, clipped to
-    [-1, 1] as Meta-World applies it), and
-    the task's lerobot description as each frame's `task`. Images are stored as PNG inside the
+    `save_episode`, local, no hub) with the features a one-camera lerobot env gives a policy:
+    `observation.image` (the benchmark's main camera at `image_size` pixels, as the closed loop renders it),
+    `observation.state`, `action` (the expert's, clipped to lerobot's action space [-1, 1]), their components
+    named as the benchmark declares them, and
+    the task's instruction as each frame's `task`. Images are stored as PNG inside the
     parquet files (`use_videos=False`): no video codec is needed to write or read them, and a frame
     reads back exactly as rendered.
   - `demonstrations.json`: the settings, the versions, and per task every attempted episode: its
@@ -14,10 +16,10 @@
     the dataset episode it became (null: not kept).
   - `manifest.tsv`: the SHA-256 of every file above (`manifest.write_file_manifest`).
 
-Episodes: the experts act through the closed-loop runner (`runner.loop.run_episodes`) on
-`MetaWorldVectorEnv`, so a demonstration sees what an evaluated policy sees. Task variation v of a
-task is drawn from `variation_seed(task, v)`; closed-loop evaluation episode e starts from variation
-e (`MetaWorldSuite.episode_spec`), so the demonstrations take variations from `first_variation` on
+Episodes: the expert acts through the closed-loop runner (`runner.loop.run_episodes`) on the
+benchmark's vector env, so a demonstration sees what an evaluated policy sees. Task variation v of a
+task is drawn from the suite's `variation_seed(task, v)`; closed-loop evaluation episode e starts from
+variation e (the suite's `episode_spec`), so the demonstrations take variations from `first_variation` on
 (default 500), and `overlap.check_disjoint_from_evaluation` refuses a config that would evaluate
 or calibrate on one of them. Only successful episodes are kept: a task gets attempts on consecutive
 variations until `episodes_per_task` succeed (each round tries as many as are still missing), so the kept episodes
@@ -47,43 +49,71 @@ import numpy as np
 
 from vlaquantbench.config import validate
 from vlaquantbench.envs import BENCHMARK_SUITES, check_step_limit
-from vlaquantbench.envs.episodes import TASK_SEED_STRIDE, EpisodeSpec
+from vlaquantbench.envs.episodes import EpisodeSpec
+from vlaquantbench.envs.registry import ScriptedExpert, get_benchmark
 from vlaquantbench.errors import UserError, lookup
+from vlaquantbench.models.client import step_limit as model_step_limit
 
 log = logging.getLogger(__name__)
 
 DATASET_DIR = "dataset"
 SUMMARY_FILE = "demonstrations.json"
 MANIFEST_FILE = "manifest.tsv"
-ROBOT_TYPE = "sawyer"  # Meta-World's arm
+
+
+def scripted_expert(benchmark: str) -> ScriptedExpert:
+    """The scripted expert `benchmark` declares; UserError naming `demonstrations.benchmark` when the benchmark is
+    unknown or has no expert (read from its light declaration: no simulator is imported)."""
+    lookup(BENCHMARK_SUITES, benchmark, "benchmark (demonstrations.benchmark)")
+    expert = get_benchmark(benchmark).scripted_expert
+    if expert is None:
+        declaring = [name for name in BENCHMARK_SUITES if get_benchmark(name).scripted_expert is not None]
+        raise UserError(f"demonstrations.benchmark: {benchmark} declares no scripted expert to record demonstrations "
+                        f"from (benchmarks with one: {', '.join(declaring) or 'none'})")
+    return expert
 
 
 @dataclass(frozen=True)
 class DemonstrationConfig:
-    """The `demonstrations` section of a workflow config (defaults live here; the schema says what is allowed)."""
+    """The `demonstrations` section of a workflow config (the schema says what is allowed). `from_dict` fills
+    what the section leaves out: `dir`, `suite` and `repo_id` from its benchmark, the other defaults here."""
 
-    tasks: tuple[str, ...]  # Meta-World env names, e.g. "drawer-close-v3"
-    dir: str = "results/demonstrations/metaworld"  # the rule's output folder
+    tasks: tuple[str, ...]  # task names of the suite, e.g. "drawer-close-v3"
+    benchmark: str  # whose scripted expert is recorded (its declaration's `scripted_expert`)
+    dir: str  # the rule's output folder; default results/demonstrations/<benchmark>
+    suite: str  # where the task names, instructions and variation seeds come from; default the expert's suite
+    repo_id: str  # default vlaquantbench/<benchmark>_expert_demonstrations
     episodes_per_task: int = 50  # successful episodes kept per task
     max_attempts_per_task: int = 100  # episodes tried per task at most before the job fails
     first_variation: int = 500  # variations first_variation.. (evaluation episode e uses variation e)
     image_size: int = 224  # rendered camera size: the policy's input size
-    max_steps: int | None = None  # policy steps before an episode fails; None: Meta-World's limit (500)
-    suite: str = "metaworld_mt50"  # where the task names, instructions and variation seeds come from
-    repo_id: str = "vlaquantbench/metaworld_expert_demonstrations"
+    max_steps: int | None = None  # policy steps before an episode fails; None: the expert's limit on the suite
     image_writer_threads: int = 4  # lerobot's PNG writer threads
 
     @classmethod
     def from_dict(cls, raw: dict[str, Any] | None, where: str = "workflow config") -> DemonstrationConfig:
-        """The typed section; UserError `<where>: <field>: ...` for a value the schema refuses."""
+        """The typed section; UserError `<where>: <field>: ...` for a value the schema refuses, and UserError naming
+        `demonstrations.benchmark` for a benchmark without a scripted expert."""
         raw = dict(raw or {})
         validate(raw, "config", where, subschema=("demonstrations",))
-        return cls(**{**raw, "tasks": tuple(raw["tasks"])})
+        benchmark = raw["benchmark"]
+        derived = {"dir": f"results/demonstrations/{benchmark}", "suite": scripted_expert(benchmark).suite,
+                   "repo_id": f"vlaquantbench/{benchmark}_expert_demonstrations"}
+        return cls(**{**derived, **raw, "tasks": tuple(raw["tasks"])})
 
     def __post_init__(self):
-        # The episodes' steps fit Meta-World's: an episode past its max_path_length dies inside Meta-World.
-        suite = lookup(BENCHMARK_SUITES["metaworld"], self.suite, "Meta-World suite (demonstrations.suite)")
-        check_step_limit("demonstrations.max_steps", self.max_steps or suite.step_limit, "metaworld", self.suite)
+        # The episodes' steps fit the simulator's: an episode past its horizon dies inside the simulator.
+        lookup(BENCHMARK_SUITES[self.benchmark], self.suite, f"{self.benchmark} suite (demonstrations.suite)")
+        check_step_limit("demonstrations.max_steps", self.step_limit, self.benchmark, self.suite)
+
+    @property
+    def expert(self) -> ScriptedExpert:
+        return scripted_expert(self.benchmark)
+
+    @property
+    def step_limit(self) -> int:
+        """Policy steps before an episode fails: `max_steps`, else the expert's limit on the suite."""
+        return self.max_steps or model_step_limit(self.expert.model, self.benchmark, self.suite)
 
     @property
     def last_variation(self) -> int:
@@ -104,17 +134,17 @@ def _available_rgb_encoder():
     return RGBEncoderConfig(vcodec=available[0])
 
 
-def _features(image_size: int) -> dict[str, dict]:
-    """lerobot's feature spec of the dataset, named as lerobot's Meta-World env names them for policies."""
+def _features(config: DemonstrationConfig) -> dict[str, dict]:
+    """lerobot's feature spec of the dataset, named as a one-camera lerobot env names them for policies; the
+    state's and action's components as the benchmark declares them (lerobot's `add_frame` refuses a frame
+    whose shapes differ)."""
     from lerobot.utils.constants import ACTION, OBS_IMAGE, OBS_STATE
 
-    from vlaquantbench.envs.metaworld import ACTION_DIM
-    from vlaquantbench.envs.metaworld.worker import STATE_DIM
-
+    expert, size = config.expert, config.image_size
     return {
-        OBS_IMAGE: {"dtype": "image", "shape": (image_size, image_size, 3), "names": ["height", "width", "channels"]},
-        OBS_STATE: {"dtype": "float32", "shape": (STATE_DIM,), "names": ["hand_x", "hand_y", "hand_z", "gripper"]},
-        ACTION: {"dtype": "float32", "shape": (ACTION_DIM,), "names": ["dx", "dy", "dz", "gripper"]},
+        OBS_IMAGE: {"dtype": "image", "shape": (size, size, 3), "names": ["height", "width", "channels"]},
+        OBS_STATE: {"dtype": "float32", "shape": (len(expert.state_names),), "names": list(expert.state_names)},
+        ACTION: {"dtype": "float32", "shape": (len(expert.action_names),), "names": list(expert.action_names)},
     }
 
 
@@ -185,35 +215,34 @@ def _record_shards(config: DemonstrationConfig, shards: list[_Shard]) -> None:
     `dataset_episode` the episode's index within the shard (None: not kept)."""
     import torch
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
-    from lerobot.envs.configs import MetaworldEnv
     from lerobot.utils.constants import ACTION, OBS_IMAGE, OBS_STATE
 
     from vlaquantbench.envs import make_env, make_suite
-    from vlaquantbench.envs.metaworld import STEP_LIMIT
+    from vlaquantbench.envs.registry import STATE
     from vlaquantbench.models.adapter import AdapterConfig, make_adapter
     from vlaquantbench.runner.loop import run_episodes
 
-    torch.set_num_threads(1)  # one core a worker: the expert is arithmetic on a 39-number observation
-    suite = make_suite("metaworld", config.suite)
-    expert = make_adapter(AdapterConfig(model="metaworld_expert", variant="full"))
+    torch.set_num_threads(1)  # one core a worker: a scripted expert computes its action from the state, no network
+    suite = make_suite(config.benchmark, config.suite)
+    image = get_benchmark(config.benchmark).cameras["main"]  # the observation key of the camera recorded
+    expert = make_adapter(AdapterConfig(model=config.expert.model, variant="full"))
     expert.load()
     frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
     def on_actions(spec: EpisodeSpec, observation: dict, actions: np.ndarray) -> None:
         if len(actions) != 1:
             raise ValueError(f"a demonstration records one action per observation; the policy sent {len(actions)}")
-        # The action as Meta-World applies it: the experts' position gains overshoot (xyz up to ~5, which
-        # `SawyerXYZEnv.set_xyz_action` clips to [-1, 1]; the gripper effort is +-1), and a policy learns
-        # targets within lerobot's action space.
-        frames.append((observation["image"], observation["state"].astype(np.float32),
+        # The action within lerobot's action space, [-1, 1], as the env clips it: a scripted expert's gains may
+        # overshoot it, and a policy learns targets within it.
+        frames.append((observation[image], observation[STATE].astype(np.float32),
                        np.clip(actions[0], -1, 1).astype(np.float32)))
 
     # One env: episodes run one after another, so `frames` holds exactly the running episode's.
-    with make_env("metaworld", suite, 1, camera_size=config.image_size) as env:
+    with make_env(config.benchmark, suite, 1, camera_size=config.image_size) as env:
         for shard in shards:
             dataset = LeRobotDataset.create(
-                config.repo_id, fps=MetaworldEnv.fps, features=_features(config.image_size), root=shard.root,
-                robot_type=ROBOT_TYPE, use_videos=False, image_writer_threads=config.image_writer_threads,
+                config.repo_id, fps=config.expert.fps, features=_features(config), root=shard.root,
+                robot_type=config.expert.robot_type, use_videos=False, image_writer_threads=config.image_writer_threads,
                 rgb_encoder=_available_rgb_encoder())
             instruction = suite.task(shard.task_id).instruction
             records: list[dict] = []
@@ -235,7 +264,7 @@ def _record_shards(config: DemonstrationConfig, shards: list[_Shard]) -> None:
                     records.append({**record, "dataset_episode": episode})
 
             specs = [suite.episode_spec(shard.task_id, variation) for variation in shard.variations]
-            run_episodes(expert, env, specs, config.max_steps or STEP_LIMIT, on_finished, on_actions=on_actions)
+            run_episodes(expert, env, specs, config.step_limit, on_finished, on_actions=on_actions)
             dataset.finalize()
             _records_file(shard).write_text(json.dumps(records))
 
@@ -256,25 +285,23 @@ def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, worke
 
     from lerobot.datasets.aggregate import aggregate_datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-    from lerobot.envs.configs import MetaworldEnv
 
-    from vlaquantbench.envs import make_suite
-    from vlaquantbench.envs.metaworld import STEP_LIMIT, simulator_versions
+    from vlaquantbench.envs import make_suite, simulator_versions
     from vlaquantbench.manifest import write_file_manifest
     from vlaquantbench.models.adapter import AdapterConfig, make_adapter
 
-    suite = make_suite("metaworld", config.suite)
+    suite = make_suite(config.benchmark, config.suite)
     task_ids = [suite.task_id(name) for name in config.tasks]
-    if config.last_variation >= TASK_SEED_STRIDE:
+    variations = BENCHMARK_SUITES[config.benchmark][config.suite].init_states
+    if config.last_variation >= variations:
         raise UserError(f"demonstrations: first_variation {config.first_variation} + max_attempts_per_task "
                         f"{config.max_attempts_per_task} reaches variation {config.last_variation}; a task has "
-                        f"variations 0..{TASK_SEED_STRIDE - 1}")
-    max_steps = config.max_steps or STEP_LIMIT
+                        f"variations 0..{variations - 1}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     shards_dir = out / "shards"
     shutil.rmtree(shards_dir, ignore_errors=True)
-    expert = make_adapter(AdapterConfig(model="metaworld_expert", variant="full"))
+    expert = make_adapter(AdapterConfig(model=config.expert.model, variant="full"))
     expert.load()  # its provenance, for the summary
 
     attempts: dict[int, list[dict]] = {t: [] for t in task_ids}
@@ -313,12 +340,12 @@ def write_demonstrations(config: DemonstrationConfig, out_dir: str | Path, worke
              meta.total_episodes / _minutes_since(started), time.perf_counter() - merging)
 
     summary = {
-        "settings": {**asdict(config), "tasks": list(config.tasks), "max_steps": max_steps},
-        "dataset": {"dir": DATASET_DIR, "repo_id": config.repo_id, "fps": MetaworldEnv.fps, "use_videos": False,
-                    "features": list(_features(config.image_size)), "episodes": meta.total_episodes,
+        "settings": {**asdict(config), "tasks": list(config.tasks), "max_steps": config.step_limit},
+        "dataset": {"dir": DATASET_DIR, "repo_id": config.repo_id, "fps": config.expert.fps, "use_videos": False,
+                    "features": list(_features(config)), "episodes": meta.total_episodes,
                     "frames": meta.total_frames},
         "expert": expert.checkpoint_provenance,
-        "versions": {**simulator_versions(), "lerobot": importlib.metadata.version("lerobot")},
+        "versions": {**simulator_versions(config.benchmark), "lerobot": importlib.metadata.version("lerobot")},
         "renderer": os.environ.get("MUJOCO_GL", "egl"),  # what the workers set when unset
         "workers": workers,
         "tasks": [_task_summary(suite, task_id, attempts[task_id], kept) for task_id in task_ids],

@@ -1,13 +1,13 @@
 """The demonstrations' task variations never start an evaluated or calibration episode.
 
-Closed-loop episode e of a Meta-World task starts from task variation e (`MetaWorldSuite.episode_spec`), and
-calibration episodes from the variations `study.calibration` names; the demonstrations record variations
-`first_variation .. first_variation + max_attempts_per_task - 1`. A policy evaluated on a scene it was
-trained on measures memory, not control, so rule demonstrations refuses, while the DAG is built, a config
-whose ranges meet: every range its study names (each model's evaluation episodes, the calibration protocol),
-whether or not its cells are in the DAG (a study reading its records from `records_dir` trains and
-evaluates on them all the same), and the calibration variations of the cells that are (`calib_set<k>` shifts
-them by 2k).
+Closed-loop episode e of a task of the demonstrations' benchmark starts from task variation e (its suite's
+`episode_spec`), and calibration episodes from the variations `study.calibration` names; the demonstrations
+record variations `first_variation .. first_variation + max_attempts_per_task - 1`. A policy evaluated on a
+scene it was trained on measures memory, not control, so rule demonstrations refuses, while the DAG is built,
+a config whose ranges meet: every range its study names on that benchmark (each model's evaluation episodes,
+the calibration protocol), whether or not its cells are in the DAG (a study reading its records from
+`records_dir` trains and evaluates on them all the same), and the calibration variations of the benchmark's
+cells that are (`calib_set<k>` shifts them by 2k).
 """
 
 from __future__ import annotations
@@ -44,14 +44,14 @@ def demonstrated_range(config: DemonstrationConfig) -> VariationRange:
                           f"max_attempts_per_task {config.max_attempts_per_task}")
 
 
-def study_ranges(study: StudyConfig, cells: Iterable[dict[str, Any]] = ()) -> list[VariationRange]:
-    """The variations `study` evaluates (each model's episodes per task) and calibrates on (its protocol), and
-    those the Meta-World `cells` (canonical configs, `cells.CellConfig.to_dict`) calibrate on."""
+def study_ranges(study: StudyConfig, benchmark: str, cells: Iterable[dict[str, Any]] = ()) -> list[VariationRange]:
+    """The variations `study` evaluates on `benchmark` (each model's episodes per task) and calibrates on (its
+    protocol), and those the `cells` of `benchmark` (canonical configs, `cells.CellConfig.to_dict`) calibrate on."""
     from vlaquantbench.cells import episodes_per_task  # the model registry: only when a config is checked
 
     ranges = []
     for model in study.models:
-        episodes, field = episodes_per_task(study, model, "metaworld")  # the demonstrations are Meta-World's
+        episodes, field = episodes_per_task(study, model, benchmark)
         ranges.append(VariationRange(0, episodes - 1, f"{field} {episodes}: evaluation episode e starts from variation e"))
     calibration = study.calibration
     ranges.append(VariationRange(calibration.first_init_state, calibration.first_init_state + calibration.episodes - 1,
@@ -59,7 +59,7 @@ def study_ranges(study: StudyConfig, cells: Iterable[dict[str, Any]] = ()) -> li
                                  f"episodes {calibration.episodes}"))
     for cell in cells:
         init_states = (cell.get("calibration") or {}).get("init_states")
-        if cell["benchmark"] == "metaworld" and init_states:
+        if cell["benchmark"] == benchmark and init_states:
             ranges.append(VariationRange(min(init_states), max(init_states), f"cell {cell['ref']}'s calibration episodes"))
     return ranges
 
@@ -77,5 +77,7 @@ def check_disjoint(demonstrated: VariationRange, used: Iterable[VariationRange],
 
 def check_disjoint_from_evaluation(config: DemonstrationConfig, study: StudyConfig,
                                    cells: Iterable[dict[str, Any]] = ()) -> None:
-    """UserError naming the first range of `study_ranges(study, cells)` that the demonstrations' variations meet."""
-    check_disjoint(demonstrated_range(config), study_ranges(study, cells), "demonstrations.first_variation")
+    """UserError naming the first range of `study_ranges` on the demonstrations' benchmark that their variations
+    meet."""
+    check_disjoint(demonstrated_range(config), study_ranges(study, config.benchmark, cells),
+                   "demonstrations.first_variation")

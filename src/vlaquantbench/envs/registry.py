@@ -1,9 +1,10 @@
 """The benchmark registry: each benchmark package `envs/<benchmark>/` declares itself in its own light
 `benchmark.py` (a `Benchmark`: its suites and their sizes, hard step limits, worker footprints, its env settings
-as a typed dataclass, and where its suite class, vector env class and `simulator_versions` live) and registers it
-with `register_benchmark`. Nothing outside a benchmark's folder names it: `BENCHMARK_SUITES` finds every folder's
-declaration the first time it is read, without importing a simulator, so cell references, task ids and episode
-counts are checked while the workflow builds the DAG (`envs.memory` sizes worker pools by the same declarations).
+as a typed dataclass, where its suite class, vector env class and `simulator_versions` live, and its scripted
+expert if it has one) and registers it with `register_benchmark`. Nothing outside a benchmark's folder names it:
+`BENCHMARK_SUITES` finds every folder's declaration the first time it is read, without importing a simulator, so
+cell references, task ids and episode counts are checked while the workflow builds the DAG (`envs.memory` sizes
+worker pools by the same declarations).
 
 A benchmark package outside `envs/` (a plugin, or a test's own) is found the same way when the environment
 variable `VQB_BENCHMARKS` names its declaration module (comma-separated "package.module" names, importable on
@@ -48,6 +49,25 @@ class SuiteSize:
 
 
 @dataclass(frozen=True)
+class ScriptedExpert:
+    """A benchmark's scripted expert, and what a demonstration dataset recorded from it holds
+    (`vlaquantbench.demonstrations`). The expert is the model `model` (`models/<model>/`), run through the
+    closed-loop runner like any policy, on suite `suite` unless a config names another. The dataset (a lerobot
+    LeRobotDataset on robot `robot_type`, `fps` frames a second) stores the main camera's image, the state and
+    the action, their components named by `state_names` and `action_names` (as many as the env's state and
+    action have). The suites start episodes from seeded task variations (the suite class's
+    `variation_seed(task_id, variation)`), evaluation episode e from variation e, so that the demonstrations
+    can take variations no evaluation starts from."""
+
+    model: str
+    suite: str
+    fps: int
+    robot_type: str
+    state_names: tuple[str, ...]
+    action_names: tuple[str, ...]
+
+
+@dataclass(frozen=True)
 class Benchmark:
     """A benchmark's declaration. `suite_class`, `env_class` and `simulator_versions` are "module:name" of its
     suite class (a `SuiteTasks`), its vector env class (a `WorkerVectorEnv`, whose keyword-only parameters are
@@ -57,7 +77,9 @@ class Benchmark:
     `settings` is its env settings' frozen dataclass (light: no simulator import): each field a keyword-only
     parameter of its vector env class of the same name, with the env's default. A cell's runner config fills
     the fields it carries (`envs.env_settings`); a config that sets one of another benchmark's settings for
-    this benchmark's cells is refused, naming it (`envs.check_settings`)."""
+    this benchmark's cells is refused, naming it (`envs.check_settings`). `scripted_expert` is the expert whose
+    demonstrations a policy can be trained on; None: the benchmark has none, and a config asking for its
+    demonstrations is refused."""
 
     name: str
     suites: dict[str, SuiteSize]
@@ -66,6 +88,7 @@ class Benchmark:
     simulator_versions: str
     cameras: dict[str, str]
     settings: type
+    scripted_expert: ScriptedExpert | None = None
 
     @property
     def setting_names(self) -> tuple[str, ...]:
@@ -100,6 +123,10 @@ def register_benchmark(benchmark: Benchmark) -> Benchmark:
     if not (isinstance(benchmark.settings, type) and dataclasses.is_dataclass(benchmark.settings)):
         raise UserError(f"benchmark {benchmark.name!r}: settings {benchmark.settings!r} is not a dataclass (its env "
                         "settings, each field a keyword-only parameter of its vector env class)")
+    expert = benchmark.scripted_expert
+    if expert is not None and expert.suite not in benchmark.suites:
+        raise UserError(f"benchmark {benchmark.name!r}: its scripted expert's suite {expert.suite!r} is not one of its "
+                        f"suites ({', '.join(benchmark.suites)})")
     held = _REGISTERED.get(benchmark.name)
     if held is not None and held != benchmark:
         raise UserError(f"benchmark {benchmark.name!r} is declared twice ({held.suite_class}, {benchmark.suite_class})")

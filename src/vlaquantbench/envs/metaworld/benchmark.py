@@ -1,13 +1,13 @@
 """Meta-World declares itself (`envs.registry`): lerobot's task groups and MT10 / MT50, their sizes, its
-500-step limit, worker footprint and env settings (`MetaWorldSettings`). No simulator import: the workflow reads
-this while it builds the DAG."""
+500-step limit, worker footprint, env settings (`MetaWorldSettings`) and scripted experts, whose demonstrations the
+trained policy learns from. No simulator import: the workflow reads this while it builds the DAG."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 from vlaquantbench.envs.episodes import TASK_SEED_STRIDE
-from vlaquantbench.envs.registry import Benchmark, Horizon, SuiteSize, register_benchmark
+from vlaquantbench.envs.registry import Benchmark, Horizon, ScriptedExpert, SuiteSize, register_benchmark
 
 # worker_gib: measured as LIBERO's (envs/libero/benchmark.py), on MT10's first task: 0.16 GiB without a camera, 0.34 GiB rendering 224 px; 0.4 allowed.
 # Its variations are seeds below TASK_SEED_STRIDE (`envs.metaworld.suite`); task counts are lerobot's groups and
@@ -17,6 +17,9 @@ from vlaquantbench.envs.registry import Benchmark, Horizon, SuiteSize, register_
 METAWORLD_STEP_LIMIT = 500
 # lerobot's MetaworldEnv renders Meta-World's default 480 x 480 frames (its policies' processors resize).
 CAMERA_SIZE = 480
+# lerobot's `MetaworldEnv.fps` (lerobot.envs.configs, which is not light to import): the frame rate of a
+# dataset recorded from Meta-World.
+LEROBOT_FPS = 80
 
 
 @dataclass(frozen=True)
@@ -42,4 +45,14 @@ METAWORLD = register_benchmark(Benchmark(
     simulator_versions="vlaquantbench.envs.metaworld.vector_env:simulator_versions",
     cameras={"main": "image"},  # corner2, as lerobot's Meta-World env renders it; no wrist camera
     settings=MetaWorldSettings,
+    scripted_expert=ScriptedExpert(
+        model="metaworld_expert",  # metaworld.policies' hand-written controllers, one a task
+        suite="metaworld_mt50",  # every task there has its expert
+        fps=LEROBOT_FPS,
+        robot_type="sawyer",
+        state_names=("hand_x", "hand_y", "hand_z", "gripper"),  # lerobot's `agent_pos`
+        # End-effector position deltas and the gripper effort. The experts' xyz gains overshoot (up to ~5), which
+        # `SawyerXYZEnv.set_xyz_action` clips to [-1, 1]: the demonstrations record the clipped action.
+        action_names=("dx", "dy", "dz", "gripper"),
+    ),
 ))
