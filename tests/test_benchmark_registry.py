@@ -59,17 +59,51 @@ def test_a_declaration_names_its_cameras_by_role():
     assert get_benchmark("metaworld").observed == ("image", "state")
 
 
+def test_the_declared_action_and_state_sizes_are_the_simulators_and_lerobots():
+    """Each benchmark declares the sizes of its action and state without importing its simulator: those its vector
+    env steps with, and lerobot's env features (Meta-World's action and `agent_pos`; LIBERO's action, and the state
+    its worker assembles from lerobot's end-effector position, axis-angle and gripper joints)."""
+    from lerobot.envs.configs import LiberoEnv, MetaworldEnv
+
+    from vlaquantbench.envs.libero import LiberoVectorEnv
+    from vlaquantbench.envs.metaworld import MetaWorldVectorEnv
+
+    metaworld, libero = MetaworldEnv().features, LiberoEnv().features
+    assert (get_benchmark("metaworld").action_dim, get_benchmark("metaworld").state_dim) == \
+        (MetaWorldVectorEnv.action_dim, *metaworld["agent_pos"].shape) == (*metaworld["action"].shape, 4)
+    assert (get_benchmark("libero").action_dim, get_benchmark("libero").state_dim) == \
+        (LiberoVectorEnv.action_dim, 3 + 3 + libero["robot_state/gripper/qpos"].shape[0]) == (*libero["action"].shape, 8)
+
+
+@pytest.mark.parametrize("dim", [0, -1, 2.0, True])
+def test_an_action_or_state_size_that_is_no_positive_integer_is_refused(dim):
+    libero = get_benchmark("libero")
+    for what in ("action_dim", "state_dim"):
+        with pytest.raises(UserError, match=rf"benchmark 'libero': {what} {dim!r} is not a positive integer"):
+            register_benchmark(dataclasses.replace(libero, **{what: dim}))
+
+
+def test_a_scripted_expert_naming_other_than_the_declared_components_is_refused():
+    metaworld = get_benchmark("metaworld")
+    with pytest.raises(UserError, match=r"benchmark 'metaworld': its scripted expert's action_names \['dx', 'dy', 'dz'\] "
+                                        r"name 3 components, but it declares action_dim 4"):
+        register_benchmark(dataclasses.replace(metaworld, scripted_expert=dataclasses.replace(
+            metaworld.scripted_expert, action_names=("dx", "dy", "dz"))))
+    with pytest.raises(UserError, match=r"its scripted expert's state_names .* name 4 components, but it declares state_dim 5"):
+        register_benchmark(dataclasses.replace(metaworld, state_dim=5))
+
+
 def test_the_declared_scripted_expert_is_the_simulators_and_lerobots():
-    """Meta-World's declaration says what its demonstrations hold without importing them: the dims its env
-    steps and observes, lerobot's frame rate for it, an expert model of the registry; LIBERO declares none."""
+    """Meta-World's declaration says what its demonstrations hold without importing them: as many names as the
+    state and action it declares, lerobot's frame rate for it, an expert model of the registry; LIBERO declares none."""
     from lerobot.envs.configs import MetaworldEnv
 
-    from vlaquantbench.envs.metaworld import ACTION_DIM
-    from vlaquantbench.envs.metaworld.worker import STATE_DIM
     from vlaquantbench.models.registry import MODELS
 
-    expert = get_benchmark("metaworld").scripted_expert
-    assert (len(expert.state_names), len(expert.action_names), expert.fps) == (STATE_DIM, ACTION_DIM, MetaworldEnv.fps)
+    metaworld = get_benchmark("metaworld")
+    expert = metaworld.scripted_expert
+    assert (len(expert.state_names), len(expert.action_names), expert.fps) == \
+        (metaworld.state_dim, metaworld.action_dim, MetaworldEnv.fps)
     assert expert.model in MODELS and expert.suite in get_benchmark("metaworld").suites
     assert get_benchmark("libero").scripted_expert is None
 
@@ -139,7 +173,7 @@ def test_a_benchmark_outside_envs_is_registered_from_the_module_vqb_benchmarks_n
         "@dataclasses.dataclass(frozen=True)\n"
         "class Settings:\n    camera_size: int = 32\n    lighting: float = 1.0\n"
         "register_benchmark(Benchmark('outside', {'outside_one': SuiteSize(2, 3, 0.1, Horizon(9, 'here'), 9)},\n"
-        "    'x:Suite', 'x:Env', 'x:versions', {'main': 'image'}, Settings))\n")
+        "    'x:Suite', 'x:Env', 'x:versions', {'main': 'image'}, Settings, 4, 4))\n")
     code = "from vlaquantbench.envs import BENCHMARK_SUITES as b; print(sorted(b), b['outside']['outside_one'].tasks)"
     env = {"PYTHONPATH": f"{ROOT / 'src'}:{tmp_path}", "VQB_BENCHMARKS": "outside_benchmark"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout

@@ -1,5 +1,5 @@
 """The contract benchmark declares itself (`vlaquantbench.envs.registry`): one suite of two tasks, five seeded goal
-placements each, its own horizon and step limit, one camera, and its env settings. No simulator import."""
+placements each, its own horizon and step limit, one camera, its env settings and its action and state sizes. No simulator import."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ SUITE = "contract_reach"
 HORIZON_STEPS = 60  # the worker refuses a step beyond it, as Meta-World refuses past max_path_length
 STEP_LIMIT = 40  # policy steps before an unfinished episode fails, whatever the model
 CAMERA_SIZE = 48
+ACTION_DIM = 4  # Meta-World's: xyz and a gripper entry (ignored)
+STATE_DIM = 4  # hand xyz and the gripper (always 0): Meta-World's first four entries
 
 
 @dataclass(frozen=True)
@@ -32,4 +34,6 @@ CONTRACT = register_benchmark(Benchmark(
     simulator_versions="contract_benchmark.vector_env:simulator_versions",
     cameras={"main": "overhead"},  # a key no adapter knows: policies find the image by its role
     settings=ContractSettings,
+    action_dim=ACTION_DIM,
+    state_dim=STATE_DIM,
 ))

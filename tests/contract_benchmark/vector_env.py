@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-from contract_benchmark.benchmark import CAMERA_SIZE, NAME
+from contract_benchmark.benchmark import ACTION_DIM, CAMERA_SIZE, NAME
 from contract_benchmark.suite import ContractSuite
 from contract_benchmark.worker import EpisodeStart
 from vlaquantbench.envs.episodes import EpisodeSpec
 from vlaquantbench.envs.mujoco_pin import mujoco_versions
 from vlaquantbench.envs.workers import REPLY_TIMEOUT_S, WorkerError, WorkerVectorEnv, check_worker_settings
 from vlaquantbench.errors import UserError
-
-ACTION_DIM = 4  # Meta-World's: xyz and a gripper entry (ignored)
 
 
 class ContractWorkerError(WorkerError):

@@ -13,7 +13,7 @@ from multiprocessing.connection import Connection
 
 import numpy as np
 
-from contract_benchmark.benchmark import HORIZON_STEPS
+from contract_benchmark.benchmark import HORIZON_STEPS, STATE_DIM
 from contract_benchmark.suite import HAND_START
 from vlaquantbench.envs.episodes import EpisodeSpec
 from vlaquantbench.envs.workers import become_worker, serve
@@ -44,7 +44,6 @@ SCENE = """
 ACTION_SCALE = 0.02  # metres of target motion per unit action (Meta-World moves its mocap 0.01)
 SUBSTEPS = 10  # physics steps per policy step (0.02 s)
 SUCCESS_RADIUS = 0.05
-STATE_DIM = 4  # hand xyz and the gripper (always 0): Meta-World's first four entries
 
 
 @dataclass(frozen=True)

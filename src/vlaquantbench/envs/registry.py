@@ -54,8 +54,8 @@ class ScriptedExpert:
     (`vlaquantbench.demonstrations`). The expert is the model `model` (`models/<model>/`), run through the
     closed-loop runner like any policy, on suite `suite` unless a config names another. The dataset (a lerobot
     LeRobotDataset on robot `robot_type`, `fps` frames a second) stores the main camera's image, the state and
-    the action, their components named by `state_names` and `action_names` (as many as the env's state and
-    action have). The suites start episodes from seeded task variations (the suite class's
+    the action, their components named by `state_names` and `action_names` (as many as the benchmark's
+    `state_dim` and `action_dim`). The suites start episodes from seeded task variations (the suite class's
     `variation_seed(task_id, variation)`), evaluation episode e from variation e, so that the demonstrations
     can take variations no evaluation starts from."""
 
@@ -75,7 +75,9 @@ class Benchmark:
     `cameras` says what its observations show: camera role ("main", and "wrist" where there is one) -> the
     observation key of that image (beside `state` and `instruction`, which every benchmark's observation has).
     `settings` is its env settings' frozen dataclass (light: no simulator import): each field a keyword-only
-    parameter of its vector env class of the same name, with the env's default. A cell's runner config fills
+    parameter of its vector env class of the same name, with the env's default. `action_dim` and `state_dim` are
+    the sizes of the action its env steps with and of the `state` its observations carry (what a replay's probe
+    keeps of a policy's padded chunk, and what a scripted expert's names cover). A cell's runner config fills
     the fields it carries (`envs.env_settings`); a config that sets one of another benchmark's settings for
     this benchmark's cells is refused, naming it (`envs.check_settings`). `scripted_expert` is the expert whose
     demonstrations a policy can be trained on; None: the benchmark has none, and a config asking for its
@@ -88,6 +90,8 @@ class Benchmark:
     simulator_versions: str
     cameras: dict[str, str]
     settings: type
+    action_dim: int
+    state_dim: int
     scripted_expert: ScriptedExpert | None = None
 
     @property
@@ -123,10 +127,19 @@ def register_benchmark(benchmark: Benchmark) -> Benchmark:
     if not (isinstance(benchmark.settings, type) and dataclasses.is_dataclass(benchmark.settings)):
         raise UserError(f"benchmark {benchmark.name!r}: settings {benchmark.settings!r} is not a dataclass (its env "
                         "settings, each field a keyword-only parameter of its vector env class)")
+    for what, dim in (("action_dim", benchmark.action_dim), ("state_dim", benchmark.state_dim)):
+        if not isinstance(dim, int) or isinstance(dim, bool) or dim < 1:
+            raise UserError(f"benchmark {benchmark.name!r}: {what} {dim!r} is not a positive integer")
     expert = benchmark.scripted_expert
     if expert is not None and expert.suite not in benchmark.suites:
         raise UserError(f"benchmark {benchmark.name!r}: its scripted expert's suite {expert.suite!r} is not one of its "
                         f"suites ({', '.join(benchmark.suites)})")
+    if expert is not None:  # its demonstrations name every component of the env's state and action
+        for what, names, dim in (("state_names", expert.state_names, benchmark.state_dim),
+                                 ("action_names", expert.action_names, benchmark.action_dim)):
+            if len(names) != dim:
+                raise UserError(f"benchmark {benchmark.name!r}: its scripted expert's {what} {list(names)} name "
+                                f"{len(names)} components, but it declares {what.split('_')[0]}_dim {dim}")
     held = _REGISTERED.get(benchmark.name)
     if held is not None and held != benchmark:
         raise UserError(f"benchmark {benchmark.name!r} is declared twice ({held.suite_class}, {benchmark.suite_class})")

@@ -1,5 +1,5 @@
 """LIBERO declares itself (`envs.registry`): its four suites, their sizes and worker footprints, its
-horizon and its env settings (`LiberoSettings`). No simulator import: the workflow reads this while it builds the DAG."""
+horizon, its env settings (`LiberoSettings`) and its action and state sizes (`LiberoSettings`). No simulator import: the workflow reads this while it builds the DAG."""
 
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ CAMERA_SIZE = 256  # the render size of lerobot's and openpi's LIBERO evaluation
 # "delta": actions are end-effector pose deltas (LIBERO's default); "absolute": absolute targets, the
 # worker switching the controller to `use_delta=False` after the settle steps, as X-VLA's client does.
 CONTROL_MODES = ("delta", "absolute")
+ACTION_DIM = 7  # end-effector position and axis-angle deltas (or targets), and the gripper command
+STATE_DIM = 8  # end-effector position (3), axis-angle (3) and the gripper's two finger joints (`worker.format_observation`)
 
 
 @dataclass(frozen=True)
@@ -49,4 +51,6 @@ LIBERO = register_benchmark(Benchmark(
     simulator_versions="vlaquantbench.envs.libero.versions:simulator_versions",
     cameras={"main": "agentview", "wrist": "wrist"},  # both rotated 180 degrees, as LIBERO's clients read them
     settings=LiberoSettings,
+    action_dim=ACTION_DIM,
+    state_dim=STATE_DIM,
 ))

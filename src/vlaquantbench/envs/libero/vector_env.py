@@ -9,7 +9,7 @@ A LIBERO worker seeds the simulator, loads the episode's official init state and
 from __future__ import annotations
 
 from vlaquantbench.envs.episodes import EpisodeSpec
-from vlaquantbench.envs.libero.benchmark import CAMERA_SIZE, CONTROL_MODES, SETTLE_STEPS
+from vlaquantbench.envs.libero.benchmark import ACTION_DIM, CAMERA_SIZE, CONTROL_MODES, SETTLE_STEPS
 from vlaquantbench.envs.libero.offline import config_dir
 from vlaquantbench.envs.libero.suite import LiberoSuite
 from vlaquantbench.envs.libero.versions import simulator_versions
@@ -19,8 +19,6 @@ from vlaquantbench.errors import UserError
 
 __all__ = ["ACTION_DIM", "CAMERA_SIZE", "CONTROL_MODES", "SETTLE_STEPS", "LiberoVectorEnv", "LiberoWorkerError",
            "SlotReply"]
-
-ACTION_DIM = 7
 
 
 class LiberoWorkerError(WorkerError):

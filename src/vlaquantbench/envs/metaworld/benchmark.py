@@ -1,5 +1,5 @@
 """Meta-World declares itself (`envs.registry`): lerobot's task groups and MT10 / MT50, their sizes, its
-500-step limit, worker footprint, env settings (`MetaWorldSettings`) and scripted experts, whose demonstrations the
+500-step limit, worker footprint, env settings (`MetaWorldSettings`), action and state sizes and scripted experts, whose demonstrations the
 trained policy learns from. No simulator import: the workflow reads this while it builds the DAG."""
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ CAMERA_SIZE = 480
 # lerobot's `MetaworldEnv.fps` (lerobot.envs.configs, which is not light to import): the frame rate of a
 # dataset recorded from Meta-World.
 LEROBOT_FPS = 80
+ACTION_DIM = 4  # end-effector xyz delta and gripper effort, each in [-1, 1] (lerobot's action space)
+STATE_DIM = 4  # lerobot's `agent_pos`: hand xyz and gripper opening
 
 
 @dataclass(frozen=True)
@@ -45,6 +47,8 @@ METAWORLD = register_benchmark(Benchmark(
     simulator_versions="vlaquantbench.envs.metaworld.vector_env:simulator_versions",
     cameras={"main": "image"},  # corner2, as lerobot's Meta-World env renders it; no wrist camera
     settings=MetaWorldSettings,
+    action_dim=ACTION_DIM,
+    state_dim=STATE_DIM,
     scripted_expert=ScriptedExpert(
         model="metaworld_expert",  # metaworld.policies' hand-written controllers, one a task
         suite="metaworld_mt50",  # every task there has its expert

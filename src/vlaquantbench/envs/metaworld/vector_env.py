@@ -12,14 +12,12 @@ from __future__ import annotations
 import importlib.metadata
 
 from vlaquantbench.envs.episodes import EpisodeSpec
-from vlaquantbench.envs.metaworld.benchmark import CAMERA_SIZE
+from vlaquantbench.envs.metaworld.benchmark import ACTION_DIM, CAMERA_SIZE
 from vlaquantbench.envs.metaworld.suite import MetaWorldSuite
 from vlaquantbench.envs.metaworld.worker import EpisodeStart
 from vlaquantbench.envs.mujoco_pin import mujoco_versions
 from vlaquantbench.envs.workers import REPLY_TIMEOUT_S, WorkerError, WorkerVectorEnv, check_worker_settings
 from vlaquantbench.errors import UserError
-
-ACTION_DIM = 4  # end-effector xyz delta and gripper effort, each in [-1, 1] (lerobot's action space)
 
 
 class MetaWorldWorkerError(WorkerError):

@@ -22,12 +22,12 @@ from multiprocessing.connection import Connection
 import numpy as np
 
 from vlaquantbench.envs.episodes import EpisodeSpec
+from vlaquantbench.envs.metaworld.benchmark import STATE_DIM
 from vlaquantbench.envs.workers import become_worker, serve
 
 CAMERA = "corner2"
 # lerobot moves `corner2` here (its `MetaworldEnv._ensure_env`): the view its datasets were recorded with.
 CORNER2_POSITION = (0.75, 0.075, 0.7)
-STATE_DIM = 4  # lerobot's `agent_pos`: hand xyz and gripper opening
 
 
 @dataclass(frozen=True)
