@@ -57,7 +57,7 @@ def replay_configuration(records_json, trajectories, study: dict, name: str, pre
     if layers != expected_layers:
         raise UserError(f"replay configuration {name!r} at {preset} selects {layers} layers; the study expects {expected_layers}")
     torch.set_num_threads(meta["torch_threads"])  # same kernels' blocking as the recording
-    probe = PolicyProbe(adapter.model, meta["observe"], 7)
+    probe = PolicyProbe(adapter.model, meta["observe"], get_benchmark(meta["benchmark"]).action_dim)
     arrays, records = {}, []
     with probe:
         for rec in tqdm(meta["records"], desc=f"replay {name}", unit="trajectory"):

@@ -1,5 +1,6 @@
 """Record full-precision trajectories in any benchmark for same-observation replay (suite, episode specs, step
-limit and env from the benchmark seam, `vlaquantbench.envs`; the controller mode and MuJoCo pin the model's client's).
+limit, env and action size from the benchmark seam, `vlaquantbench.envs`; the env settings those of the study's
+cells: the model's client's controller mode and MuJoCo pin, the study's `runner`, the benchmark's defaults).
 
 One `<record>.npz` per trajectory (`t<task>_e<init state>.npz`) holds everything the policy saw and
 did at each call: the image of every camera the benchmark declares (`envs.registry.Benchmark.cameras`,
@@ -15,13 +16,13 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from vlaquantbench.atomic import atomic_write, write_text
-from vlaquantbench.config.study import RunnerConfig
 from vlaquantbench.envs import env_settings, make_env, make_suite, simulator_versions
 from vlaquantbench.envs.episodes import EpisodeSpec
 from vlaquantbench.envs.registry import get_benchmark
@@ -92,10 +93,11 @@ def record(settings: RecordSettings, records_json: str | Path, trajectories: lis
     suite = make_suite(settings.benchmark, settings.suite)
     # Trajectory i of a task starts from init state i; bad task ids / init states fail here, before the model loads.
     specs = [suite.episode_spec(t, i, settings.run_seed) for t in settings.tasks for i in settings.init_states]
-    # The model's released client's controller mode and MuJoCo pin; the simulator's own camera and settle steps.
+    # The cells' env settings, so that the policy observes what it observes in them: the model's released
+    # client's controller mode and MuJoCo pin, then what the study sets for its cells (e.g. a trained
+    # checkpoint's camera size), the benchmark's declared defaults elsewhere.
     client = client_conventions(settings.model, settings.benchmark)
-    runner = RunnerConfig(**{**client.runner(), "executed_chunk": settings.executed_chunk})
-    env_options = {k: v for k, v in env_settings(settings.benchmark, runner).items() if k in client.runner()}
+    env_options = env_settings(settings.benchmark, SimpleNamespace(**{**client.runner(), **settings.runner}))
     simulator = simulator_versions(settings.benchmark, pinned=client.mujoco)
     max_steps = settings.max_steps or step_limit(settings.model, settings.benchmark, settings.suite)
     torch.set_num_threads(settings.threads)
@@ -103,7 +105,9 @@ def record(settings: RecordSettings, records_json: str | Path, trajectories: lis
     adapter.load()
     records_json.parent.mkdir(parents=True, exist_ok=True)
     records = []
-    with make_env(settings.benchmark, suite, 1, **env_options) as env, PolicyProbe(adapter.model, settings.observe, 7) as probe:
+    action_dim = get_benchmark(settings.benchmark).action_dim  # what the probe keeps of the policy's padded chunk
+    with make_env(settings.benchmark, suite, 1, **env_options) as env, \
+            PolicyProbe(adapter.model, settings.observe, action_dim) as probe:
         for spec, path in tqdm(list(zip(specs, trajectories)), desc="record", unit="trajectory"):
             data = _record_one(adapter, probe, env, spec, max_steps, get_benchmark(settings.benchmark).observed)
             with atomic_write(path, "wb") as handle:
@@ -117,7 +121,7 @@ def record(settings: RecordSettings, records_json: str | Path, trajectories: lis
         "init_states": settings.init_states, "run_seed": settings.run_seed, "max_steps": max_steps,
         "weights_seed": adapter.config.seed,
         "chunk": {"predicted": adapter.predicted_chunk, "executed": adapter.executed_chunk},
-        "observe": settings.observe, "versions": {**versions(), **simulator},
+        "observe": settings.observe, "env_settings": env_options, "versions": {**versions(), **simulator},
         "device": settings.device, "flow_steps": settings.flow_steps,
         "torch_threads": torch.get_num_threads(), "code_revision": code_revision(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "records": records,

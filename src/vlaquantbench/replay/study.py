@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 
 from vlaquantbench.config import load_yaml
 from vlaquantbench.config.study import RunnerConfig
-from vlaquantbench.envs import BENCHMARK_SUITES, check_ids
+from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_settings
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.subsets import get_subset
 from vlaquantbench.records.summary import read_summary
@@ -28,8 +28,11 @@ def load_definition(path: str | Path, kind: str, schema: str) -> dict:
 
 def load_study(path: str | Path) -> dict:
     """The replay study at `path` (its YAML); a configuration with a subset takes its scope and layer count from
-    config/scopes.yaml."""
+    config/scopes.yaml. UserError naming `runner.<setting>` when the study sets an env setting its benchmark does
+    not declare (`envs.check_settings`)."""
     study = load_definition(path, "replay study", "replay_study")
+    study.setdefault("runner", {})
+    check_settings(study["benchmark"], {key: f"replay study {str(path)!r}: runner.{key}" for key in study["runner"]})
     for name, conf in study["configurations"].items():
         if conf["subset"] is not None:
             try:
@@ -75,6 +78,9 @@ class RecordSettings:
     tasks: list[int]
     init_states: list[int]
     observe: list[str]  # layers whose inputs the probe summarizes (e.g. the expert down_proj)
+    # The env settings the study's cells set (its `runner`): with the model's client's conventions and the
+    # benchmark's defaults, what the recording's env renders and steps as those cells' env does.
+    runner: dict = field(default_factory=dict)
     checkpoint: str | None = None
     revision: str | None = None
     checkpoint_dir: str | None = None
@@ -95,7 +101,7 @@ class RecordSettings:
         if options.get("variant", "full") == "full":  # a demo policy has random weights, no checkpoint
             base.update(checkpoint=study["checkpoint"], revision=study["revision"])
         settings = cls(model=study["model"], suite=study["suite"], benchmark=study["benchmark"], observe=study["observe"],
-                       **{**base, **options})
+                       runner=study["runner"], **{**base, **options})
         # Checked here, while the DAG is built: a recording job would fail on them only after loading the policy.
         size = BENCHMARK_SUITES[study["benchmark"]][settings.suite]
         for key, ids, count, what in (("tasks", settings.tasks, size.tasks, "tasks"),
