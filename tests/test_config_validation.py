@@ -3,6 +3,7 @@ validates a config exactly as Snakemake does, and a bad cell in a table fails `s
 table file and the cell, before any job runs (issue 14 §2, issue 17 items 1-2)."""
 
 import dataclasses
+import re
 import shutil
 import subprocess
 import sys
@@ -275,6 +276,20 @@ def test_replay_trajectories_outside_the_suite_are_refused_while_the_dag_is_buil
         RecordSettings.from_study(load_study(PAPER_STUDY), {"init_states": [20, 50]})
     with pytest.raises(UserError, match=r"^replay.tasks: 10, 11 are outside 0..9 \(libero_spatial has 10 tasks\)"):
         RecordSettings.from_study(load_study(PAPER_STUDY), {"tasks": [9, 10, 11]})
+
+
+def test_a_replay_study_setting_an_env_setting_its_benchmark_does_not_take_is_refused(tmp_path):
+    """A replay study's `runner` is its cells' env settings: one its benchmark does not declare (Meta-World has no
+    settle steps) would go unused by the recording's env, so loading the study refuses it, naming the field."""
+    from vlaquantbench.replay.study import load_study
+
+    study = tmp_path / "metaworld_study.yaml"
+    study.write_text(yaml.safe_dump({**yaml.safe_load(PAPER_STUDY.read_text()), "benchmark": "metaworld",
+                                     "suite": "metaworld_mt50", "runner": {"camera_size": 64, "settle_steps": 5}}))
+    with pytest.raises(UserError, match=rf"^replay study {re.escape(repr(str(study)))}: runner.settle_steps: "
+                                        r"'settle_steps' is not an env setting of metaworld \(it takes camera_size, mujoco"):
+        load_study(study)
+    assert load_study(PAPER_STUDY)["runner"] == {}  # the paper's LIBERO cells render at LIBERO's defaults
 
 
 CLI_NUMBERS = [  # every numeric option of `vqb`: (arguments, the option and range argparse names)
