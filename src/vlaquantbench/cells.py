@@ -52,7 +52,7 @@ from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_settings, chec
 from vlaquantbench.envs.registry import get_benchmark
 from vlaquantbench.envs.episodes import RUN_SEED_STRIDE
 from vlaquantbench.errors import UserError
-from vlaquantbench.models.client import ClientConventions, client_conventions, step_limit
+from vlaquantbench.models.client import ClientConventions, adapter_conventions, client_conventions, step_limit
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
 from vlaquantbench.models.trained_home import trained_weights
 from vlaquantbench.quant.methods import METHODS, SAMPLE_ROWS, registered_methods
@@ -260,6 +260,7 @@ class CellConfig(PolicyRunConfig):
         client = client_conventions(model, benchmark)
         try:  # the model's step limit on this suite, resolved now: hashed with the cell
             released_limit = step_limit(model, benchmark, suite)
+            adapter_conventions(model, benchmark)  # refused now where its client never ran there (not hashed)
         except UserError as err:
             raise UserError(f"cell {ref!r}: {err}") from None
         runner = cell_runner(f"cell {ref!r}", benchmark, _runner(study.runner, weights.runner, client, fields["flow_steps"], released_limit))
