@@ -320,6 +320,14 @@ class CellConfig(PolicyRunConfig):
                       "client": ClientConventions(**cfg["client"]),
                       "sequential": None if sequential is None else SequentialSpec.from_dict(sequential)})
 
+    def under_current_client(self) -> CellConfig:
+        """This cell with its model's client conventions on its benchmark as `models.client` declares them now, and
+        its overrides taken against them; what runs (runner, episodes) is unchanged, so its records stay its own."""
+        client = client_conventions(self.model, self.benchmark)
+        released_limit = step_limit(self.model, self.benchmark, self.suite)
+        return dataclasses.replace(self, client=client, overrides=_overrides(self.benchmark, client, self.runner,
+                                                                              self.episodes_per_task, released_limit))
+
     @property
     def config_hash(self) -> str:
         return config_hash(self.to_dict())
