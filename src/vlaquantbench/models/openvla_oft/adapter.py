@@ -1,7 +1,7 @@
 """OpenVLA-OFT adapter, driven like the OFT release's LIBERO client (`run_libero_eval.py`).
 
 Observation -> the main and wrist cameras (by the roles their benchmark declares, `AdapterConfig.cameras`)
-as LIBERO renders them rotated 180 degrees (the client's own flip), each
+as the benchmark's env renders them (LIBERO's rotated 180 degrees, as the client flips them itself), each
 resized to 224 px, center-cropped to 90% of its area and resized back (the client's `center_crop`),
 normalized for DINOv2 (ImageNet statistics) and for SigLIP (mean 0.5, std 0.5) -> the 8-D state
 normalized to [-1, 1] by the checkpoint's proprio q01/q99 -> the prompt "In: What action should the
