@@ -17,8 +17,8 @@ MODEL_SEED = 7
 class OFTConventions:
     """How OFT's client on a benchmark maps the policy's actions to the env's (`ADAPTER_CONVENTIONS`)."""
 
-    # The gripper's sign inverted after binarizing (the client's `invert_gripper_action`): the env closes at +1,
-    # where the training data's gripper is 0.
+    # The gripper's sign inverted after binarizing (the client's `invert_gripper_action`): for an env that closes the
+    # gripper at +1 where the training data closes it at 0 (-1 once binarized).
     gripper_inverted: bool
     source: str = ""  # where the values come from
 
