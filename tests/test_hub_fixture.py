@@ -15,6 +15,7 @@ from safetensors.torch import load_file, save_file
 from vlaquantbench.errors import UserError
 from vlaquantbench.hub.cache import offline_cache
 from vlaquantbench.models.adapter import AdapterConfig, make_adapter
+from vlaquantbench.models.client import adapter_conventions
 from vlaquantbench.runner.checkpoint import download_checkpoint
 
 PI05 = "lerobot/pi05_libero_finetuned_v044"
@@ -278,7 +279,8 @@ def test_xvla_prompts_use_the_releases_tokenizer_and_images_its_processor(hub_fi
     assert record["mean"] == list(processor.image_mean) and record["std"] == list(processor.image_std)
     # The adapter's view of a 224 px frame: (pixel / 255 - mean) / std with the file's numbers, by hand.
     frame = np.random.default_rng(0).integers(0, 256, (224, 224, 3), dtype=np.uint8)
-    view = adapter._view([{"agentview": frame, "wrist": frame}], "main")[0].numpy()  # a LIBERO observation
+    observation = {"agentview": frame, "wrist": frame}  # a LIBERO observation
+    view = adapter._view([observation], "main", adapter.adapter_conventions(observation))[0].numpy()
     by_hand = (frame.astype(np.float64) / 255.0 - np.array(processor.image_mean)) / np.array(processor.image_std)
     np.testing.assert_allclose(view, by_hand.transpose(2, 0, 1), rtol=0, atol=1e-5)
     text = "pick up the black bowl between the plate and the ramekin and place it on the plate"
@@ -434,6 +436,6 @@ def test_oft_prompts_use_the_releases_sentencepiece_tokenizer_and_actions_its_st
     stats = json.loads((folder / "dataset_statistics.json").read_text())["libero_goal_no_noops"]["action"]
     normalized = np.linspace(-1, 1, 8 * 7).reshape(8, 7)
     low, high = np.array(stats["q01"]), np.array(stats["q99"])
-    actions = adapter._environment_actions(normalized.copy())
+    actions = adapter._environment_actions(normalized.copy(), adapter_conventions("openvla_oft", "libero"))
     np.testing.assert_allclose(actions[:, :6], ((normalized + 1) / 2 * (high - low) + low)[:, :6], rtol=0, atol=1e-6)
     np.testing.assert_array_equal(actions[:, 6], -np.sign(2 * normalized[:, 6] - 1))

@@ -1,10 +1,12 @@
 """Committed records stay the records of the cells the current code builds (`vqb rehash`, `vlaquantbench.rehash`).
 
 A cell carries only the env settings its benchmark declares, so Meta-World cells stopped carrying LIBERO's
-`settle_steps` and `control_mode` and their hashes changed once. `vqb rehash` rewrote the committed headers and
-manifests: here every committed header is the cell config its study config builds now, the rewrite reproduces each
-committed header byte for byte from its form before (the two settings back in its runner, the hashes of that form)
-and changes nothing when run again, and it refuses an edited header, a stopping rule's cell it was not given, or a
+`settle_steps` and `control_mode` and their hashes changed once; pi0.5 then declared its client on Meta-World
+(`BENCHMARK_CLIENTS`), so its Meta-World cells stopped carrying its LIBERO client, and their hashes changed again.
+`vqb rehash` rewrote the committed headers and manifests: here every committed header is the cell config its study
+config builds now, the rewrite reproduces each committed header byte for byte from its form before both (the two
+settings back in its runner, the LIBERO client and the overrides taken against it, the hashes of that form) and
+changes nothing when run again, and it refuses an edited header, a stopping rule's cell it was not given, or a
 DAG cell folder (named by the hash it would change)."""
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from vlaquantbench.cli import main
 from vlaquantbench.config import load_workflow_config
 from vlaquantbench.errors import UserError
 from vlaquantbench.manifest import verify_manifest
+from vlaquantbench.models.client import client_conventions
 from vlaquantbench.records import find_cells
 from vlaquantbench.rehash import rehash
 
@@ -61,14 +64,22 @@ def test_every_committed_header_is_the_cell_its_config_builds_now(folder):
 
 
 def before(header: dict, renamed: dict[str, str]) -> dict:
-    """A Meta-World header as it was recorded, before cells carried only their benchmark's env settings."""
+    """A Meta-World header as it was recorded, before cells carried only their benchmark's env settings and before
+    pi0.5 declared its client on Meta-World (its cells carried its LIBERO client, `CLIENT`)."""
     config = json.loads(json.dumps(header["config"]))
     config["runner"].update(settle_steps=10, control_mode="delta")
+    config["client"] = client_conventions(config["model"]).as_dict()
+    cell = {"executed_chunk": config["runner"]["executed_chunk"], "episodes_per_task": config["episodes_per_task"]}
+    for key, value in cell.items():
+        config["overrides"].pop(key, None)
+        if value != config["client"][key]:
+            config["overrides"][key] = {"cell": value, "client": config["client"][key]}
     against = config.get("sequential", {}).get("against")
     if against is not None:
         against["config_hash"] = renamed[against["config_hash"]]
     renamed[header["config_hash"]] = config_hash(config)
-    return {**header, "config": config, "config_hash": config_hash(config)}
+    return {**header, "config": config, "config_hash": config_hash(config), "client": config["client"],
+            "overrides": config["overrides"]}
 
 
 def test_the_rewrite_reproduces_the_committed_headers_and_manifests_and_runs_again_as_a_no_op(tmp_path, capsys):

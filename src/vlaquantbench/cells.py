@@ -52,7 +52,7 @@ from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_settings, chec
 from vlaquantbench.envs.registry import get_benchmark
 from vlaquantbench.envs.episodes import RUN_SEED_STRIDE
 from vlaquantbench.errors import UserError
-from vlaquantbench.models.client import ClientConventions, client_conventions, step_limit
+from vlaquantbench.models.client import ClientConventions, adapter_conventions, client_conventions, step_limit
 from vlaquantbench.models.registry import COMPONENT_NAMES, model_package, rollout_models
 from vlaquantbench.models.trained_home import trained_weights
 from vlaquantbench.quant.methods import METHODS, SAMPLE_ROWS, registered_methods
@@ -260,6 +260,7 @@ class CellConfig(PolicyRunConfig):
         client = client_conventions(model, benchmark)
         try:  # the model's step limit on this suite, resolved now: hashed with the cell
             released_limit = step_limit(model, benchmark, suite)
+            adapter_conventions(model, benchmark)  # refused now where its client never ran there (not hashed)
         except UserError as err:
             raise UserError(f"cell {ref!r}: {err}") from None
         runner = cell_runner(f"cell {ref!r}", benchmark, _runner(study.runner, weights.runner, client, fields["flow_steps"], released_limit))
@@ -318,6 +319,14 @@ class CellConfig(PolicyRunConfig):
                       "runner": cell_runner(f"cell {cfg['ref']!r}", cfg["benchmark"], RunnerConfig(**cfg["runner"])),
                       "client": ClientConventions(**cfg["client"]),
                       "sequential": None if sequential is None else SequentialSpec.from_dict(sequential)})
+
+    def under_current_client(self) -> CellConfig:
+        """This cell with its model's client conventions on its benchmark as `models.client` declares them now, and
+        its overrides taken against them; what runs (runner, episodes) is unchanged, so its records stay its own."""
+        client = client_conventions(self.model, self.benchmark)
+        released_limit = step_limit(self.model, self.benchmark, self.suite)
+        return dataclasses.replace(self, client=client, overrides=_overrides(self.benchmark, client, self.runner,
+                                                                              self.episodes_per_task, released_limit))
 
     @property
     def config_hash(self) -> str:

@@ -3,9 +3,11 @@
 A cell header records its canonical config (`config`) and the hash of it (`config_hash`), which names the cell's
 folder under `results/cells/` and which a sequential cell's config names for the cell it stops against. When the
 canonical form changes without changing what an episode does (a cell now carries only the env settings its
-benchmark declares: `cells.cell_runner`), records made before keep their episodes, but their headers name a config
-and hash that the current code would never build. `rehash` rewrites each header's config as `CellConfig` reads it
-back and writes it now, its hash, and the hash its `sequential.against` names (mapped through the same rewrite, so
+benchmark declares: `cells.cell_runner`; its model's client conventions on its benchmark are declared anew:
+`models.client`), records made before keep their episodes, but their headers name a config and hash that the
+current code would never build. `rehash` rewrites each header's config as `CellConfig` reads it back and writes it
+now, under its model's current client conventions with its overrides taken against them (the header's `client` and
+`overrides` with it), its hash, and the hash its `sequential.against` names (mapped through the same rewrite, so
 the cell it stops against must be among the records); `vqb rehash` then rewrites the records' manifests (`vqb
 manifest`), whose header rows carry each header's SHA-256. Nothing else in a header changes:
 the episodes, the code revision that ran them and every measured value stay. Cells whose config is already
@@ -63,7 +65,7 @@ def rehash(records_dirs: list[str | Path]) -> list[Rehashed]:
     # Cells without a stopping rule first: a sequential cell's config names the new hash of the cell it stops against.
     configs, renamed = {}, {}
     for path, (_, header) in sorted(headers.items(), key=lambda item: "sequential" in item[1][1]["config"]):
-        config = CellConfig.from_dict(header["config"]).to_dict()
+        config = CellConfig.from_dict(header["config"]).under_current_client().to_dict()
         against = config.get("sequential", {}).get("against")
         if against is not None:
             if against["config_hash"] not in renamed:
@@ -77,6 +79,7 @@ def rehash(records_dirs: list[str | Path]) -> list[Rehashed]:
         new_hash = renamed[header["config_hash"]]
         if configs[path] == header["config"] and new_hash == header["config_hash"]:
             continue
-        write_header(path.parent, {**header, "config": configs[path], "config_hash": new_hash})
+        write_header(path.parent, {**header, "config": configs[path], "config_hash": new_hash,
+                                   "client": configs[path]["client"], "overrides": configs[path]["overrides"]})
         changed.append(Rehashed(ref, path, header["config_hash"], new_hash))
     return changed

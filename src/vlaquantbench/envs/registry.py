@@ -207,3 +207,15 @@ def cameras_of(keys: Iterable[str]) -> dict[str, str]:
         raise UserError(f"an observation with keys {sorted(keys)} fits the cameras of several benchmarks "
                         f"({sorted(str(dict(c)) for c in best)}): name its benchmark's cameras")
     return dict(next(iter(best)))
+
+
+def benchmark_of(keys: Iterable[str]) -> str:
+    """The registered benchmark an observation with `keys` comes from when none is named (a policy driven by
+    hand): the one declaring the cameras `cameras_of` finds; UserError when no benchmark, or several, declare them."""
+    keys = set(keys)
+    cameras = cameras_of(keys)
+    names = [name for name in BENCHMARK_SUITES if dict(get_benchmark(name).cameras) == cameras]
+    if len(names) != 1:
+        raise UserError(f"an observation with keys {sorted(keys)} fits the cameras of "
+                        f"{' and '.join(names) or 'no registered benchmark'}: name its benchmark")
+    return names[0]

@@ -22,8 +22,9 @@ import torch
 from torch import nn
 
 from vlaquantbench.config.study import RunnerConfig
-from vlaquantbench.envs.registry import cameras_of, get_benchmark
+from vlaquantbench.envs.registry import benchmark_of, cameras_of, get_benchmark
 from vlaquantbench.errors import UserError
+from vlaquantbench.models.client import adapter_conventions, client_conventions
 from vlaquantbench.models.registry import adapter_class
 
 
@@ -52,6 +53,10 @@ class AdapterConfig:
     checkpoint: str | None = None
     revision: str | None = None  # the revision the cell pins (full variant)
     checkpoint_dir: str | None = None  # local snapshot of `checkpoint` (full variant)
+    # The cell's benchmark: the model's adapter conventions there (`models.client.adapter_conventions`) say how its
+    # observations and actions are read. None (a policy driven by hand): the registered benchmark that the
+    # observation's keys fit (`envs.registry.benchmark_of`).
+    benchmark: str | None = None
     suite: str | None = None  # the cell's suite (a checkpoint's statistics may be per suite)
     device: str = RunnerConfig.device
     dtype: str = RunnerConfig.dtype
@@ -85,6 +90,7 @@ class AdapterConfig:
             checkpoint=cfg.checkpoint,
             revision=cfg.revision,
             checkpoint_dir=checkpoint_dir,
+            benchmark=cfg.benchmark,
             suite=cfg.suite,
             device=runner.device,
             dtype=runner.dtype,
@@ -147,12 +153,17 @@ class AdapterBase:
         self.model: nn.Module | None = None
         self.predicted_chunk = 0
         if config.executed_chunk is None:  # the released client's (cells always set it)
-            from vlaquantbench.models.client import client_conventions
-
             config = dataclasses.replace(config, executed_chunk=client_conventions(self.name).executed_chunk)
             self.config = config
         self.executed_chunk = config.executed_chunk
         self._device = torch.device(config.device)
+        if config.benchmark is not None:  # refused now, before the policy loads, where its client never ran
+            adapter_conventions(self.name, config.benchmark)
+
+    def adapter_conventions(self, observation: dict):
+        """The model's adapter conventions (`models.client.adapter_conventions`) on the config's benchmark, else on
+        the registered benchmark that `observation`'s keys fit; None for a model that declares none."""
+        return adapter_conventions(self.name, self.config.benchmark or benchmark_of(observation))
 
     @property
     def components(self) -> dict:

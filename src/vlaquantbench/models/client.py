@@ -10,8 +10,10 @@ its client's conventions on a benchmark where they differ from `CLIENT`), so con
 benchmark) and live in the model's folder; `cells.cell_config` fills a cell's runner from its benchmark's and
 records every value the study sets differently under `overrides` in the cell config (and so in the
 header). Adapters and the runner then check that what runs is what the cell says. Beside `CLIENT`, a
-model's `client.py` may declare `STEP_LIMITS` (`{benchmark: {suite: policy steps}}`, its client's
-step limits; a benchmark with a limit of its own, Meta-World's 500, needs none) and `ENVIRONMENT` (the
+model's `client.py` may declare `ADAPTER_CONVENTIONS` (`{benchmark: conventions}`, a frozen dataclass of its
+own: how its client feeds the policy that benchmark's observations and reads its actions, e.g. X-VLA's domain
+id; like the adapter's code, not hashed with the cell), `STEP_LIMITS` (`{benchmark: {suite: policy steps}}`, its
+client's step limits; a benchmark with a limit of its own, Meta-World's 500, needs none) and `ENVIRONMENT` (the
 software environment its cells run in, `vlaquantbench.software_env`; main when absent). They are the
 model's own facts: no module outside `models/` names a model.
 """
@@ -74,6 +76,27 @@ def client_conventions(model: str, benchmark: str | None = None) -> ClientConven
             raise UserError(f"model {model!r}: BENCHMARK_CLIENTS of its client.py names {', '.join(unknown)}; "
                             f"registered benchmarks: {', '.join(BENCHMARK_SUITES)}")
     return per_benchmark.get(benchmark, module.CLIENT)
+
+
+def adapter_conventions(model: str, benchmark: str):
+    """The model's adapter conventions on `benchmark`: `ADAPTER_CONVENTIONS[benchmark]` of its client.py; None for a
+    model whose client.py declares none (its adapter feeds every benchmark alike). UserError naming the model and
+    the benchmark when it declares them for other benchmarks only (its client never ran there), or naming a key
+    that is no registered benchmark."""
+    from vlaquantbench.envs import BENCHMARK_SUITES
+
+    per_benchmark = getattr(_client(model), "ADAPTER_CONVENTIONS", None)
+    if per_benchmark is None:
+        return None
+    unknown = sorted(set(per_benchmark) - set(BENCHMARK_SUITES))
+    if unknown:
+        raise UserError(f"model {model!r}: ADAPTER_CONVENTIONS of its client.py names {', '.join(unknown)}; "
+                        f"registered benchmarks: {', '.join(BENCHMARK_SUITES)}")
+    if benchmark not in per_benchmark:
+        raise UserError(f"model {model!r} has no adapter conventions on benchmark {benchmark!r}: its client.py "
+                        f"ADAPTER_CONVENTIONS declares {', '.join(per_benchmark) or 'none'} (how its client feeds the "
+                        f"policy there is unknown)")
+    return per_benchmark[benchmark]
 
 
 def step_limit(model: str, benchmark: str, suite: str) -> int:

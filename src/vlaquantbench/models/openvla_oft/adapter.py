@@ -1,14 +1,15 @@
 """OpenVLA-OFT adapter, driven like the OFT release's LIBERO client (`run_libero_eval.py`).
 
 Observation -> the main and wrist cameras (by the roles their benchmark declares, `AdapterConfig.cameras`)
-as LIBERO renders them rotated 180 degrees (the client's own flip), each
+as the benchmark's env renders them (LIBERO's rotated 180 degrees, as the client flips them itself), each
 resized to 224 px, center-cropped to 90% of its area and resized back (the client's `center_crop`),
 normalized for DINOv2 (ImageNet statistics) and for SigLIP (mean 0.5, std 0.5) -> the 8-D state
 normalized to [-1, 1] by the checkpoint's proprio q01/q99 -> the prompt "In: What action should the
 robot take to <instruction>?\\nOut:" -> one parallel-decoding pass (`OpenVLAOFT.forward`) -> 8
 actions in [-1, 1] unnormalized by the action q01/q99 on the masked dimensions -> the gripper mapped
-from [0, 1] to -1/+1 and its sign inverted (the client's `normalize_gripper_action(binarize=True)`
-and `invert_gripper_action`). The L1 head is deterministic: nothing is sampled, and the model seed
+from [0, 1] to -1/+1 (the client's `normalize_gripper_action(binarize=True)`) and its sign inverted where the
+benchmark's adapter conventions say so (`client.ADAPTER_CONVENTIONS`; on LIBERO, the client's
+`invert_gripper_action`). The L1 head is deterministic: nothing is sampled, and the model seed
 is fixed at the client's 7. Prompts differ in length, so each observation runs as its own pass, as
 in the client (one query per step): an episode's actions never depend on its batch.
 
@@ -119,7 +120,7 @@ class OpenVLAOFTAdapter(AdapterBase):
     @torch.no_grad()
     def act(self, observations: Sequence[dict[str, Any]], generators: Sequence[torch.Generator]) -> np.ndarray:
         self._start_chunk(observations, generators)
-        return np.stack([self._act_one(obs) for obs in observations])
+        return np.stack([self._act_one(obs, self.adapter_conventions(obs)) for obs in observations])
 
     def _camera(self, obs: dict[str, Any], role: str) -> np.ndarray:
         pixels = self.camera_images([obs], role)
@@ -128,7 +129,7 @@ class OpenVLAOFTAdapter(AdapterBase):
                             f"(cameras {self.cameras(obs)}); the policy reads the main and wrist views")
         return pixels[0]
 
-    def _act_one(self, obs: dict[str, Any]) -> np.ndarray:
+    def _act_one(self, obs: dict[str, Any], conventions) -> np.ndarray:
         dtype = next(self.model.parameters()).dtype
         views = torch.stack([self._image(self._camera(obs, role)) for role in ("main", "wrist")])
         dino = _normalize(views, _DINO_MEAN, _DINO_STD).to(self._device, dtype)
@@ -140,7 +141,7 @@ class OpenVLAOFTAdapter(AdapterBase):
         ids = torch.tensor([[BOS, *ids, STOP]], device=self._device)
         embeds = self.model.language_model.get_input_embeddings()(ids)
         normalized = self.model(dino, siglip, proprio, embeds)[0].float().cpu().numpy()  # [CHUNK, 7] in [-1, 1]
-        return self._environment_actions(normalized)
+        return self._environment_actions(normalized, conventions)
 
     @staticmethod
     def _image(pixels: np.ndarray) -> torch.Tensor:
@@ -153,13 +154,15 @@ class OpenVLAOFTAdapter(AdapterBase):
         img = img[:, :, start : start + side, start : start + side]
         return resize(img, size=(IMAGE_SIZE, IMAGE_SIZE), mode="bilinear", align_corners=False, antialias=True)[0]
 
-    def _environment_actions(self, normalized: np.ndarray) -> np.ndarray:
+    def _environment_actions(self, normalized: np.ndarray, conventions) -> np.ndarray:
         stats = self.statistics["action"]
         low, high = np.asarray(stats["q01"]), np.asarray(stats["q99"])
         mask = np.asarray(stats.get("mask", [True] * ACTION_DIM), dtype=bool)
         actions = np.where(mask, 0.5 * (normalized + 1) * (high - low) + low, normalized)
-        # Gripper: [0, 1] -> [-1, 1], binarized, then inverted (LIBERO closes at +1, the data at 0).
-        actions[:, -1] = -np.sign(2 * actions[:, -1] - 1)
+        # Gripper: [0, 1] -> [-1, 1], binarized (the client's `normalize_gripper_action(binarize=True)`), then
+        # inverted where the benchmark's env closes at the other end.
+        gripper = np.sign(2 * actions[:, -1] - 1)
+        actions[:, -1] = -gripper if conventions.gripper_inverted else gripper
         return actions.astype(np.float32)
 
 

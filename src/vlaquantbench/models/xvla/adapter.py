@@ -1,13 +1,13 @@
 """X-VLA adapter (lerobot 0.6.1 `XVLAModel`), driven like X-VLA's released LIBERO client.
 
-Observation -> the main camera (by the role its benchmark declares, `AdapterConfig.cameras`) as LIBERO
-renders it rotated 180 degrees, the wrist camera unrotated (the client flips only the primary view; the
-environment rotates both, so the wrist view is turned back), each resized to 224 px and ImageNet-normalized
--> the proprio vector: end-effector position, the first two columns of its rotation matrix (6-D rotation), a zero,
-then ten zeros (the client's 20-D ee6d layout) -> the instruction tokenized to 64 tokens -> domain
-id 3 (LIBERO) -> flow matching over `flow_steps` steps from noise drawn from each episode's own
-generator -> per action: absolute target position, the 6-D rotation as axis-angle, the gripper
-thresholded at 0.5 to +1/-1. The environment runs its controller with absolute targets
+Observation -> the main camera (by the role its benchmark declares, `AdapterConfig.cameras`) as the env
+renders it (LIBERO's rotated 180 degrees), the wrist camera turned back where the benchmark's adapter conventions
+say so (`client.ADAPTER_CONVENTIONS`: on LIBERO the client flips only the primary view, while the environment
+rotates both), each resized to 224 px and ImageNet-normalized -> the proprio vector: end-effector position, the
+first two columns of its rotation matrix (6-D rotation), a zero, then ten zeros (the client's 20-D ee6d layout)
+-> the instruction tokenized to 64 tokens -> the benchmark's domain id (its conventions'; LIBERO's 3) -> flow
+matching over `flow_steps` steps from noise drawn from each episode's own generator -> per action: absolute
+target position, the 6-D rotation as axis-angle, the gripper thresholded at 0.5 to +1/-1. The environment runs its controller with absolute targets
 (`control_mode = "absolute"`) and the whole 30-action chunk is executed before the next query.
 
 Full variant: the local snapshot of `2toINF/X-VLA-Libero` as the release ships it (`release`):
@@ -33,7 +33,6 @@ from vlaquantbench.models.registry import get_model_spec
 from vlaquantbench.quant.steps import attach_flow_clock, flow_clock
 
 TOKENS = 64  # lerobot's `tokenizer_max_length` for X-VLA
-LIBERO_DOMAIN = 3  # X-VLA's domain id of LIBERO (its client's `domain_id`)
 # The demo's image settings: the release's 224 px and ImageNet mean/std (its preprocessor_config.json);
 # bilinear resizing, as the demo cells have always run (the release resizes bicubic).
 DEMO_IMAGE = {"size": 224, "mode": "bilinear", "mean": [0.485, 0.456, 0.406], "std": [0.229, 0.224, 0.225]}
@@ -130,12 +129,14 @@ class XVLAAdapter(AdapterBase):
         self._start_chunk(observations, generators)
         model, n = self.model, len(observations)
         dtype = next(model.parameters()).dtype
-        images = torch.stack([self._view(observations, "main"), self._view(observations, "wrist")], dim=1)
+        conventions = self.adapter_conventions(observations[0])
+        images = torch.stack([self._view(observations, "main", conventions),
+                              self._view(observations, "wrist", conventions)], dim=1)
         mask = torch.ones(n, 2, dtype=torch.bool, device=self._device)
         tokens = self.tokenizer([obs["instruction"] for obs in observations], max_length=TOKENS,
                                 padding="max_length", truncation=True, return_tensors="pt")["input_ids"]
         proprio = torch.from_numpy(self._proprio(observations)).to(self._device, dtype)
-        domain = torch.full((n,), LIBERO_DOMAIN, dtype=torch.long, device=self._device)
+        domain = torch.full((n,), conventions.domain_id, dtype=torch.long, device=self._device)
         enc = model.forward_vlm(tokens.to(self._device), images.to(dtype), mask)
         # `XVLAModel.generate_actions`, with the starting noise from each episode's own stream.
         shape = (self.predicted_chunk, model.dim_action)
@@ -152,12 +153,12 @@ class XVLAAdapter(AdapterBase):
                     action = model.transformer(domain_id=domain, action_with_noise=x_t_m, proprio=proprio_m, t=t, **enc)
         return self._environment_actions(model.action_space.postprocess(action).float().cpu().numpy())
 
-    def _view(self, observations, role: str) -> torch.Tensor:
-        pixels = self.camera_images(observations, role)  # n x H x W x 3, rotated 180 by the env
+    def _view(self, observations, role: str, conventions) -> torch.Tensor:
+        pixels = self.camera_images(observations, role)  # n x H x W x 3, as the env renders it
         if pixels is None:
             raise UserError(f"{self.name}: the observation (keys {sorted(observations[0])}) has no {role} camera "
                             f"(cameras {self.cameras(observations[0])}); the policy reads the main and wrist views")
-        if role == "wrist":
+        if role == "wrist" and conventions.wrist_turned_back:
             pixels = pixels[:, ::-1, ::-1]
         img = torch.from_numpy(np.ascontiguousarray(pixels)).permute(0, 3, 1, 2).float().div(255.0).to(self._device)
         size = self._image["size"]

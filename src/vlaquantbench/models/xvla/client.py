@@ -9,11 +9,25 @@ predates the box-box collision change (paper Sec. "Evaluation-Stack Checks"): it
 (failures in the authors' records run to 800).
 """
 
+from dataclasses import dataclass
+
 from vlaquantbench.models.client import ClientConventions
 
 CHUNK = 30
 
+
+@dataclass(frozen=True)
+class XVLAConventions:
+    """How X-VLA's client on a benchmark feeds the policy its observations (`ADAPTER_CONVENTIONS`)."""
+
+    domain_id: int  # X-VLA's id of the benchmark's domain (the client's `domain_id`)
+    # The client turns only the main view; an env that renders the wrist view rotated 180 degrees too has it turned back.
+    wrist_turned_back: bool
+    source: str = ""  # where the values come from
+
+
 CLIENT = ClientConventions(executed_chunk=CHUNK, episodes_per_task=19, control_mode="absolute", mujoco="3.1.6",
                            source="X-VLA libero_client.py; paper app. on benchmarks; the authors' records")
+ADAPTER_CONVENTIONS = {"libero": XVLAConventions(domain_id=3, wrist_turned_back=True, source="X-VLA libero_client.py")}
 STEP_LIMITS = {"libero": {"libero_spatial": 800, "libero_object": 800, "libero_goal": 800, "libero_10": 900}}
 ENVIRONMENT = "xvla"
