@@ -177,8 +177,9 @@ def test_the_trained_policy_shows_a_real_quantization_effect(tmp_path):
         "study": {"models": {"pi05": {"variant": "full", "trained": GPU_HOME, "checkpoint": None, "revision": None}},
                   "tasks": [8, 18], "episodes_per_task": 5, "runner": {"max_steps": 150},
                   "execution": {"num_envs": 2, "torch_threads": 1, "progress": False}}}))
-    result = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "tables/effect.tex", f"--configfile={config}"],
-                            cwd=checkout, capture_output=True, text=True, timeout=900)
+    # One thread per rollout: the two cells run side by side (the full-precision one is short).
+    result = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "tables/effect.tex", f"--configfile={config}",
+                             "--set-threads", "rollout=1"], cwd=checkout, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr[-3000:]
     cells = {read_cell(folder).header["cell"]: read_cell(folder).episodes for folder in (checkout / "results" / "cells").iterdir()}
     full, w2a2 = cells["rtn-BASELINE-e2e"], cells["rtn-W2A2-e2e"]

@@ -28,7 +28,9 @@ def test_the_paper_smoke_config_runs_end_to_end_on_the_hub_fixture(hub_fixture, 
         (shutil.copytree if source.is_dir() else shutil.copy)(source, checkout / item)
     env = {**os.environ, "HF_HOME": str(hub_fixture["home"]), "HF_HUB_OFFLINE": "1"}
     result = subprocess.run(
-        [sys.executable, "-m", "snakemake", "--cores", "2", "tables/lattice.tex", "--configfile", "config/paper_smoke.yaml"],
+        # One thread per rollout: two of the five cells at a time (each mostly loads its model).
+        [sys.executable, "-m", "snakemake", "--cores", "2", "tables/lattice.tex", "--configfile", "config/paper_smoke.yaml",
+         "--set-threads", "rollout=1"],
         cwd=checkout, env=env, capture_output=True, text=True, timeout=1800,
     )
     assert result.returncode == 0, (result.stdout[-2000:], result.stderr[-4000:])
