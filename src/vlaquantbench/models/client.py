@@ -66,16 +66,22 @@ def client_conventions(model: str, benchmark: str | None = None) -> ClientConven
     """The model's client conventions on `benchmark`: its `client.py`'s `BENCHMARK_CLIENTS[benchmark]` where it
     declares one, else its `CLIENT` (also for `benchmark` None); UserError for an unknown model, or for a
     `BENCHMARK_CLIENTS` key that names no registered benchmark."""
-    module = _client(model)
-    per_benchmark = getattr(module, "BENCHMARK_CLIENTS", {})
+    per_benchmark = _per_benchmark(model, "BENCHMARK_CLIENTS") or {}
+    return per_benchmark.get(benchmark, _client(model).CLIENT)
+
+
+def _per_benchmark(model: str, name: str) -> dict | None:
+    """The model's client.py mapping `name` ({benchmark: ...}); None where it declares none; UserError naming a key
+    that is no registered benchmark."""
+    per_benchmark = getattr(_client(model), name, None)
     if per_benchmark:
         from vlaquantbench.envs import BENCHMARK_SUITES
 
         unknown = sorted(set(per_benchmark) - set(BENCHMARK_SUITES))
         if unknown:
-            raise UserError(f"model {model!r}: BENCHMARK_CLIENTS of its client.py names {', '.join(unknown)}; "
+            raise UserError(f"model {model!r}: {name} of its client.py names {', '.join(unknown)}; "
                             f"registered benchmarks: {', '.join(BENCHMARK_SUITES)}")
-    return per_benchmark.get(benchmark, module.CLIENT)
+    return per_benchmark
 
 
 def adapter_conventions(model: str, benchmark: str):
@@ -83,15 +89,9 @@ def adapter_conventions(model: str, benchmark: str):
     model whose client.py declares none (its adapter feeds every benchmark alike). UserError naming the model and
     the benchmark when it declares them for other benchmarks only (its client never ran there), or naming a key
     that is no registered benchmark."""
-    from vlaquantbench.envs import BENCHMARK_SUITES
-
-    per_benchmark = getattr(_client(model), "ADAPTER_CONVENTIONS", None)
+    per_benchmark = _per_benchmark(model, "ADAPTER_CONVENTIONS")
     if per_benchmark is None:
         return None
-    unknown = sorted(set(per_benchmark) - set(BENCHMARK_SUITES))
-    if unknown:
-        raise UserError(f"model {model!r}: ADAPTER_CONVENTIONS of its client.py names {', '.join(unknown)}; "
-                        f"registered benchmarks: {', '.join(BENCHMARK_SUITES)}")
     if benchmark not in per_benchmark:
         raise UserError(f"model {model!r} has no adapter conventions on benchmark {benchmark!r}: its client.py "
                         f"ADAPTER_CONVENTIONS declares {', '.join(per_benchmark) or 'none'} (how its client feeds the "
