@@ -63,14 +63,15 @@ def on_gpu(cfg):
 
 # Local GPU jobs (no SLURM, whose --gpus=1 isolates each job): Snakemake counts the `gpu` resource but
 # gives no job a device, so each takes a slot of its own (vlaquantbench.runner.gpus); `--resources gpu`
-# is set to the device count, refused above it, and the node's cores are split between the GPU jobs.
+# is set to the slot count (devices x study.execution.jobs_per_gpu), refused above it, and the node's
+# cores are split between the GPU jobs.
 GPU_PLAN = None
 NO_GPU = None  # the refusal of a study on cuda on a node without GPUs, which dry runs only state
 if workflow.local_exec and "SLURM_JOB_ID" not in os.environ and any(map(on_gpu, [*CELLS.values(), *CALIBRATIONS.values()])):
     requested = workflow.global_resources.get("gpu")
     try:
         GPU_PLAN = LocalGpuPlan.for_node(WF.study.execution.gpus, None if requested is None else requested.value,
-                                         workflow.cores)
+                                         workflow.cores, WF.study.execution.jobs_per_gpu)
     except NoGpu as err:
         NO_GPU = err
         print(f"{err}: a real run stops here (a dry run plans the jobs all the same)", file=sys.stderr)
@@ -84,7 +85,7 @@ def gpu_job(cfg):
     if GPU_PLAN is None or not on_gpu(cfg):
         return {"threads": 2, "slots": None}
     return {"threads": GPU_PLAN.threads, "workers": GPU_PLAN.workers(WF.study.execution.num_envs),
-            "slots": {"dir": SLOTS_DIR, "gpus": WF.study.execution.gpus}}
+            "slots": {"dir": SLOTS_DIR, "gpus": WF.study.execution.gpus, "per_gpu": WF.study.execution.jobs_per_gpu}}
 
 
 def execution(cfg, kwargs):

@@ -34,14 +34,14 @@ from vlaquantbench.runner.provenance import host
 HOLDER = """
 import os, sys, time
 from vlaquantbench.runner.gpus import Gpu, gpu_slot
-with gpu_slot(sys.argv[1], [Gpu(i) for i in range(int(sys.argv[2]))], f"job {os.getpid()}") as gpu:
+with gpu_slot(sys.argv[1], [Gpu(i) for i in range(int(sys.argv[2]))], f"job {os.getpid()}", int(sys.argv[3])) as gpu:
     print(gpu.index, os.environ["CUDA_VISIBLE_DEVICES"], flush=True)
     time.sleep(600)
 """
 
 
-def start_holders(slots: Path, gpus: int, count: int) -> list[subprocess.Popen]:
-    return [subprocess.Popen([sys.executable, "-c", HOLDER, str(slots), str(gpus)], stdout=subprocess.PIPE,
+def start_holders(slots: Path, gpus: int, count: int, per_gpu: int = 1) -> list[subprocess.Popen]:
+    return [subprocess.Popen([sys.executable, "-c", HOLDER, str(slots), str(gpus), str(per_gpu)], stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True) for _ in range(count)]
 
 
@@ -64,6 +64,22 @@ def test_concurrent_jobs_take_distinct_devices_and_a_job_beyond_them_is_refused(
         _, err = fourth.communicate(timeout=60)
         assert fourth.returncode == 1 and "every GPU slot" in err and "--resources gpu" in err, err
         assert all(f"pid {p.pid}" in err for p in holders), err  # the refusal names the holders
+    finally:
+        stop(holders)
+
+
+def test_jobs_sharing_devices_fill_every_device_once_before_any_twice_and_no_more(tmp_path):
+    """study.execution.jobs_per_gpu 2 on two devices: four jobs at once, two on each, a fifth refused."""
+    holders = start_holders(tmp_path / "slots", 2, 4, per_gpu=2)
+    try:
+        taken = sorted(int(proc.stdout.readline().split()[0]) for proc in holders)
+        assert taken == [0, 0, 1, 1], taken
+        locks = sorted(p.name for p in (tmp_path / "slots").iterdir())
+        host_name = os.uname().nodename
+        assert locks == sorted(f"{host_name}-gpu{i}{s}.lock" for i in (0, 1) for s in ("", "-1")), locks
+        fifth = start_holders(tmp_path / "slots", 2, 1, per_gpu=2)[0]
+        _, err = fifth.communicate(timeout=60)
+        assert fifth.returncode == 1 and "(2 x 2)" in err and "jobs_per_gpu" in err, err
     finally:
         stop(holders)
 
@@ -93,6 +109,11 @@ def test_more_gpu_jobs_than_devices_are_refused_naming_the_setting(monkeypatch, 
     plan = LocalGpuPlan.for_node(4, None, cores=64)  # --resources gpu unset: one job per device
     assert (plan.jobs, plan.threads, plan.workers(8), plan.workers(64)) == (4, 16, 8, 15)
     assert node_gpus(2)[0] == [Gpu(0), Gpu(1)]
+    plan = LocalGpuPlan.for_node(1, None, cores=16, per_gpu=3)  # one device shared by three jobs
+    assert (plan.jobs, plan.threads, plan.workers(16)) == (3, 5, 4)
+    assert "one of a device's 3 slots" in plan.describe(16)
+    with pytest.raises(UserError, match=r"--resources gpu=4 .* 1 GPU\(s\) .* taking 3 job\(s\) each"):
+        LocalGpuPlan.for_node(1, 4, cores=16, per_gpu=3)
 
 
 def dry_run(checkout: Path, *args: str, gpus: int | None, trusted: bool = True) -> subprocess.CompletedProcess:

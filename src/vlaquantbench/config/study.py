@@ -106,10 +106,14 @@ class ExecutionConfig:
     # every device `nvidia-smi -L` lists; N, the first N (or devices 0..N-1 where nvidia-smi is missing, up to
     # the node's /dev/nvidia<N> files; VQB_TRUST_GPUS=1 takes N on trust).
     gpus: int | None = None
+    # Rollout and calibrate jobs sharing one of those GPUs at once, each with its share of the node's cores: a
+    # policy of a few million parameters leaves its device idle while its simulators step, and a short cell
+    # (one the stopping rule decides in a few rounds) is mostly start-up, which the others' rollouts then fill.
+    jobs_per_gpu: int = 1
 
     def as_kwargs(self) -> dict[str, Any]:
         """What a rollout job takes (the node's GPUs are the workflow's business, not the cell's)."""
-        return {k: v for k, v in asdict(self).items() if k != "gpus"}
+        return {k: v for k, v in asdict(self).items() if k not in ("gpus", "jobs_per_gpu")}
 
     def calibration_kwargs(self) -> dict[str, Any]:
         """What a calibration job takes: it runs its fixed held-out episodes, in no cell's order."""

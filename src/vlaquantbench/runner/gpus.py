@@ -42,6 +42,7 @@ from vlaquantbench.runner.lock import holder, release_flock, try_flock
 
 SLOTS_DIR = ".snakemake/gpu-slots"
 GPUS_SETTING = "study.execution.gpus"
+PER_GPU_SETTING = "study.execution.jobs_per_gpu"
 # Set to 1: take study.execution.gpus on trust where nvidia-smi is missing (the node that builds the DAG is not
 # the one the jobs run on).
 TRUST_GPUS = "VQB_TRUST_GPUS"
@@ -68,8 +69,10 @@ class Gpu:
         """The value of CUDA_VISIBLE_DEVICES that shows this device alone."""
         return self.uuid or str(self.index)
 
-    def lock_name(self) -> str:
-        return f"{self.uuid}.lock" if self.uuid else f"{socket.gethostname()}-gpu{self.index}.lock"
+    def lock_name(self, share: int = 0) -> str:
+        """The slot file of the device's `share`-th concurrent job (study.execution.jobs_per_gpu)."""
+        name = self.uuid if self.uuid else f"{socket.gethostname()}-gpu{self.index}"
+        return f"{name}-{share}.lock" if share else f"{name}.lock"
 
 
 def listed_gpus() -> list[Gpu] | None:
@@ -119,34 +122,38 @@ def node_gpus(configured: int | None) -> tuple[list[Gpu], str]:
     return listed[:configured], f"{GPUS_SETTING}: {configured} of the {len(listed)} nvidia-smi -L lists"
 
 
-def check_gpu_jobs(requested: int | None, gpus: list[Gpu], source: str) -> int:
-    """How many GPU jobs may run at once: `--resources gpu` (`requested`), or one per device when unset;
-    UserError naming `--resources gpu` when it asks for more concurrent GPU jobs than there are devices."""
+def check_gpu_jobs(requested: int | None, gpus: list[Gpu], source: str, per_gpu: int = 1) -> int:
+    """How many GPU jobs may run at once: `--resources gpu` (`requested`), or `per_gpu` per device when unset
+    (study.execution.jobs_per_gpu); UserError naming `--resources gpu` when it asks for more concurrent GPU jobs
+    than the devices take."""
     if not gpus:
         raise NoGpu(f"the study's runner.device is cuda but this node has no GPU to give its jobs ({source}); "
                         f"set {GPUS_SETTING} where nvidia-smi is missing, or run on the CPU (study.runner.device: cpu)")
-    if requested is not None and requested > len(gpus):
+    slots = len(gpus) * per_gpu
+    if requested is not None and requested > slots:
         raise UserError(f"--resources gpu={requested} asks for {requested} GPU jobs at once but this node has "
-                        f"{len(gpus)} GPU(s) ({source}); two jobs would share a device: set --resources gpu={len(gpus)} "
-                        f"or fewer (or leave it out: the workflow sets it to the device count)")
-    return len(gpus) if requested is None else requested
+                        f"{len(gpus)} GPU(s) ({source}) taking {per_gpu} job(s) each ({PER_GPU_SETTING}); "
+                        f"set --resources gpu={slots} or fewer (or leave it out: the workflow sets it to {slots}), "
+                        f"or raise {PER_GPU_SETTING} where a device has room for more jobs")
+    return slots if requested is None else requested
 
 
 @contextmanager
-def gpu_slot(slots_dir: str | Path, gpus: list[Gpu], job: str) -> Iterator[Gpu]:
-    """Hold a device of `gpus` no other live process holds, with CUDA_VISIBLE_DEVICES set to it alone
-    (before torch initialises CUDA, which reads it once); NoFreeGpu naming every holder if none is free."""
+def gpu_slot(slots_dir: str | Path, gpus: list[Gpu], job: str, per_gpu: int = 1) -> Iterator[Gpu]:
+    """Hold one of the `per_gpu` slots of a device of `gpus` that no other live process holds (every device's
+    first slot before any second one), with CUDA_VISIBLE_DEVICES set to that device alone (before torch
+    initialises CUDA, which reads it once); NoFreeGpu naming every holder if none is free."""
     slots_dir = Path(slots_dir)
     held = []
-    for gpu in gpus:
-        fd = try_flock(slots_dir / gpu.lock_name(), holder(job=job, gpu=asdict(gpu)))
+    for share, gpu in ((share, gpu) for share in range(per_gpu) for gpu in gpus):
+        fd = try_flock(slots_dir / gpu.lock_name(share), holder(job=job, gpu=asdict(gpu), share=share))
         if isinstance(fd, int):
             break
-        held.append(f"{gpu.visible()} by {_holder_words(fd)}")
+        held.append(f"{gpu.visible()}" + (f" (slot {share})" if per_gpu > 1 else "") + f" by {_holder_words(fd)}")
     else:
         raise NoFreeGpu(f"{job}: every GPU slot in {slots_dir} is held ({'; '.join(held) or 'no GPU given'}): more GPU "
-                        f"jobs run than there are devices ({len(gpus)}); lower --resources gpu (or {GPUS_SETTING}) "
-                        "to the devices this run may use, or wait for the other run to end")
+                        f"jobs run than the devices take ({len(gpus)} x {per_gpu}); lower --resources gpu (or "
+                        f"{GPUS_SETTING}, {PER_GPU_SETTING}) to the slots this run may use, or wait for the other run to end")
     previous = os.environ.get("CUDA_VISIBLE_DEVICES")
     os.environ["CUDA_VISIBLE_DEVICES"] = gpu.visible()
     try:
@@ -184,19 +191,21 @@ def device_record(device: str) -> dict | None:
 
 @dataclass(frozen=True)
 class LocalGpuPlan:
-    """How a local Snakemake runs a study's GPU jobs: at most `jobs` at once, each on a device of its own
-    and `threads` of the node's `cores`, its simulator workers capped at `threads - 1` (one core is the policy
+    """How a local Snakemake runs a study's GPU jobs: at most `jobs` at once, each in a slot of its own (a device,
+    or one of a device's `per_gpu` shares: a small policy leaves a device idle between its simulator steps) and
+    `threads` of the node's `cores`, its simulator workers capped at `threads - 1` (one core is the policy
     process's: observations in, CUDA launches out), so that the concurrent jobs' workers fit the node."""
 
     gpus: tuple[Gpu, ...]
     source: str
     jobs: int
     cores: int
+    per_gpu: int = 1
 
     @classmethod
-    def for_node(cls, configured: int | None, requested: int | None, cores: int) -> LocalGpuPlan:
+    def for_node(cls, configured: int | None, requested: int | None, cores: int, per_gpu: int = 1) -> LocalGpuPlan:
         gpus, source = node_gpus(configured)
-        return cls(tuple(gpus), source, check_gpu_jobs(requested, gpus, source), cores)
+        return cls(tuple(gpus), source, check_gpu_jobs(requested, gpus, source, per_gpu), cores, per_gpu)
 
     @property
     def threads(self) -> int:
@@ -207,20 +216,22 @@ class LocalGpuPlan:
 
     def describe(self, num_envs: int) -> str:
         devices = ", ".join(f"{g.index}" + (f" {g.name} {g.uuid}" if g.uuid else "") for g in self.gpus)
+        where = (f"each in one of a device's {self.per_gpu} slots ({PER_GPU_SETTING})" if self.per_gpu > 1
+                 else "each on a device of its own")
         return (f"local GPUs ({self.source}): {devices}; at most {self.jobs} rollout/calibrate jobs at once "
-                f"(--resources gpu={self.jobs}), each on a device of its own (CUDA_VISIBLE_DEVICES, slots in "
-                f"{SLOTS_DIR}), each with {self.threads} of {self.cores} cores and "
-                f"{self.workers(num_envs)} simulator worker(s) (study.execution.num_envs: {num_envs})")
+                f"(--resources gpu={self.jobs}), {where} (CUDA_VISIBLE_DEVICES, slots in {SLOTS_DIR}), each with "
+                f"{self.threads} of {self.cores} cores and {self.workers(num_envs)} simulator worker(s) "
+                f"(study.execution.num_envs: {num_envs})")
 
 
 @contextmanager
 def job_gpu(slots: dict | None, job: str) -> Iterator[Gpu | None]:
     """A Snakemake job's device: a slot of the node's GPUs where the workflow assigns one (rule param
-    `gpu_slots`: {dir, gpus}), nothing (None) where it does not (the CPU, SLURM)."""
+    `gpu_slots`: {dir, gpus, per_gpu}), nothing (None) where it does not (the CPU, SLURM)."""
     if slots is None:
         yield None
         return
-    with gpu_slot(slots["dir"], node_gpus(slots["gpus"])[0], job) as gpu:
+    with gpu_slot(slots["dir"], node_gpus(slots["gpus"])[0], job, slots.get("per_gpu", 1)) as gpu:
         print(f"{job}: on GPU {gpu.index} {gpu.name or ''} {gpu.uuid or ''} (CUDA_VISIBLE_DEVICES={gpu.visible()})",
               file=sys.stderr)
         yield gpu
