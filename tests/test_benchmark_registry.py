@@ -127,8 +127,7 @@ def test_an_observation_without_a_named_benchmark_has_the_cameras_of_the_declara
 def test_each_benchmark_declares_its_env_settings_as_the_vector_envs_keyword_parameters():
     import inspect
 
-    from vlaquantbench.config.study import RunnerConfig
-    from vlaquantbench.envs import env_settings
+    from vlaquantbench.envs import benchmark_settings, env_settings
 
     for name in BENCHMARK_SUITES:
         benchmark = get_benchmark(name)
@@ -139,12 +138,27 @@ def test_each_benchmark_declares_its_env_settings_as_the_vector_envs_keyword_par
             assert parameters[setting.name].default == setting.default, (name, setting.name)
     assert get_benchmark("libero").setting_names == ("camera_size", "settle_steps", "control_mode", "mujoco")
     assert get_benchmark("metaworld").setting_names == ("camera_size", "mujoco")
-    # a cell's env gets exactly its benchmark's declared settings, filled from its runner config
-    runner = RunnerConfig(camera_size=64, settle_steps=3, control_mode="absolute", mujoco="3.3.2")
-    assert env_settings("metaworld", runner) == {"camera_size": 64, "mujoco": "3.3.2"}
-    assert env_settings("metaworld", runner, reads_images=False) == {"camera_size": None, "mujoco": "3.3.2"}
-    assert env_settings("libero", runner) == {"camera_size": 64, "settle_steps": 3, "control_mode": "absolute",
-                                              "mujoco": "3.3.2"}
+    # a cell's env gets exactly its benchmark's declared settings: those given, then the client's conventions for
+    # the ones it declares, the declared defaults elsewhere
+    client = {"control_mode": "absolute", "mujoco": "3.3.2", "executed_chunk": 5}
+    metaworld = benchmark_settings("metaworld", {"camera_size": 64}, {"camera_size": "study.runner.camera_size"}, client)
+    assert env_settings(metaworld) == {"camera_size": 64, "mujoco": "3.3.2"}
+    assert env_settings(metaworld, reads_images=False) == {"camera_size": None, "mujoco": "3.3.2"}
+    assert env_settings(benchmark_settings("metaworld", {}, {})) == {"camera_size": 480, "mujoco": None}
+    libero = benchmark_settings("libero", {"settle_steps": 3}, {"settle_steps": "study.runner.settle_steps"}, client)
+    assert env_settings(libero) == {"camera_size": 256, "settle_steps": 3, "control_mode": "absolute", "mujoco": "3.3.2"}
+
+
+def test_a_setting_of_the_wrong_type_or_out_of_its_declared_range_is_refused_by_field():
+    from vlaquantbench.envs import benchmark_settings
+
+    for value, problem in (("big", r"'big' is not of type 'integer'"), (8, r"8 is less than the minimum of 16"),
+                           (True, r"True is not of type 'integer'")):
+        with pytest.raises(UserError, match=rf"^study\.runner\.camera_size: {problem} \(libero's env setting camera_size"):
+            benchmark_settings("libero", {"camera_size": value}, {"camera_size": "study.runner.camera_size"})
+    with pytest.raises(UserError, match=r"^f: 'relative' is not one of \['delta', 'absolute'\] \(libero's env setting "
+                                        r"control_mode"):
+        benchmark_settings("libero", {"control_mode": "relative"}, {"control_mode": "f"})
 
 
 def test_a_declaration_without_a_settings_dataclass_is_refused():
@@ -153,16 +167,34 @@ def test_a_declaration_without_a_settings_dataclass_is_refused():
         register_benchmark(dataclasses.replace(libero, settings={"settle_steps": 10}))
 
 
+def test_a_declaration_whose_settings_a_config_could_not_give_is_refused():
+    libero = get_benchmark("libero")
+    for body, problem in (("camera_size: int\n", r"env setting 'camera_size' has no default"),
+                          ("camera_size: list = ()\n", r"env setting 'camera_size': type <class 'list'> is not one a config "
+                                                        r"can give"),
+                          ("camera_size: int = dataclasses.field(default=8, metadata={'schema': {'minimum': 16}})\n",
+                           r"env setting 'camera_size': its default 8 does not satisfy its rules")):
+        namespace = {"dataclasses": dataclasses}
+        exec(f"@dataclasses.dataclass(frozen=True)\nclass Settings:\n    {body}", namespace)
+        with pytest.raises(UserError, match=rf"^benchmark 'libero': {problem}"):
+            register_benchmark(dataclasses.replace(libero, settings=namespace["Settings"]))
+
+
 def test_a_setting_given_for_a_benchmark_that_does_not_declare_it_is_refused_by_field():
     from vlaquantbench.envs import check_settings
 
-    check_settings("libero", {"settle_steps": "study.runner.settle_steps", "device": "study.runner.device"})
-    check_settings("metaworld", {"camera_size": "study.runner.camera_size", "flow_steps": "study.runner.flow_steps"})
+    check_settings("libero", {"settle_steps": "study.runner.settle_steps"})
+    check_settings("metaworld", {"camera_size": "study.runner.camera_size"})
     with pytest.raises(UserError, match=r"^study\.runner\.settle_steps: 'settle_steps' is not an env setting of "
                                         r"metaworld \(it takes camera_size, mujoco; settle_steps is libero's\); "
                                         r"study\.runner\.control_mode: 'control_mode' is not"):
         check_settings("metaworld", {"settle_steps": "study.runner.settle_steps",
                                      "control_mode": "study.runner.control_mode"})
+    # a key that is no runner option and no benchmark's setting (a misspelt one) is refused the same way
+    with pytest.raises(UserError, match=r"^study\.runner\.camera_sise: 'camera_sise' is not an env setting of libero "
+                                        r"\(it takes camera_size, settle_steps, control_mode, mujoco; no registered "
+                                        r"benchmark takes camera_sise\); remove it$"):
+        check_settings("libero", {"camera_sise": "study.runner.camera_sise"})
 
 
 def test_a_benchmark_outside_envs_is_registered_from_the_module_vqb_benchmarks_names(tmp_path):
@@ -178,12 +210,23 @@ def test_a_benchmark_outside_envs_is_registered_from_the_module_vqb_benchmarks_n
     env = {"PYTHONPATH": f"{ROOT / 'src'}:{tmp_path}", "VQB_BENCHMARKS": "outside_benchmark"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
     assert out.strip() == "['libero', 'metaworld', 'outside'] 2"
-    # its `lighting` is no runner option: no config could set it, and its value would go unhashed, so its cells are refused
-    refused = ("from vlaquantbench.cells import cell_runner; from vlaquantbench.config.study import RunnerConfig\n"
-               "try: cell_runner('cell x', 'outside', RunnerConfig())\nexcept Exception as err: print(err)")
-    out = subprocess.run([sys.executable, "-c", refused], capture_output=True, text=True, check=True, env=env).stdout
-    assert out.strip() == ("cell x: benchmark 'outside' declares env setting(s) lighting, which the runner config does not "
-                           "carry (its env settings: camera_size, settle_steps, control_mode, mujoco; config.study.RunnerConfig)")
+    # its own setting `lighting`, which no runner option names, is read back from a cell's runner with its type checked
+    read = ("from vlaquantbench.cells import cell_runner\n"
+            "print(cell_runner('cell x', 'outside', {'device': 'cpu', 'lighting': 0.5})[1])\n"
+            "try: cell_runner('cell x', 'outside', {'lighting': 'dim'})\nexcept Exception as err: print(err)")
+    out = subprocess.run([sys.executable, "-c", read], capture_output=True, text=True, check=True, env=env).stdout
+    assert out.splitlines() == ["Settings(camera_size=32, lighting=0.5)",
+                                "cell x: runner.lighting: 'dim' is not of type 'number' (outside's env setting lighting: "
+                                "{'type': ['number']})"]
+    # a setting named like a runner option would share study.runner with it: refused when a cell is built
+    (tmp_path / "clashing_benchmark.py").write_text(
+        (tmp_path / "outside_benchmark.py").read_text().replace("lighting: float = 1.0", "device: str = 'gpu'")
+        .replace("'outside'", "'clashing'").replace("outside_one", "clashing_one"))
+    clash = "from vlaquantbench.cells import cell_runner\ntry: cell_runner('cell x', 'clashing', {})\nexcept Exception as err: print(err)"
+    out = subprocess.run([sys.executable, "-c", clash], capture_output=True, text=True, check=True,
+                         env={**env, "VQB_BENCHMARKS": "clashing_benchmark"}).stdout
+    assert out.strip() == ("benchmark 'clashing' declares env setting(s) device, named like runner options "
+                           "(config.study.RunnerConfig), which share study.runner with them: rename them")
     env["VQB_BENCHMARKS"] = "no_such_benchmark_module"
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert run.returncode != 0 and "VQB_BENCHMARKS: cannot import benchmark declaration module 'no_such_benchmark_module'" in run.stderr

@@ -5,6 +5,7 @@ import pytest
 
 from vlaquantbench import cells
 from vlaquantbench.cells import CellConfig, cell_config, config_hash
+from vlaquantbench.envs.registry import get_benchmark
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.semantics import QUANT_SEMANTICS
 from vlaquantbench.runner.journal import CellJournal
@@ -30,15 +31,18 @@ def test_one_experiment_under_two_names_is_one_folder():
 
 
 def test_a_cell_holds_and_hashes_only_the_env_settings_its_benchmark_declares():
-    """Meta-World takes no settle steps and no controller mode: its cells hold neither (typed: None), so no value
-    of theirs can split a folder; a LIBERO cell holds all four of LIBERO's settings."""
+    """Meta-World takes no settle steps and no controller mode: its cells hold neither (typed: its own settings
+    dataclass, with its own defaults), so no value of theirs can split a folder; a LIBERO cell holds all four of
+    LIBERO's settings, its 256 px camera LIBERO's declared default."""
     metaworld = cell_config("metaworld/metaworld_mt50/metaworld_expert/rtn-BASELINE-e2e",
                             {"models": {"metaworld_expert": {"variant": "full"}}, "tasks": 1})
     env = {"camera_size", "settle_steps", "control_mode", "mujoco"}
-    assert env & set(metaworld["runner"]) == {"camera_size", "mujoco"}
-    assert env <= set(cell_config(RTN, STUDY)["runner"])
+    assert env & set(metaworld["runner"]) == {"camera_size", "mujoco"} and metaworld["runner"]["camera_size"] == 480
+    libero = cell_config(RTN, {**STUDY, "runner": {}})
+    assert env <= set(libero["runner"]) and libero["runner"]["camera_size"] == 256
     typed = CellConfig.from_dict(metaworld)
-    assert (typed.runner.settle_steps, typed.runner.control_mode) == (None, None) and typed.to_dict() == metaworld
+    assert typed.env == get_benchmark("metaworld").settings(camera_size=480, mujoco="3.3.2")
+    assert typed.to_dict() == metaworld
     # a header written before (both settings in its runner) reads back into the same cell
     before = {**metaworld, "runner": {**metaworld["runner"], "settle_steps": 10, "control_mode": "delta"}}
     assert config_hash(before) != config_hash(metaworld) and CellConfig.from_dict(before).to_dict() == metaworld

@@ -63,11 +63,64 @@ def test_the_contract_benchmark_registers_itself_and_its_cells_are_checked_while
     assert lines[0] == "['contract', 'libero', 'metaworld'] 2"
     assert lines[1] == "contract contract_reach 40"  # the benchmark's own step limit, resolved into the cell
     assert lines[2] == (f"cell {REF!r}: study.runner.settle_steps: 'settle_steps' is not an env setting of contract "
-                        "(it takes camera_size, mujoco; settle_steps is libero's); remove it, or set it under "
-                        "study.models.<model>.runner for the models whose cells run on libero only")
+                        "(it takes camera_size, mujoco, success_radius; settle_steps is libero's); remove it, or set it "
+                        "under study.models.<model>.runner for the models whose cells run on libero only")
     assert lines[3].startswith(f"cell {REF!r}: study.runner.max_steps: 61 steps is beyond contract_reach's limit of "
                                "60 env steps an episode (the contract scene's worker: it refuses to step on)")
     assert lines[4].startswith(f"cell {REF!r}: study.episodes_per_task: 6 episodes per task, but contract_reach has 5")
+
+
+# A setting of the contract benchmark's own (`ContractSettings.success_radius`), which no runner option names and
+# nothing under src/ knows: set from a config file, checked against its declaration, hashed with the cell, and
+# passed to its worker. A radius of 0.3 m holds every goal placement (each within 0.235 m of the hand's start), so a
+# zero action succeeds at once; at the declared 0.05 m it does not.
+SETTING = """
+import sys
+import numpy as np
+from contract_benchmark.suite import ContractSuite
+from vlaquantbench.cells import CellConfig, config_hash
+from vlaquantbench.config import load_workflow_config
+from vlaquantbench.config.study import StudyConfig
+from vlaquantbench.envs import env_settings, make_env
+from vlaquantbench.errors import UserError
+
+ref = sys.argv[2]
+study = StudyConfig.from_dict(load_workflow_config(sys.argv[1])["study"])
+cell = CellConfig.from_ref(ref, study)
+default = CellConfig.from_ref(ref, StudyConfig.from_dict({**load_workflow_config(sys.argv[1])["study"], "runner": {}}))
+print(cell.to_dict()["runner"]["success_radius"], default.to_dict()["runner"]["success_radius"],
+      cell.config_hash != default.config_hash, CellConfig.from_dict(cell.to_dict()) == cell)
+suite = ContractSuite("contract_reach")
+spec = suite.episode_spec(0, 0)
+print(round(float(np.linalg.norm(np.subtract(suite.task_variation(spec), (0.0, 0.0, 0.3)))), 3))
+for settings in (cell.env, default.env):
+    with make_env("contract", suite, 1, **env_settings(settings, reads_images=False)) as env:
+        env.reset([spec])
+        _, success = env.step(np.zeros((1, 4)))
+        print(env.success_radius, success[0])
+for bad in ("far", 0):
+    try:
+        CellConfig.from_ref(ref, StudyConfig.from_dict({"models": {"metaworld_expert": {"variant": "full"}},
+                                                        "runner": {"success_radius": bad}}))
+    except UserError as err:
+        print(err)
+"""
+
+
+def test_a_setting_only_the_contract_benchmark_declares_is_set_from_a_config_and_reaches_its_env_and_hash(tmp_path):
+    config = tmp_path / "contract.yaml"
+    config.write_text(yaml.safe_dump({"tables": [], "study": {**STUDY, "runner": {"max_steps": None,
+                                                                                  "success_radius": 0.3}}}))
+    run = subprocess.run([sys.executable, "-c", SETTING, str(config), REF], capture_output=True, text=True,
+                         env=contract_env(), cwd=ROOT, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    lines = run.stdout.splitlines()
+    assert lines[0] == "0.3 0.05 True True"  # in the canonical runner, and so in the hash; read back as it was
+    assert float(lines[1]) > 0.05  # the first episode's goal lies beyond the declared radius
+    assert lines[2:4] == ["0.3 True", "0.05 False"]  # the worker judges success by the cell's radius
+    assert lines[4] == (f"cell {REF!r}: study.runner.success_radius: 'far' is not of type 'number' (contract's env "
+                        "setting success_radius: {'type': ['number'], 'exclusiveMinimum': 0})")
+    assert lines[5].startswith(f"cell {REF!r}: study.runner.success_radius: 0 is less than or equal to the minimum of 0")
 
 
 @pytest.mark.slow

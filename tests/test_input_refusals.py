@@ -70,7 +70,7 @@ def test_the_declared_horizons_are_the_simulators_own():
      r"\(Meta-World's max_path_length: it refuses to step on\); set it to at most 500"),
     ("libero/libero_spatial/pi05/rtn-BASELINE-e2e",
      {"models": {"pi05": {"variant": "demo", "runner": {"max_steps": 995}}}, "tasks": 1, "episodes_per_task": 1},
-     r"study\.models\.pi05\.runner\.max_steps: 995 steps after study\.runner\.settle_steps 10 is beyond "
+     r"study\.models\.pi05\.runner\.max_steps: 995 steps after libero's default settle_steps 10 is beyond "
      r"libero_spatial's limit of 1000 env steps .*; set it to at most 990"),
 ])
 def test_a_cell_stepping_past_the_simulators_limit_is_refused_naming_the_field(ref, study, message):

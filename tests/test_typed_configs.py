@@ -1,5 +1,5 @@
 """The cell config is typed to the end (issue 50): its stopping rule (`SequentialSpec`), its client's conventions
-(`ClientConventions`), the checkpoint stamp a job loads from (`CheckpointStamp`) and a config's `training` section
+(`ClientConventions`) and the values that differ from them (`CellOverrides`), the checkpoint stamp a job loads from (`CheckpointStamp`) and a config's `training` section
 (`TrainingConfig`) are dataclasses, each checked by the schema rules of the YAML values it stands for, and the typed
 forms keep every cell's canonical form and hash, and what training.json records."""
 
@@ -12,7 +12,7 @@ import pytest
 
 from demo_study import demo_study
 from paths import ROOT
-from vlaquantbench.cells import AgainstCell, CellConfig, SequentialSpec, cell_config
+from vlaquantbench.cells import AgainstCell, CellConfig, CellOverrides, Override, SequentialSpec, cell_config, config_hash
 from vlaquantbench.config.study import StudyConfig
 from vlaquantbench.errors import UserError
 from vlaquantbench.models.client import ClientConventions, client_conventions
@@ -51,6 +51,28 @@ def test_client_conventions_outside_the_schema_are_refused_naming_the_field():
         dataclasses.replace(released, executed_chunk=0)
     with pytest.raises(UserError, match="episodes_per_task"):
         ClientConventions(**{**released.as_dict(), "episodes_per_task": 0})
+
+
+def test_a_cells_overrides_are_typed_and_keep_their_canonical_form_and_hash():
+    study = StudyConfig.from_dict({"models": {"pi05": {"variant": "demo", "runner": {"executed_chunk": 5,
+                                                                                    "control_mode": "absolute"}}},
+                                   "tasks": 1, "episodes_per_task": 2})
+    cell = CellConfig.from_ref(f"{SPATIAL_PI05}/rtn-W4A4-ah", study)
+    assert cell.overrides == CellOverrides(executed_chunk=Override(10, 5), control_mode=Override("delta", "absolute"),
+                                           episodes_per_task=Override(20, 2))
+    canonical = cell.to_dict()
+    # the canonical form is the dict of the values that differ, as before the overrides were typed
+    assert canonical["overrides"] == {"executed_chunk": {"client": 10, "cell": 5}, "episodes_per_task": {"client": 20, "cell": 2},
+                                      "control_mode": {"client": "delta", "cell": "absolute"}}
+    again = CellConfig.from_dict(canonical)
+    assert again == cell and config_hash(again.to_dict()) == cell.config_hash
+    with pytest.raises(UserError, match=r"^cell x: overrides: camera_size is not a value a client sets \(executed_chunk, "
+                                        r"control_mode, mujoco, episodes_per_task, max_steps\)"):
+        CellOverrides.from_dict({"camera_size": {"client": 256, "cell": 128}}, "cell x")
+    with pytest.raises(UserError, match=r"^cell overrides: executed_chunk\.cell: .*executed_chunk: 0 is less than the minimum of 1"):
+        CellOverrides(executed_chunk=Override(10, 0))
+    with pytest.raises(UserError, match=r"^cell overrides: max_steps: Override\(client=500, cell=500\) is not a value that differs"):
+        CellOverrides(max_steps=Override(500, 500))
 
 
 def test_a_stamp_is_read_once_typed_and_a_malformed_one_is_refused_naming_file_and_field(tmp_path):

@@ -30,8 +30,11 @@ statistics the calibration cannot collect is refused here, naming it.
 
 `CellConfig` holds everything that changes an episode's outcome; its canonical JSON is hashed
 (`config_hash`) and names the cell's output folder, so two cells share a folder exactly when they
-would produce the same records. Of the runner's env settings it holds only those its benchmark declares
-(`envs.registry.Benchmark.settings`; `cell_runner`): one the env never reads cannot split two cells' folders. Every field is checked against the registries (benchmarks and
+would produce the same records. Its env settings are its benchmark's declared settings dataclass
+(`envs.registry.Benchmark.settings`), filled from the config's runner sections where they set them, else its model's
+client, else the declared defaults (`envs.benchmark_settings`): a setting the env never reads cannot split two cells'
+folders, and a benchmark's new setting needs no change here. The canonical form keeps them in `runner`, beside the
+policy's options, so that hashes stay those of cells recorded before the two were typed apart (`cell_runner`). Every field is checked against the registries (benchmarks and
 suites, models, presets, methods, subsets, and the subset patterns against the model's committed
 layer-name index) before any work starts, and without importing torch: the workflow builds the DAG
 from these configs.
@@ -47,8 +50,8 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from vlaquantbench.config import validate
-from vlaquantbench.config.study import ENV_SETTINGS, RunnerConfig, StudyConfig
-from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_settings, check_step_limit
+from vlaquantbench.config.study import RUNNER_OPTIONS, RunnerConfig, StudyConfig
+from vlaquantbench.envs import BENCHMARK_SUITES, benchmark_settings, check_ids, check_settings, check_step_limit
 from vlaquantbench.envs.registry import get_benchmark
 from vlaquantbench.envs.episodes import RUN_SEED_STRIDE
 from vlaquantbench.errors import UserError
@@ -206,6 +209,55 @@ class SequentialSpec:
 
 
 @dataclass(frozen=True)
+class Override:
+    """A cell value that differs from its model's released client: the client's and the cell's."""
+
+    client: Any
+    cell: Any
+
+
+@dataclass(frozen=True)
+class CellOverrides:
+    """The values of a cell that differ from its model's released client conventions (`models.client`): each of
+    the client's runner options and env settings (`ClientConventions.runner`), its episodes per task and its step
+    limit; None where the cell keeps the client's (absent from the canonical form, which is what `as_dict` gives and
+    what the hash covers). Each value satisfies the config schema's rule of the field it stands for, checked when it
+    is built or read back."""
+
+    executed_chunk: Override | None = None
+    control_mode: Override | None = None
+    mujoco: Override | None = None
+    episodes_per_task: Override | None = None
+    max_steps: Override | None = None
+
+    def __post_init__(self):
+        for key, override in self.given().items():
+            if not isinstance(override, Override) or override.client == override.cell:
+                raise UserError(f"cell overrides: {key}: {override!r} is not a value that differs from the client's")
+            for side in ("client", "cell"):
+                where = f"cell overrides: {key}.{side}"
+                if key == "episodes_per_task":
+                    validate(getattr(override, side), "config", where, subschema=("study", "episodes_per_task"))
+                else:  # a runner option, or an env setting (any scalar: its benchmark's declaration checks it)
+                    validate({key: getattr(override, side)}, "config", where, subschema=("study", "runner"))
+
+    def given(self) -> dict[str, Override]:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
+
+    def as_dict(self) -> dict[str, dict[str, Any]]:
+        """The canonical form: {key: {client, cell}} of the values that differ."""
+        return {key: asdict(override) for key, override in self.given().items()}
+
+    @classmethod
+    def from_dict(cls, raw: dict[str, dict[str, Any]], where: str) -> CellOverrides:
+        known = [f.name for f in dataclasses.fields(cls)]
+        unknown = sorted(set(raw) - set(known))
+        if unknown:
+            raise UserError(f"{where}: overrides: {', '.join(unknown)} is not a value a client sets ({', '.join(known)})")
+        return cls(**{key: Override(**value) for key, value in raw.items()})
+
+
+@dataclass(frozen=True)
 class PolicyRunConfig:
     """What a cell and its calibration episodes share: where they run and the policy's weights."""
 
@@ -234,11 +286,13 @@ class CellConfig(PolicyRunConfig):
     seed: int
     tasks: tuple[int, ...]
     episodes_per_task: int
+    # Its benchmark's env settings: an instance of the settings dataclass the benchmark declares.
+    env: Any
     runner: RunnerConfig = field(default_factory=RunnerConfig)
     # The model's released client conventions (`models.client`) and every value of this cell that
-    # differs from them ({key: {client, cell}}): recorded, never silent.
+    # differs from them: recorded, never silent.
     client: ClientConventions | None = None
-    overrides: dict[str, Any] = field(default_factory=dict)
+    overrides: CellOverrides = field(default_factory=CellOverrides)
     # study.sequential's stopping rule and the cell it is tested against ({ref, config_hash}, whose records
     # the rollout reads); None (absent from the canonical form, so fixed-design hashes are unchanged) for
     # a fixed-design cell and for the `against` cell itself.
@@ -253,7 +307,7 @@ class CellConfig(PolicyRunConfig):
         _check_registries(ref, benchmark, suite, model, fields["preset"], quantizer_method(fields["method"]))
         if model not in study.models:
             raise UserError(f"cell {ref!r}: model {model!r} is not in study.models ({', '.join(study.models) or 'none'})")
-        _check_settings(ref, benchmark, model, study)
+        _check_settings(ref, benchmark, model, study)  # as the config gives them, before a trained checkpoint's own
         weights = study.models[model]
         if weights.trained is not None:  # checkpoint, revision, input size and chunk from its training.json
             weights = trained_weights(model, weights)
@@ -263,14 +317,14 @@ class CellConfig(PolicyRunConfig):
             adapter_conventions(model, benchmark)  # refused now where its client never ran there (not hashed)
         except UserError as err:
             raise UserError(f"cell {ref!r}: {err}") from None
-        runner = cell_runner(f"cell {ref!r}", benchmark, _runner(study.runner, weights.runner, client, fields["flow_steps"], released_limit))
+        runner, env = _runner(ref, benchmark, model, study, weights.runner, client, fields["flow_steps"], released_limit)
         episodes, _ = episodes_per_task(study, model, benchmark)
         only, exclude = _subset_patterns(ref, model, fields["scope"], fields["subset"])
         seed = study.seed + fields["seed_offset"]
         calibration = _calibration(ref, fields, study, seed)
         _check_fits_suite(ref, benchmark, suite, model, study, episodes, calibration, fields)
-        _check_mujoco(ref, model, study, client, runner)
-        _check_steps(ref, benchmark, suite, model, study, runner)
+        _check_mujoco(ref, benchmark, model, study, client, env)
+        _check_steps(ref, benchmark, suite, model, study, runner, env)
         return cls(
             ref=ref,
             cell=name,
@@ -290,11 +344,17 @@ class CellConfig(PolicyRunConfig):
             seed=seed,
             tasks=tuple(study.task_ids),
             episodes_per_task=episodes,
+            env=env,
             runner=runner,
             client=client,
-            overrides=_overrides(benchmark, client, runner, episodes, released_limit),
+            overrides=_overrides(client, runner, env, episodes, released_limit),
             sequential=_sequential(ref, benchmark, suite, model, spelled, study, seed),
         )
+
+    def __post_init__(self):
+        declared = get_benchmark(self.benchmark).settings
+        if not isinstance(self.env, declared):
+            raise UserError(f"cell {self.ref!r}: env settings {self.env!r} are not {self.benchmark}'s ({declared.__name__})")
 
     def to_dict(self) -> dict[str, Any]:
         cfg = asdict(self)
@@ -303,8 +363,8 @@ class CellConfig(PolicyRunConfig):
                 del cfg["calibration"][optional]
         if cfg["sequential"] is None:
             del cfg["sequential"]
-        for setting in undeclared_settings(self.benchmark):  # None: its benchmark takes no such setting
-            del cfg["runner"][setting]
+        cfg["runner"] = {**cfg["runner"], **cfg.pop("env")}  # one section, as cells have always been hashed
+        cfg["overrides"] = self.overrides.as_dict()
         return canonical(cfg)
 
     @classmethod
@@ -314,10 +374,12 @@ class CellConfig(PolicyRunConfig):
 
         calibration = None if cfg["calibration"] is None else CellCalibration.from_dict(cfg["calibration"])
         sequential = cfg.get("sequential")
+        where = f"cell {cfg['ref']!r}"
+        runner, env = cell_runner(where, cfg["benchmark"], cfg["runner"])
         return cls(**{**cfg, "only": tuple_or_none(cfg["only"]), "exclude": tuple_or_none(cfg["exclude"]),
-                      "tasks": tuple(cfg["tasks"]), "calibration": calibration,
-                      "runner": cell_runner(f"cell {cfg['ref']!r}", cfg["benchmark"], RunnerConfig(**cfg["runner"])),
+                      "tasks": tuple(cfg["tasks"]), "calibration": calibration, "runner": runner, "env": env,
                       "client": ClientConventions(**cfg["client"]),
+                      "overrides": CellOverrides.from_dict(cfg["overrides"], where),
                       "sequential": None if sequential is None else SequentialSpec.from_dict(sequential)})
 
     def under_current_client(self) -> CellConfig:
@@ -325,7 +387,7 @@ class CellConfig(PolicyRunConfig):
         its overrides taken against them; what runs (runner, episodes) is unchanged, so its records stay its own."""
         client = client_conventions(self.model, self.benchmark)
         released_limit = step_limit(self.model, self.benchmark, self.suite)
-        return dataclasses.replace(self, client=client, overrides=_overrides(self.benchmark, client, self.runner,
+        return dataclasses.replace(self, client=client, overrides=_overrides(client, self.runner, self.env,
                                                                               self.episodes_per_task, released_limit))
 
     @property
@@ -345,12 +407,12 @@ class CalibrationConfig(PolicyRunConfig):
 
     calibration: CellCalibration
     runner: RunnerConfig
+    env: Any  # its benchmark's env settings, as its cells' (`CellConfig.env`)
 
     @classmethod
     def from_dict(cls, cfg: dict[str, Any]) -> CalibrationConfig:
-        return cls(**{**cfg, "calibration": CellCalibration.from_dict(cfg["calibration"]),
-                      "runner": cell_runner(f"calibration of {cfg['model']}", cfg["benchmark"],
-                                                RunnerConfig(**cfg["runner"]))})
+        runner, env = cell_runner(f"calibration of {cfg['model']}", cfg["benchmark"], cfg["runner"])
+        return cls(**{**cfg, "calibration": CellCalibration.from_dict(cfg["calibration"]), "runner": runner, "env": env})
 
     @property
     def name(self) -> str:
@@ -379,43 +441,60 @@ def _sequential(ref: str, benchmark: str, suite: str, model: str, name: str, stu
     return SequentialSpec(design.alpha, design.margin_pp, AgainstCell(against, against_cell.config_hash))
 
 
-def _runner(study: RunnerConfig, model: dict[str, Any], client, flow_steps: int | None, released_limit: int) -> RunnerConfig:
-    """The study's runner, then the model's own settings, then the client's conventions (and its step limit on
-    the cell's suite) where unset."""
-    values = {**asdict(study), **model}
+def _runner(ref: str, benchmark: str, model: str, study: StudyConfig, model_runner: dict[str, Any], client,
+            flow_steps: int | None, released_limit: int) -> tuple[RunnerConfig, Any]:
+    """The cell's runner options and env settings: the study's runner, then the model's own settings, then the
+    client's conventions (and its step limit on the cell's suite) where unset; env settings as the benchmark
+    declares them (`envs.benchmark_settings`), its defaults where neither the config nor the client sets one."""
+    model_options, model_env = RunnerConfig.split(model_runner)
+    values = {**asdict(study.runner), **model_options}
     for key, value in {**client.runner(), "max_steps": released_limit}.items():
-        if values[key] is None:
+        if key in values and values[key] is None:
             values[key] = value
     if flow_steps is not None:
         values["flow_steps"] = flow_steps
-    return RunnerConfig(**values)
+    given = {**study.env_settings, **model_env}
+    try:
+        _check_declared(benchmark)
+        env = benchmark_settings(benchmark, given, {name: _runner_field(study, model, benchmark, name) for name in given},
+                                 conventions=client.runner())
+    except UserError as err:
+        raise UserError(f"cell {ref!r}: {err}") from None
+    return RunnerConfig(**values), env
 
 
-def _overrides(benchmark: str, client, runner: RunnerConfig, episodes: int, released_limit: int) -> dict[str, dict[str, Any]]:
-    """The cell values that differ from the model's released client: {key: {client, cell}}; a convention for an
-    env setting the benchmark does not take (`undeclared_settings`) is none of the cell's."""
-    taken = [k for k in client.runner() if k not in undeclared_settings(benchmark)]
-    cell = {**{k: getattr(runner, k) for k in taken}, "episodes_per_task": episodes, "max_steps": runner.max_steps}
+def _overrides(client, runner: RunnerConfig, env: Any, episodes: int, released_limit: int) -> CellOverrides:
+    """The cell values that differ from the model's released client; a convention for an env setting the cell's
+    benchmark does not declare is none of the cell's."""
+    settings = {f.name for f in dataclasses.fields(env)}
+    cell = {k: getattr(runner if k in RUNNER_OPTIONS else env, k) for k in client.runner() if k in RUNNER_OPTIONS | settings}
+    cell |= {"episodes_per_task": episodes, "max_steps": runner.max_steps}
     released = {**client.runner(), "episodes_per_task": client.episodes_per_task, "max_steps": released_limit}
-    return {k: {"client": released[k], "cell": cell[k]} for k in cell if cell[k] != released[k]}
+    return CellOverrides(**{k: Override(client=released[k], cell=cell[k]) for k in cell if cell[k] != released[k]})
 
 
-def undeclared_settings(benchmark: str) -> tuple[str, ...]:
-    """The runner's env settings (`config.study.ENV_SETTINGS`) that `benchmark` does not declare."""
+def _check_declared(benchmark: str) -> None:
+    """A benchmark's env settings are named apart from the policy's runner options, with which they share a config
+    section and a cell's canonical `runner`: UserError naming the ones that are not."""
+    clashing = [name for name in get_benchmark(benchmark).setting_names if name in RUNNER_OPTIONS]
+    if clashing:
+        raise UserError(f"benchmark {benchmark!r} declares env setting(s) {', '.join(clashing)}, named like runner options "
+                        "(config.study.RunnerConfig), which share study.runner with them: rename them")
+
+
+def cell_runner(where: str, benchmark: str, runner: dict[str, Any]) -> tuple[RunnerConfig, Any]:
+    """A canonical `runner` (a cell's or a calibration's) read back: its runner options and its benchmark's env
+    settings (`where` names it in errors). Settings that another registered benchmark declares are dropped: cells
+    recorded before a cell carried only its benchmark's held every benchmark's (`vqb rehash` rewrites them)."""
+    _check_declared(benchmark)
+    options, settings = RunnerConfig.split(runner)
     declared = get_benchmark(benchmark).setting_names
-    return tuple(name for name in ENV_SETTINGS if name not in declared)
-
-
-def cell_runner(where: str, benchmark: str, runner: RunnerConfig) -> RunnerConfig:
-    """`runner` as a cell of `benchmark` carries it: the env settings the benchmark does not declare set to None,
-    so that neither its canonical form nor its hash holds a value its env never reads. UserError (`where` names the
-    cell) when the benchmark declares a setting the runner config lacks: no config could set it, and its value
-    would go unhashed."""
-    lacking = [name for name in get_benchmark(benchmark).setting_names if name not in ENV_SETTINGS]
-    if lacking:
-        raise UserError(f"{where}: benchmark {benchmark!r} declares env setting(s) {', '.join(lacking)}, which the runner "
-                        f"config does not carry (its env settings: {', '.join(ENV_SETTINGS)}; config.study.RunnerConfig)")
-    return dataclasses.replace(runner, **{name: None for name in undeclared_settings(benchmark)})
+    others = {name for other in BENCHMARK_SUITES for name in get_benchmark(other).setting_names} - set(declared)
+    given = {name: value for name, value in settings.items() if name not in others}
+    try:
+        return RunnerConfig(**options), benchmark_settings(benchmark, given, {name: f"runner.{name}" for name in given})
+    except UserError as err:
+        raise UserError(f"{where}: {err}") from None
 
 
 def _check_registries(ref: str, benchmark: str, suite: str, model: str, preset: str, method: str) -> None:
@@ -479,42 +558,50 @@ def episodes_per_task(study: StudyConfig, model: str, benchmark: str | None = No
     return client_conventions(model, benchmark).episodes_per_task, f"{model}'s client episodes_per_task"
 
 
-def _runner_field(study: StudyConfig, model: str, key: str) -> str:
+def _runner_field(study: StudyConfig, model: str, benchmark: str, key: str) -> str:
     """The config field a cell's `runner.<key>` comes from: the model's own runner, else the study's, else (unset in
-    both) the model's released client."""
+    both) the model's released client, or for an env setting the client does not set its benchmark's default."""
     if key in study.models[model].runner:
         return f"study.models.{model}.runner.{key}"
-    return f"study.runner.{key}" if getattr(study.runner, key) is not None else f"{model}'s client {key}"
+    if key in study.env_settings or getattr(study.runner, key, None) is not None:
+        return f"study.runner.{key}"
+    if key in RUNNER_OPTIONS or key in client_conventions(model, benchmark).runner():
+        return f"{model}'s client {key}"
+    return f"{benchmark}'s default {key}"
 
 
 def _check_settings(ref: str, benchmark: str, model: str, study: StudyConfig) -> None:
     """The env settings the config sets for this cell (`study.runner`, `study.models.<model>.runner`) are its
     benchmark's (`envs.check_settings`): one it does not declare would be silently unused, so it is refused now,
     naming the field, before any checkpoint or simulator starts."""
-    given = {key: f"study.runner.{key}" for key in study.runner_given}
-    given |= {key: f"study.models.{model}.runner.{key}" for key in study.models[model].runner}
+    given = {key: f"study.runner.{key}" for key in study.env_settings}
+    given |= {key: f"study.models.{model}.runner.{key}" for key in RunnerConfig.split(study.models[model].runner)[1]}
     try:
         check_settings(benchmark, given)
     except UserError as err:
         raise UserError(f"cell {ref!r}: {err}") from None
 
 
-def _check_steps(ref: str, benchmark: str, suite: str, model: str, study: StudyConfig, runner: RunnerConfig) -> None:
+def _check_steps(ref: str, benchmark: str, suite: str, model: str, study: StudyConfig, runner: RunnerConfig,
+                 env: Any) -> None:
     """An episode's steps fit the simulator's horizon (`envs.registry.SuiteSize.horizon`): one that outruns it dies inside
-    the simulator at the horizon's step, so a longer `max_steps` is refused now, naming the field."""
+    the simulator at the horizon's step, so a longer `max_steps` is refused now, naming the field. A benchmark whose
+    env settles declares `settle_steps`, which count."""
     try:
-        check_step_limit(_runner_field(study, model, "max_steps"), runner.max_steps, benchmark, suite,
-                         runner.settle_steps or 0, _runner_field(study, model, "settle_steps"))
+        check_step_limit(_runner_field(study, model, benchmark, "max_steps"), runner.max_steps, benchmark, suite,
+                         getattr(env, "settle_steps", 0), _runner_field(study, model, benchmark, "settle_steps"))
     except UserError as err:
         raise UserError(f"cell {ref!r}: {err}") from None
 
 
-def _check_mujoco(ref: str, model: str, study: StudyConfig, client, runner: RunnerConfig) -> None:
+def _check_mujoco(ref: str, benchmark: str, model: str, study: StudyConfig, client, env: Any) -> None:
     """A model's cells run in its software environment, which installs its client's MuJoCo pin; any other
-    `runner.mujoco` would be refused when the simulator starts, so it is refused now."""
-    if runner.mujoco != client.mujoco:
-        field = _runner_field(study, model, "mujoco")
-        raise UserError(f"cell {ref!r}: {field}: {runner.mujoco!r}, but {model} cells run on MuJoCo {client.mujoco}, the "
+    `mujoco` setting (of a benchmark that declares one) would be refused when the simulator starts, so it is
+    refused now."""
+    pinned = getattr(env, "mujoco", client.mujoco)
+    if pinned != client.mujoco:
+        field = _runner_field(study, model, benchmark, "mujoco")
+        raise UserError(f"cell {ref!r}: {field}: {pinned!r}, but {model} cells run on MuJoCo {client.mujoco}, the "
                         "pin of their software environment (vlaquantbench.software_env)")
 
 

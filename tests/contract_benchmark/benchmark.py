@@ -3,7 +3,7 @@ placements each, its own horizon and step limit, one camera, its env settings an
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from vlaquantbench.envs.registry import Benchmark, Horizon, SuiteSize, register_benchmark
 
@@ -12,6 +12,7 @@ SUITE = "contract_reach"
 HORIZON_STEPS = 60  # the worker refuses a step beyond it, as Meta-World refuses past max_path_length
 STEP_LIMIT = 40  # policy steps before an unfinished episode fails, whatever the model
 CAMERA_SIZE = 48
+SUCCESS_RADIUS = 0.05  # metres: an episode succeeds once the hand is this close to the goal
 ACTION_DIM = 4  # Meta-World's: xyz and a gripper entry (ignored)
 STATE_DIM = 4  # hand xyz and the gripper (always 0): Meta-World's first four entries
 
@@ -22,6 +23,8 @@ class ContractSettings:
 
     camera_size: int | None = CAMERA_SIZE  # the `main` camera, square, in pixels; None: no image rendered
     mujoco: str | None = None  # the MuJoCo version the cell must run on (None: the software environment's pin)
+    # A setting of its own, which no runner option names: a config sets it as `study.runner.success_radius`.
+    success_radius: float = field(default=SUCCESS_RADIUS, metadata={"schema": {"exclusiveMinimum": 0}})
 
 
 CONTRACT = register_benchmark(Benchmark(

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from contract_benchmark.benchmark import ACTION_DIM, CAMERA_SIZE, NAME
+from contract_benchmark.benchmark import ACTION_DIM, CAMERA_SIZE, NAME, SUCCESS_RADIUS
 from contract_benchmark.suite import ContractSuite
 from contract_benchmark.worker import EpisodeStart
 from vlaquantbench.envs.episodes import EpisodeSpec
@@ -31,18 +31,22 @@ class ContractVectorEnv(WorkerVectorEnv):
     worker_error = ContractWorkerError
 
     def __init__(self, suite: str | ContractSuite, num_envs: int, *, camera_size: int | None = CAMERA_SIZE,
-                 mujoco: str | None = None, reply_timeout_s: float = REPLY_TIMEOUT_S):
+                 mujoco: str | None = None, success_radius: float = SUCCESS_RADIUS,
+                 reply_timeout_s: float = REPLY_TIMEOUT_S):
         check_worker_settings(num_envs, reply_timeout_s)
         if camera_size is not None and camera_size < 1:
             raise UserError(f"camera_size must be a positive number of pixels or None (no image), got {camera_size}")
+        if not success_radius > 0:
+            raise UserError(f"success_radius must be a positive distance in metres, got {success_radius}")
         self.suite = suite if isinstance(suite, ContractSuite) else ContractSuite(suite)
         self.versions = simulator_versions(pinned=mujoco)
         self.camera_size = camera_size
+        self.success_radius = success_radius
         self.reply_timeout_s = reply_timeout_s
         self._start_workers(num_envs)
 
     def _worker_args(self) -> list[str]:
-        return [str(self.camera_size or 0)]
+        return [str(self.camera_size or 0), repr(float(self.success_radius))]
 
     def _load_payload(self, task_id: int) -> str:
         return self.suite.task(task_id).name

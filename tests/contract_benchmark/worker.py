@@ -1,9 +1,9 @@
 """One contract scene in its own interpreter, driven by ContractVectorEnv over a socket (`envs.workers.serve`).
 
-ContractVectorEnv starts it as `main([FD, CAMERA_SIZE])` (0: render no image). The scene is MuJoCo XML written
+ContractVectorEnv starts it as `main([FD, CAMERA_SIZE, SUCCESS_RADIUS])` (camera 0: render no image). The scene is MuJoCo XML written
 here: a sphere ("hand") on three slide joints with position actuators, no gravity, and a goal site. An action is
 Meta-World's: xyz moves the actuators' target by `ACTION_SCALE` per unit (clipped to [-1, 1]), the fourth
-(gripper) entry is ignored. Success: the hand within `SUCCESS_RADIUS` of the goal."""
+(gripper) entry is ignored. Success: the hand within the success radius (the benchmark's env setting) of the goal."""
 
 from __future__ import annotations
 
@@ -43,7 +43,6 @@ SCENE = """
 """.format(x=HAND_START[0], y=HAND_START[1], z=HAND_START[2])
 ACTION_SCALE = 0.02  # metres of target motion per unit action (Meta-World moves its mocap 0.01)
 SUBSTEPS = 10  # physics steps per policy step (0.02 s)
-SUCCESS_RADIUS = 0.05
 
 
 @dataclass(frozen=True)
@@ -55,11 +54,12 @@ class EpisodeStart:
 
 
 class SlotScene:
-    def __init__(self, camera_size: int | None):
+    def __init__(self, camera_size: int | None, success_radius: float):
         import mujoco
 
         self.mujoco = mujoco
         self.camera_size = camera_size
+        self.success_radius = success_radius
         self.model = mujoco.MjModel.from_xml_string(SCENE)
         self.data = mujoco.MjData(self.model)
         self.renderer = mujoco.Renderer(self.model, camera_size, camera_size) if camera_size else None
@@ -99,7 +99,7 @@ class SlotScene:
             self.mujoco.mj_step(self.model, self.data, nstep=SUBSTEPS)
             self.steps += 1
             applied += 1
-            success = bool(np.linalg.norm(self.hand - self.goal) < SUCCESS_RADIUS)
+            success = bool(np.linalg.norm(self.hand - self.goal) < self.success_radius)
             if success:
                 break
         return self._observation(), applied, success
@@ -128,10 +128,10 @@ class SlotScene:
 def main(argv: list[str]) -> None:
     become_worker()
     os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; set before MuJoCo loads
-    fd, camera_size = (int(arg) for arg in argv[:2])
+    fd, camera_size, success_radius = int(argv[0]), int(argv[1]), float(argv[2])
 
     def open_simulator():
-        scene = SlotScene(camera_size or None)
+        scene = SlotScene(camera_size or None, success_radius)
         return {"load": scene.load, "reset": scene.start, "step": scene.step, "chunk": scene.chunk}, scene.close
 
     serve(Connection(fd), open_simulator)

@@ -26,7 +26,7 @@ from pathlib import Path
 import vlaquantbench
 from vlaquantbench.cells import (CalibrationConfig, CellConfig, calibration_config, cell_config, checkpoint_key,
                                  checkpoint_request, config_hash)
-from vlaquantbench.config import field_schema, integer_option, load_workflow_config
+from vlaquantbench.config import field_schema, integer_option, load_workflow_config, workflow_config_name
 from vlaquantbench.config.study import ExecutionConfig, StudyConfig
 from vlaquantbench.envs.memory import affordable_workers
 from vlaquantbench.errors import UserError
@@ -64,7 +64,7 @@ def project_root() -> Path:
 def run(args: argparse.Namespace) -> int:
     # The whole file against the schema the Snakefile validates with, then the cell against the
     # registries: a misspelt or unknown key fails here, before any checkpoint or model is touched.
-    study = StudyConfig.from_dict(load_workflow_config(args.config).get("study"), args.config)
+    study = StudyConfig.from_dict(load_workflow_config(args.config).get("study"), workflow_config_name(args.config))
     cfg = cell_config(args.ref, study)
     project = args.results or project_root()
     out = project / CELLS_DIR / config_hash(cfg)

@@ -119,7 +119,13 @@ def load_workflow_config(path: str | Path, base: str | Path = WORKFLOW_CONFIG) -
     if not base.is_file() or base.resolve() == path.resolve():
         return load_yaml(path, "config")
     merged = _merge(_parse(base), _parse(path))
-    return validate(merged, "config", f"{path} (merged over {base})")
+    return validate(merged, "config", workflow_config_name(path, base))
+
+
+def workflow_config_name(path: str | Path, base: str | Path = WORKFLOW_CONFIG) -> str:
+    """How errors name the config `load_workflow_config(path, base)` gives: the file, and the base it was merged over."""
+    path, base = Path(path), Path(base)
+    return str(path) if not base.is_file() or base.resolve() == path.resolve() else f"{path} (merged over {base})"
 
 
 def _merge(config: dict[str, Any], overwrite: dict[str, Any]) -> dict[str, Any]:

@@ -12,6 +12,7 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 from vlaquantbench.config import validate
+from vlaquantbench.errors import UserError
 from vlaquantbench.sequential import DEFAULT_ALPHA, DEFAULT_MARGIN_PP
 
 
@@ -32,15 +33,11 @@ class ModelWeights:
     runner: dict[str, Any] = field(default_factory=dict)
 
 
-# Marks a runner option that is an env setting (`envs.registry.Benchmark.settings`): a cell carries, and hashes,
-# only the env settings its benchmark declares; its other ones are None (`cells.CellConfig`).
-ENV_SETTING = {"env_setting": True}
-
-
 @dataclass(frozen=True)
 class RunnerConfig:
-    """Runner options that change what an episode does, hence hashed into every cell: the policy's, and the env
-    settings (`ENV_SETTING`) of the cell's benchmark."""
+    """The policy's runner options that change what an episode does, hence hashed into every cell. The env
+    settings a config gives beside them (under the same `study.runner`) are each benchmark's own, declared by its
+    settings dataclass (`envs.registry.Benchmark.settings`) with their defaults: `StudyConfig.env_settings`."""
 
     device: str = "cpu"
     dtype: str = "float32"
@@ -48,20 +45,20 @@ class RunnerConfig:
     executed_chunk: int | None = None
     flow_steps: int = 10  # flow-matching integration steps (cell prefix steps<N> overrides)
     max_steps: int | None = None  # None: the model's step limit on the suite, resolved into the cell config (cells)
-    camera_size: int | None = field(default=256, metadata=ENV_SETTING)
-    settle_steps: int | None = field(default=10, metadata=ENV_SETTING)
     # auto | captured | eager (`models.adapter.resolve_sampler`); hashed because the captured and
     # eager samplers order floating-point operations differently, so actions can differ in the last bits.
     sampler: str = "auto"
-    # The arm controller ("delta" | "absolute", an env setting of benchmarks with one) and the MuJoCo version the cell must run on;
-    # None: the model's released client (X-VLA absolute and 3.1.6, the others delta and 3.3.2)
-    control_mode: str | None = field(default=None, metadata=ENV_SETTING)
-    mujoco: str | None = field(default=None, metadata=ENV_SETTING)
+
+    @staticmethod
+    def split(runner: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+        """A config's runner section as (its runner options, its env settings): a key that is no runner option is
+        an env setting, checked against each cell's benchmark's declaration when its cell is built."""
+        return ({k: v for k, v in runner.items() if k in RUNNER_OPTIONS},
+                {k: v for k, v in runner.items() if k not in RUNNER_OPTIONS})
 
 
-# The runner options that are env settings, in field order.
-ENV_SETTINGS = tuple(f.name for f in fields(RunnerConfig) if f.metadata.get("env_setting"))
-
+# The policy's runner options: every other key of a runner section is an env setting.
+RUNNER_OPTIONS = frozenset(f.name for f in fields(RunnerConfig))
 
 @dataclass(frozen=True)
 class CalibrationProtocol:
@@ -135,9 +132,10 @@ class StudyConfig:
     tables_dir: str | None = None
     # name -> the cell name a cell `[seed<N>-][steps<N>-]alloc-<name>` stands for (`cells.resolve_allocation`)
     allocations: dict[str, str] = field(default_factory=dict)
-    # The runner options the config's `study.runner` names itself (the others are defaults): a cell refuses
-    # those that are another benchmark's env settings (`envs.check_settings`). Derived, not a config key.
-    runner_given: tuple[str, ...] = field(default=(), compare=False, metadata={"derived": "study.runner's keys"})
+    # The env settings `study.runner` gives (its keys that are no runner option): each cell takes them as its
+    # benchmark's declared settings, and refuses one its benchmark does not declare (`cells.CellConfig.from_ref`).
+    # Derived from study.runner, not a config key of its own.
+    env_settings: dict[str, Any] = field(default_factory=dict, metadata={"derived": "study.runner's env settings"})
 
     @classmethod
     def from_dict(cls, raw: dict[str, Any] | None, where: str = "study") -> StudyConfig:
@@ -146,12 +144,16 @@ class StudyConfig:
         validate(raw, "config", where, subschema=("study",))
         tasks = raw.pop("tasks", cls.tasks)
         sequential = raw.pop("sequential", None)
-        runner = raw.pop("runner", {})
+        runner, env_settings = RunnerConfig.split(raw.pop("runner", {}))
+        _check_runner_keys(env_settings, "study.runner", where)
+        models = raw.pop("models", {})
+        for name, weights in models.items():
+            _check_runner_keys(RunnerConfig.split(weights.get("runner", {}))[1], f"study.models.{name}.runner", where)
         return cls(
-            models={name: ModelWeights(**weights) for name, weights in raw.pop("models", {}).items()},
+            models={name: ModelWeights(**weights) for name, weights in models.items()},
             tasks=tasks if isinstance(tasks, int) else tuple(sorted(set(tasks))),
             runner=RunnerConfig(**runner),
-            runner_given=tuple(sorted(runner)),
+            env_settings=env_settings,
             calibration=_calibration_protocol(raw.pop("calibration", {})),
             execution=ExecutionConfig(**raw.pop("execution", {})),
             sequential=None if sequential is None else SequentialConfig(**sequential),
@@ -162,6 +164,21 @@ class StudyConfig:
     def task_ids(self) -> list[int]:
         return list(range(self.tasks)) if isinstance(self.tasks, int) else list(self.tasks)
 
+
+
+def _check_runner_keys(settings: dict[str, Any], field: str, where: str) -> None:
+    """A runner section's keys beyond the runner options are env settings of some registered benchmark (which
+    cells take one is checked when each is built): a key none declares, a misspelt one, is refused now, naming it and
+    the allowed keys, as the schema names a misspelt key of a closed section (it cannot list the settings of
+    benchmarks registered from outside the package)."""
+    from vlaquantbench.envs.registry import BENCHMARK_SUITES, get_benchmark
+
+    declared = {name: get_benchmark(name).setting_names for name in BENCHMARK_SUITES}
+    unknown = [key for key in settings if not any(key in names for names in declared.values())]
+    if unknown:
+        raise UserError(f"{where}: {field}: unknown key {', '.join(map(repr, unknown))}; allowed keys: "
+                        f"{', '.join(sorted(RUNNER_OPTIONS))}, and a benchmark's env settings ("
+                        + "; ".join(f"{name}: {', '.join(names)}" for name, names in declared.items()) + ")")
 
 
 def _calibration_protocol(raw: dict[str, Any]) -> CalibrationProtocol:

@@ -4,8 +4,9 @@
 importing a simulator, so cell references, task ids and episode counts are checked while the workflow builds
 the DAG (each benchmark's tests compare the sizes with the simulator's own lists). `make_suite` and `make_env` build a benchmark's suite and its batched worker env
 (`envs.workers.WorkerVectorEnv`: reset a slot, submit a chunk, collect, release) from the benchmark's
-name, importing only that benchmark's simulator; `env_settings` fills a cell's env settings (the typed
-dataclass its benchmark declares) from its runner config, `check_settings` refuses a setting that a config
+name, importing only that benchmark's simulator; `benchmark_settings` builds a cell's env settings (the typed
+dataclass its benchmark declares) from what its config gives, checked against that declaration, and
+`env_settings` turns them into its env's arguments; `check_settings` refuses a setting that a config
 gives for a benchmark that does not declare it, and `simulator_versions` reads (and checks) what a cell header records of the simulator.
 The closed-loop runner, rollout calibration and replay recording take their suites, episode specs,
 step limits (`SuiteTasks.max_steps`) and envs from here only.
@@ -23,7 +24,7 @@ import inspect
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
-from vlaquantbench.envs.registry import BENCHMARK_SUITES, get_benchmark
+from vlaquantbench.envs.registry import BENCHMARK_SUITES, get_benchmark, settings_schema
 from vlaquantbench.errors import UserError
 
 if TYPE_CHECKING:
@@ -79,38 +80,58 @@ def _settings(env_class: type) -> list[str]:
             if parameter.kind is inspect.Parameter.KEYWORD_ONLY]
 
 
-def env_settings(benchmark: str, runner: Any, reads_images: bool = True) -> dict[str, Any]:
-    """The env settings of a cell of `benchmark`: its declared settings dataclass (`envs.registry.Benchmark.settings`)
-    filled from the cell's runner config (`config.study.RunnerConfig`) where that carries a field of the same name,
-    the declared default elsewhere; a runner option the benchmark does not declare is not passed on (one that a
-    config sets for it is refused while the DAG is built: `check_settings`). A policy that reads no image
-    (`reads_images`) gets none rendered (camera_size None)."""
-    declared = get_benchmark(benchmark).settings
-    typed = declared(**{f.name: getattr(runner, f.name) for f in dataclasses.fields(declared) if hasattr(runner, f.name)})
-    settings = {f.name: getattr(typed, f.name) for f in dataclasses.fields(typed)}
-    if not reads_images and "camera_size" in settings:
-        settings["camera_size"] = None
-    return settings
+def benchmark_settings(benchmark: str, given: Mapping[str, Any], fields: Mapping[str, str],
+                       conventions: Mapping[str, Any] | None = None) -> Any:
+    """The env settings of a cell (or a recording) of `benchmark`: its declared settings dataclass
+    (`envs.registry.Benchmark.settings`) with the values `given` (setting -> value, each set by the config field
+    `fields[setting]`), then `conventions` (a model's released client's, e.g. its controller mode and MuJoCo pin)
+    for the declared settings not given, the declared default elsewhere; conventions for settings it does not
+    declare are none of its cells'. UserError naming the field and the benchmark, before any simulator starts, for
+    a setting it does not declare (`check_settings`) or a value its declaration does not admit (`settings_schema`)."""
+    from jsonschema import Draft202012Validator
+
+    check_settings(benchmark, {name: fields[name] for name in given})
+    declared = get_benchmark(benchmark)
+    rules = settings_schema(declared.settings, benchmark)
+    for name, value in given.items():
+        problems = [error.message for error in Draft202012Validator(rules[name]).iter_errors(value)]
+        if problems:
+            raise UserError(f"{fields[name]}: {'; '.join(problems)} ({benchmark}'s env setting {name}: {rules[name]})")
+    taken = {name: value for name, value in (conventions or {}).items() if name in declared.setting_names}
+    return declared.settings(**{**taken, **given})
+
+
+def env_settings(settings: Any, reads_images: bool = True) -> dict[str, Any]:
+    """The keyword arguments of a cell's vector env (`make_env`): its typed env settings (`benchmark_settings`),
+    except that a policy that reads no image (`reads_images`) gets none rendered (camera_size None)."""
+    values = {f.name: getattr(settings, f.name) for f in dataclasses.fields(settings)}
+    if not reads_images and "camera_size" in values:
+        values["camera_size"] = None
+    return values
 
 
 def check_settings(benchmark: str, given: Mapping[str, str]) -> None:
-    """Refuse env settings a config sets for a cell of `benchmark` that it does not declare. `given`: each runner
-    option the config names -> the config field that names it (e.g. `study.runner.settle_steps`). An option that
-    some registered benchmark declares as an env setting but `benchmark` does not would be silently unused by its
-    env: UserError `<field>: ...` naming the setting, the benchmark and the settings it takes. Runner options no
-    benchmark declares (the policy's: device, executed_chunk, ...) pass."""
-    env_names = {name for other in BENCHMARK_SUITES for name in get_benchmark(other).setting_names}
+    """Refuse env settings a config sets for a cell of `benchmark` that it does not declare. `given`: each env
+    setting the config names (a runner option that is no policy option, `config.study.RunnerConfig`) -> the config
+    field that names it (e.g. `study.runner.settle_steps`). One `benchmark` does not declare would be silently
+    unused by its env: UserError `<field>: ...` naming the setting, the benchmark, the settings it takes and the
+    benchmarks that take it, if any."""
     declared = get_benchmark(benchmark).setting_names
-    refused = [name for name in given if name in env_names and name not in declared]
+    refused = [name for name in given if name not in declared]
     if refused:
         takers = {name: [other for other in BENCHMARK_SUITES if name in get_benchmark(other).setting_names]
                   for name in refused}
+
+        def whose(name: str) -> str:
+            return f"{name} is {'/'.join(takers[name])}'s" if takers[name] else f"no registered benchmark takes {name}"
+
+        elsewhere = sorted({t for ts in takers.values() for t in ts})
         raise UserError("; ".join(
             f"{given[name]}: {name!r} is not an env setting of {benchmark} (it takes {', '.join(declared) or 'none'}; "
-            f"{name} is {'/'.join(takers[name])}'s)" for name in refused)
+            f"{whose(name)})" for name in refused)
             + "; remove it" + (f", or set it under study.models.<model>.runner for the models whose cells run on "
-                               f"{'/'.join(sorted({t for ts in takers.values() for t in ts}))} only"
-                               if any(given[name].startswith("study.runner.") for name in refused) else ""))
+                               f"{'/'.join(elsewhere)} only"
+                               if elsewhere and any(given[name].startswith("study.runner.") for name in refused) else ""))
 
 
 def simulator_versions(benchmark: str, pinned: str | None = None) -> dict[str, Any]:

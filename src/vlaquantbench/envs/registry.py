@@ -13,9 +13,12 @@ variable `VQB_BENCHMARKS` names its declaration module (comma-separated "package
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib
 import os
 import pkgutil
+import types
+import typing
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -75,11 +78,14 @@ class Benchmark:
     `cameras` says what its observations show: camera role ("main", and "wrist" where there is one) -> the
     observation key of that image (beside `state` and `instruction`, which every benchmark's observation has).
     `settings` is its env settings' frozen dataclass (light: no simulator import): each field a keyword-only
-    parameter of its vector env class of the same name, with the env's default. `action_dim` and `state_dim` are
+    parameter of its vector env class of the same name, with the env's default, annotated with the types a config
+    may give it (int, float, str, bool, None, a Literal, or a union of them), and optionally further JSON-schema rules
+    in its metadata (`field(metadata={"schema": {"minimum": 0}})`). `action_dim` and `state_dim` are
     the sizes of the action its env steps with and of the `state` its observations carry (what a replay's probe
-    keeps of a policy's padded chunk, and what a scripted expert's names cover). A cell's runner config fills
-    the fields it carries (`envs.env_settings`); a config that sets one of another benchmark's settings for
-    this benchmark's cells is refused, naming it (`envs.check_settings`). `scripted_expert` is the expert whose
+    keeps of a policy's padded chunk, and what a scripted expert's names cover). A config sets a setting under
+    `study.runner` or `study.models.<model>.runner` by its name, checked against this dataclass (`settings_schema`)
+    and taken only into the cells of the benchmarks that declare it (`envs.benchmark_settings`); a setting this
+    benchmark does not declare is refused for its cells, naming it (`envs.check_settings`). `scripted_expert` is the expert whose
     demonstrations a policy can be trained on; None: the benchmark has none, and a config asking for its
     demonstrations is refused."""
 
@@ -110,6 +116,46 @@ class Benchmark:
         return getattr(importlib.import_module(module), attribute)
 
 
+# JSON-schema types of the annotations a setting may carry: what a YAML config can give.
+_JSON_TYPES = {int: "integer", float: "number", str: "string", bool: "boolean", type(None): "null"}
+
+
+@functools.cache
+def settings_schema(settings: type, benchmark: str) -> dict[str, dict[str, Any]]:
+    """Setting -> the JSON-schema rules of its values: its annotation's types (or a Literal's values) and its
+    metadata's "schema" rules. A config's values are validated against these as the YAML is against its schema
+    (`envs.benchmark_settings`). UserError naming the benchmark and setting for one without a default (a cell takes
+    the declared default where no config sets it), of a type a config cannot give, or whose default the rules refuse."""
+    from jsonschema import Draft202012Validator
+
+    hints = typing.get_type_hints(settings)
+    rules = {}
+    for setting in dataclasses.fields(settings):
+        where = f"benchmark {benchmark!r}: env setting {setting.name!r}"
+        if setting.default is dataclasses.MISSING:
+            raise UserError(f"{where} has no default: a cell whose config does not set it takes the declared default")
+        rules[setting.name] = {**_json_type(hints[setting.name], where), **setting.metadata.get("schema", {})}
+        if not Draft202012Validator(rules[setting.name]).is_valid(setting.default):
+            raise UserError(f"{where}: its default {setting.default!r} does not satisfy its rules {rules[setting.name]}")
+    return rules
+
+
+def _json_type(hint: Any, where: str) -> dict[str, Any]:
+    """The JSON-schema type (or enum) of annotation `hint`; UserError for one a YAML config cannot give."""
+    if typing.get_origin(hint) is typing.Literal:
+        return {"enum": list(typing.get_args(hint))}
+    members = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
+    if any(typing.get_origin(m) is typing.Literal for m in members):
+        literal = [v for m in members if typing.get_origin(m) is typing.Literal for v in typing.get_args(m)]
+        others = [m for m in members if typing.get_origin(m) is not typing.Literal]
+        return {"anyOf": [{"enum": literal}, *(_json_type(m, where) for m in others)]}
+    unknown = [m for m in members if m not in _JSON_TYPES]
+    if unknown:
+        raise UserError(f"{where}: type {hint} is not one a config can give (int, float, str, bool, None, a Literal, "
+                        "or a union of them)")
+    return {"type": [_JSON_TYPES[m] for m in members]}
+
+
 # The observation key of the robot state, in every benchmark's observations (`envs.workers.serve` replies).
 STATE = "state"
 CAMERA_ROLES = ("main", "wrist")
@@ -127,6 +173,7 @@ def register_benchmark(benchmark: Benchmark) -> Benchmark:
     if not (isinstance(benchmark.settings, type) and dataclasses.is_dataclass(benchmark.settings)):
         raise UserError(f"benchmark {benchmark.name!r}: settings {benchmark.settings!r} is not a dataclass (its env "
                         "settings, each field a keyword-only parameter of its vector env class)")
+    settings_schema(benchmark.settings, benchmark.name)  # every setting a config can give, its default admitted
     for what, dim in (("action_dim", benchmark.action_dim), ("state_dim", benchmark.state_dim)):
         if not isinstance(dim, int) or isinstance(dim, bool) or dim < 1:
             raise UserError(f"benchmark {benchmark.name!r}: {what} {dim!r} is not a positive integer")

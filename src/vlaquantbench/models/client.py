@@ -32,7 +32,9 @@ from vlaquantbench.errors import UserError
 class ClientConventions:
     """A released client's conventions. The runner options they set and the episodes per task satisfy the
     rules of `study.runner` and `study.episodes_per_task` in the config schema (the YAML values they stand
-    in for), checked when the conventions are built, in a model's client.py or read back from a cell config."""
+    in for), and the env settings they set (controller mode, MuJoCo pin) the declaration of every registered
+    benchmark that takes them (`envs.benchmark_settings`), checked when the conventions are built, in a model's
+    client.py or read back from a cell config."""
 
     executed_chunk: int  # actions executed per predicted chunk
     episodes_per_task: int
@@ -44,6 +46,12 @@ class ClientConventions:
     def __post_init__(self):
         where = f"client conventions ({self.source or 'no source'})"
         validate(self.runner(), "config", where, subschema=("study", "runner"))
+        from vlaquantbench.envs import BENCHMARK_SUITES, benchmark_settings
+        from vlaquantbench.envs.registry import get_benchmark
+
+        for benchmark in BENCHMARK_SUITES:
+            taken = {k: v for k, v in self.runner().items() if k in get_benchmark(benchmark).setting_names}
+            benchmark_settings(benchmark, taken, {k: f"{where}: study.runner.{k}" for k in taken})
         validate(self.episodes_per_task, "config", f"{where}: episodes_per_task", subschema=("study", "episodes_per_task"))
         if self.model_seed is not None and (not isinstance(self.model_seed, int) or isinstance(self.model_seed, bool)):
             raise UserError(f"{where}: model_seed: {self.model_seed!r} is not an integer or None")

@@ -16,14 +16,13 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from vlaquantbench.atomic import atomic_write, write_text
-from vlaquantbench.envs import env_settings, make_env, make_suite, simulator_versions
+from vlaquantbench.envs import benchmark_settings, env_settings, make_env, make_suite, simulator_versions
 from vlaquantbench.envs.episodes import EpisodeSpec
 from vlaquantbench.envs.registry import get_benchmark
 from vlaquantbench.envs.workers import WorkerVectorEnv
@@ -97,7 +96,9 @@ def record(settings: RecordSettings, records_json: str | Path, trajectories: lis
     # client's controller mode and MuJoCo pin, then what the study sets for its cells (e.g. a trained
     # checkpoint's camera size), the benchmark's declared defaults elsewhere.
     client = client_conventions(settings.model, settings.benchmark)
-    env_options = env_settings(settings.benchmark, SimpleNamespace(**{**client.runner(), **settings.runner}))
+    env_options = env_settings(benchmark_settings(settings.benchmark, settings.runner,
+                                                  {key: f"replay study runner.{key}" for key in settings.runner},
+                                                  conventions=client.runner()))
     simulator = simulator_versions(settings.benchmark, pinned=client.mujoco)
     max_steps = settings.max_steps or step_limit(settings.model, settings.benchmark, settings.suite)
     torch.set_num_threads(settings.threads)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from vlaquantbench.config import load_yaml
 from vlaquantbench.config.study import RunnerConfig
-from vlaquantbench.envs import BENCHMARK_SUITES, check_ids, check_settings
+from vlaquantbench.envs import BENCHMARK_SUITES, benchmark_settings, check_ids
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.subsets import get_subset
 from vlaquantbench.records.summary import read_summary
@@ -29,10 +29,11 @@ def load_definition(path: str | Path, kind: str, schema: str) -> dict:
 def load_study(path: str | Path) -> dict:
     """The replay study at `path` (its YAML); a configuration with a subset takes its scope and layer count from
     config/scopes.yaml. UserError naming `runner.<setting>` when the study sets an env setting its benchmark does
-    not declare (`envs.check_settings`)."""
+    not declare, or a value its declaration does not admit (`envs.benchmark_settings`)."""
     study = load_definition(path, "replay study", "replay_study")
     study.setdefault("runner", {})
-    check_settings(study["benchmark"], {key: f"replay study {str(path)!r}: runner.{key}" for key in study["runner"]})
+    benchmark_settings(study["benchmark"], study["runner"],
+                       {key: f"replay study {str(path)!r}: runner.{key}" for key in study["runner"]})
     for name, conf in study["configurations"].items():
         if conf["subset"] is not None:
             try:

@@ -67,7 +67,7 @@ def calibrate(
     max_steps = calib.runner.max_steps  # resolved with the cell when the DAG was built
     # exactly the statistics the cell's method declares; per-step ones on the flow steps the adapter clocks
     with settings.observe(layers, flow_clock(adapter.model)) as observer:
-        with make_env(calib.benchmark, suite, workers, **env_settings(calib.benchmark, calib.runner, adapter.reads_images)) as env:
+        with make_env(calib.benchmark, suite, workers, **env_settings(calib.env, adapter.reads_images)) as env:
             with tqdm(total=len(specs), desc=f"calibrate {calib.model} {calib.suite}", unit="ep",
                       disable=not progress) as bar:
                 run_episodes(adapter, env, specs, max_steps, on_finished=lambda records: bar.update(len(records)),

@@ -67,7 +67,7 @@ def load_policy(cfg: CellConfig | CalibrationConfig, stamp: CheckpointStamp | No
             f"{cfg.name}: adapter executes {adapter.executed_chunk} actions per chunk but the cell config "
             f"says {expected} (predicted {adapter.predicted_chunk})"
         )
-    mode = cfg.runner.control_mode  # None: the cell's benchmark has no controller mode to set
+    mode = getattr(cfg.env, "control_mode", None)  # None: the cell's benchmark has no controller mode to set
     if mode is not None and adapter.control_mode != mode:
         raise CellFailed(
             f"{cfg.name}: the policy's actions are {adapter.control_mode} end-effector poses but the "
@@ -165,7 +165,7 @@ class CellRun:
         num_envs = affordable_workers(max(1, min(self.num_envs, len(missing))), benchmark, self.cfg.suite,
                                       "study.execution.num_envs")
         # The adapter's class says whether the policy reads images (its instance is still loading).
-        settings = env_settings(benchmark, self.cfg.runner, self.policy_class.reads_images)
+        settings = env_settings(self.cfg.env, self.policy_class.reads_images)
 
         def start():
             env = make_env(benchmark, self.suite, num_envs, **settings)
@@ -199,7 +199,8 @@ class CellRun:
         from vlaquantbench.quant.scope import Selection
 
         cfg = self.cfg
-        self.simulator = simulator_versions(cfg.benchmark, pinned=cfg.runner.mujoco)
+        # None: a benchmark that declares no MuJoCo pin runs on the software environment's
+        self.simulator = simulator_versions(cfg.benchmark, pinned=getattr(cfg.env, "mujoco", None))
         self.adapter = load_policy(cfg, self.checkpoint, self.policy_class)
         calibration, stats = self._calibration()
         quant = QuantConfig.from_preset(
@@ -238,7 +239,7 @@ class CellRun:
             **dict(zip(("checkpoint", "revision"), self.adapter.config.weights_ran)),
             # The model's released client conventions and every value this cell sets differently.
             "client": cfg.client.as_dict(),
-            "overrides": cfg.overrides,
+            "overrides": cfg.overrides.as_dict(),
             **{k: getattr(self.adapter, "checkpoint_provenance", {}).get(k) for k in ("tokenizer", "normalization", "widths")},
             "config": config,
             "quant_report": quantized["quant_report"],

@@ -3,7 +3,7 @@ horizon, its env settings (`LiberoSettings`) and its action and state sizes (`Li
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from vlaquantbench.envs.registry import Benchmark, Horizon, SuiteSize, register_benchmark
 
@@ -20,11 +20,15 @@ STATE_DIM = 8  # end-effector position (3), axis-angle (3) and the gripper's two
 @dataclass(frozen=True)
 class LiberoSettings:
     """LIBERO's env settings: what a cell's runner config (`study.runner`, `study.models.<model>.runner`) may set
-    for a LIBERO cell, each the keyword-only parameter of `LiberoVectorEnv` of the same name."""
+    for a LIBERO cell, each the keyword-only parameter of `LiberoVectorEnv` of the same name; the defaults are a
+    LIBERO cell's where its config sets none (and its model's client neither: controller mode, MuJoCo pin)."""
 
-    camera_size: int = CAMERA_SIZE  # both views, square, in pixels
-    settle_steps: int = SETTLE_STEPS  # no-op steps after loading an init state, before the first observation
-    control_mode: str = "delta"  # one of CONTROL_MODES; a cell's comes from its model's client unless set
+    # both views, square, in pixels; below 16 the policies' processors have nothing to resize
+    camera_size: int = field(default=CAMERA_SIZE, metadata={"schema": {"minimum": 16}})
+    # no-op steps after loading an init state, before the first observation
+    settle_steps: int = field(default=SETTLE_STEPS, metadata={"schema": {"minimum": 0}})
+    # the arm controller; a cell's comes from its model's client unless its config sets it
+    control_mode: str = field(default="delta", metadata={"schema": {"enum": list(CONTROL_MODES)}})
     mujoco: str | None = None  # the MuJoCo version the cell must run on (None: the software environment's pin)
 
 # worker_gib, LIBERO: the largest proportional set size (PSS, psutil's memory_full_info; shared libraries counted

@@ -4,7 +4,7 @@ trained policy learns from. No simulator import: the workflow reads this while i
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from vlaquantbench.envs.episodes import TASK_SEED_STRIDE
 from vlaquantbench.envs.registry import Benchmark, Horizon, ScriptedExpert, SuiteSize, register_benchmark
@@ -30,7 +30,8 @@ class MetaWorldSettings:
     parameter of `MetaWorldVectorEnv` of the same name. It has no settle steps and no controller mode: a config
     that sets `settle_steps` or `control_mode` for a Meta-World cell is refused (`envs.check_settings`)."""
 
-    camera_size: int | None = CAMERA_SIZE  # `corner2`, square, in pixels; None: no image rendered
+    # `corner2`, square, in pixels (a cell's where its config sets none); None: no image rendered
+    camera_size: int | None = field(default=CAMERA_SIZE, metadata={"schema": {"minimum": 16}})
     mujoco: str | None = None  # the MuJoCo version the cell must run on (None: the software environment's pin)
 
 
