@@ -56,7 +56,7 @@ def test_every_committed_config_defines_the_tables_it_lists():
 
 BROKEN = [  # (schema, file content, the field path and problem the error must name)
     ("config", {"tables": ["lattice"], "study": {"execution": {"num_env": 3}}},
-     r"study.execution: unknown key 'num_env'; allowed keys: episode_order, gpus, num_envs, progress, torch_threads"),
+     r"study.execution: unknown key 'num_env'; allowed keys: episode_order, gpus, jobs_per_gpu, num_envs, progress, torch_threads"),
     # study.runner is open beside its runner options (the env settings of any benchmark, whose declarations the
     # schema cannot list); their values are scalars
     ("config", {"tables": ["lattice"], "study": {"runner": {"camera_size": [256]}}},
