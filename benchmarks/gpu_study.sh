@@ -27,6 +27,9 @@
 # all), progress.tsv (every cell: episodes, finished, decision), timings.txt, logs.tar.gz.
 # Here, once every cell is finished: `bash benchmarks/gpu_study.sh export` unpacks every kept call's records in
 # order and copies each finished cell to results/gpu_study/{live,fixed}/<ref>/ (the layout records_dir reads).
+# Across sessions (a session's checkout is lost, .carry/ and .gpuwork/ with it): `save` at a session's end exports
+# the cells finished so far and copies the carry (and the calls' lines, the cells' progress) to SAVED, both to be
+# committed; `resume` at the next session's start puts the committed carry back into CARRY.
 # `plan` lists each phase's cells as the next call sees them (finished or not).
 set -u -o pipefail
 CMD=${1:-run}
@@ -34,6 +37,7 @@ PYTHON=${PYTHON:-python3}
 CARRY=${CARRY:-.carry/gpu_study}
 RETURNED=${RETURNED:-.gpuwork/gpu_study/returned}
 STACK=${STACK:-.gpuwork/study-stack}
+SAVED=${SAVED:-results/gpu_study/carry}  # committed: the carry between sessions
 STUDY_END_S=${STUDY_END_S:-470}  # seconds into this call at which the rollouts are stopped
 GRACE_S=${GRACE_S:-45}  # after SIGTERM: the cells close their workers and journals, then SIGKILL
 STOP_FILE=${STOP_FILE:-}  # if set, its appearance stops the rollouts as the deadline does
@@ -207,6 +211,21 @@ export_records() {  # here: every kept call's records, in order, then the layout
   helper export
 }
 
+save() {  # here, at a session's end: finished cells exported, the carry into SAVED (commit both)
+  [ -f "$CARRY/carry.tgz" ] || { echo "save: $CARRY holds no carry.tgz" >&2; return 1; }
+  export_records || return 1
+  mkdir -p "$SAVED" && cp "$CARRY/carry.tgz" "$CARRY/calls.tsv" "$SAVED/" \
+    && tar -xzf "$CARRY/carry.tgz" -O results/gpu_study_progress.tsv > "$SAVED/progress.tsv" || return 1
+  echo "saved: the carry in $SAVED; $(awk -F'\t' 'NR > 1 && $6 == 1' "$SAVED/progress.tsv" | wc -l) cell(s) finished," \
+    "$(tail -1 "$SAVED/calls.tsv" | cut -f6) episodes recorded in all"
+}
+
+resume() {  # here, at a session's start: the committed carry back where the calls read it
+  [ -f "$SAVED/carry.tgz" ] || { echo "resume: $SAVED holds no carry.tgz (nothing saved: a first call)" >&2; return 1; }
+  [ ! -f "$CARRY/carry.tgz" ] || { echo "resume: $CARRY already holds a carry; remove it to resume from $SAVED" >&2; return 1; }
+  mkdir -p "$CARRY" && cp "$SAVED/carry.tgz" "$SAVED/calls.tsv" "$CARRY/" && echo "resumed: $CARRY from $SAVED"
+}
+
 # phase CONFIGS...: Snakemake on the phase's unfinished cells, in a process group of its own, stopped at the deadline.
 phase() {
   local targets
@@ -243,11 +262,13 @@ case "$CMD" in
   check-hosts) helper check-hosts; exit $? ;;
   keep) keep "${2:-}"; exit $? ;;
   export) export_records; exit $? ;;
+  save) save; exit $? ;;
+  resume) resume; exit $? ;;
   plan) restore > /dev/null && IFS=';' read -r -a phases <<< "$PHASES" \
           && for configs in "${phases[@]}"; do echo "phase $configs:"; helper cells $configs; done; exit $? ;;
   pack) : "${OUT:?OUT: the folder to pack into}"; pack; exit $? ;;
   run) : "${OUT:?OUT: the folder whose files come back}" ;;
-  *) echo "usage: [OUT=DIR] bash benchmarks/gpu_study.sh [run|keep FILES_AT|export|plan|restore|check-hosts|pack]" >&2; exit 2 ;;
+  *) echo "usage: [OUT=DIR] bash benchmarks/gpu_study.sh [run|keep FILES_AT|save|resume|export|plan|restore|check-hosts|pack]" >&2; exit 2 ;;
 esac
 
 gpu=$(nvidia-smi -L 2>/dev/null | head -1)
