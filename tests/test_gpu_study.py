@@ -328,3 +328,33 @@ def test_a_cell_stopped_in_one_call_and_resumed_from_its_carried_records_equals_
     for kind, ref in (("live", BASELINE), ("live", CELL), ("fixed", BASELINE)):
         pd.testing.assert_frame_equal(outcomes(here / "results" / "gpu_study" / kind / ref), outcomes(cell_folder(second, ref)))
     assert not (here / "results" / "gpu_study" / "fixed" / CELL).exists()
+
+
+# --- the study saved between sessions ------------------------------------------------------------------------------
+SAVED = ROOT / "results" / "gpu_study"
+
+
+def test_the_committed_carry_resumes_the_study_its_finished_cells_committed_as_records(tmp_path):
+    """`save` committed the carry and the finished cells; `resume` puts the carry back, and what it restores is the
+    study of config/gpu_study.yaml: its finished cells are the committed records (same hashes, same episodes) and
+    its unfinished ones are journals of the study's cells. A second `resume` over a carry is refused."""
+    env = {**os.environ, "PYTHON": sys.executable, "CARRY": str(tmp_path / "carry"), "SAVED": str(SAVED / "carry")}
+    resumed = subprocess.run(["bash", str(SCRIPT), "resume"], cwd=ROOT, env=env, capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    again = subprocess.run(["bash", str(SCRIPT), "resume"], cwd=ROOT, env=env, capture_output=True, text=True)
+    assert again.returncode == 1 and "already holds a carry" in again.stderr
+    subprocess.run(["tar", "-xzf", str(tmp_path / "carry" / "carry.tgz")], cwd=tmp_path, check=True)
+    progress = pd.read_csv(tmp_path / "results" / "gpu_study_progress.tsv", sep="\t")
+    study = study_cells(LIVE)
+    assert set(progress["hash"]) <= set(study) and progress["hash"].is_unique
+    committed = {read_cell(path).header["config_hash"]: read_cell(path) for path in
+                 (SAVED / "live").glob("*/*/*/*")}
+    finished = progress[progress["finished"] == 1]
+    assert set(finished["hash"]) == set(committed) and len(committed) > 1
+    for row in finished.itertuples():
+        assert committed[row.hash].header["ref"] == row.ref and len(committed[row.hash].episodes) == row.episodes
+    baseline = committed[progress.loc[progress["preset"] == "BASELINE", "hash"].item()]
+    assert (tmp_path / "results" / "cells" / baseline.header["config_hash"] / "episodes.parquet").is_file()
+    for row in progress[progress["finished"] == 0].itertuples():  # carried as journals, to be resumed
+        journal = tmp_path / "results" / "cells" / row.hash / "journal.jsonl"
+        assert len(journal_episodes(journal)) == row.episodes > 0
