@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import re
 import subprocess
 import sys
@@ -230,3 +231,16 @@ def test_a_benchmark_outside_envs_is_registered_from_the_module_vqb_benchmarks_n
     env["VQB_BENCHMARKS"] = "no_such_benchmark_module"
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert run.returncode != 0 and "VQB_BENCHMARKS: cannot import benchmark declaration module 'no_such_benchmark_module'" in run.stderr
+
+
+def test_the_committed_seam_equality_run_found_every_episode_of_both_benchmarks_equal():
+    """benchmarks/seam_equality.py's record (minutes of Snakemake runs, so read here, not rerun): both benchmarks'
+    demos ran before and after the seam's refactor, on the same cells, with no episode differing."""
+    report = json.loads((ROOT / "benchmarks" / "results" / "seam_equality.json").read_text())
+    assert report["revisions"]["before"]["commit"] != report["revisions"]["after"]["commit"]
+    assert set(report["benchmarks"]) == {"libero", "metaworld"}
+    for benchmark, run in report["benchmarks"].items():
+        assert run["cells"] and all(hashes["before"] and hashes["after"] for hashes in run["cells"].values()), benchmark
+        assert run["episodes"]["before"] == run["episodes"]["after"] == run["equal"] > 0, benchmark
+        assert run["differences"] == [], benchmark
+    assert set(report["fields"]) == {"success", "steps", "actions_sha256"}
