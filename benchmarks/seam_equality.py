@@ -35,6 +35,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from vlaquantbench.runner.journal import journal_episodes
+
 REPO = Path(__file__).resolve().parents[1]
 RUNS = {"libero": "config/config.yaml", "metaworld": "config/main.yaml"}
 CONFIGS = ("config/config.yaml", "config/main.yaml", "config/main/tables/lattice.yaml",
@@ -100,9 +102,8 @@ def episodes(tree: Path, benchmark: str) -> tuple[dict, dict]:
         if header["benchmark"] != benchmark:
             continue
         hashes[header["ref"]] = header["config_hash"]
-        journal = [json.loads(line) for line in (header_file.parent / "journal.jsonl").read_text().splitlines()]
         digests = {(e["task_id"], e["episode"], e["seed"]): e["actions_sha256"]
-                   for e in journal if e.get("kind") == "episode"}
+                   for e in journal_episodes(header_file.parent / "journal.jsonl")}
         for row in pd.read_parquet(header_file.parent / "episodes.parquet").to_dict("records"):
             found[(header["ref"], *(int(row[k]) for k in KEY))] = {
                 "success": bool(row["success"]), "steps": int(row["steps"]),
