@@ -347,8 +347,7 @@ def test_the_committed_carry_resumes_the_study_its_finished_cells_committed_as_r
     progress = pd.read_csv(tmp_path / "results" / "gpu_study_progress.tsv", sep="\t")
     study = study_cells(LIVE)
     assert set(progress["hash"]) <= set(study) and progress["hash"].is_unique
-    committed = {read_cell(path).header["config_hash"]: read_cell(path) for path in
-                 (SAVED / "live").glob("*/*/*/*")}
+    committed = {cell.header["config_hash"]: cell for cell in map(read_cell, (SAVED / "live").glob("*/*/*/*"))}
     finished = progress[progress["finished"] == 1]
     assert set(finished["hash"]) == set(committed) and len(committed) > 1
     for row in finished.itertuples():
