@@ -8,17 +8,21 @@ seed 0, 2 cameras at 224 px, 200 prompt tokens, 10 flow steps; scope e2e, all 45
     fakequant  rtn-FP8E4M3-e2e: e4m3 per-channel weights and per-token inputs, values rounded and
                the products in bf16/float32 (the fused hooks, producer-fused quantization)
     fp8real    fp8-W8A8-e2e: e4m3 weights stored as FP8 (`quant.kernels.fp8.Fp8DynamicLinear`),
-               per-token input casts computed by the producing op, `torch._scaled_mm` row-wise
+               per-token input casts computed by the producing op, `torch._scaled_mm` row-wise (products
+               of at most 64 rows: `quant.kernels.scaled_gemm`)
     int8real   int8_dynamic-W8A8-e2e: int8 weights (`quant.kernels.int8.Int8DynamicLinear`), per-token int8
-               input casts computed by the producing op, `torch._int_mm`, float32 rescale (Triton)
-    int4       int4wo-W4-e2e: int4 weights in asymmetric groups of 128, bf16 activations, tinygemm
-               (`torch._weight_int4pack_mm`); its layers run one by one (nothing to cast)
+               input casts computed by the producing op, `quant.kernels.scaled_gemm` (int32 sums, the float32
+               rescale in its epilogue)
+    int4       int4wo-W4-e2e: int4 weights in asymmetric groups of 128, bf16 activations, the Triton W4A16
+               GEMM of `quant.kernels.scaled_gemm`; its layers run one by one (nothing to cast)
 Not timed, for the actions only (batch 1): fakequant_int8 (rtn-W8A8-e2e, the fake-quantized
 counterpart of int8real).
 Timing: `gpu_policy_inference.alternate` (the cells take turns `--rounds` times, each turn
 capturing again), median of the repeats: the typical chunk, not the best.
 
     python benchmarks/gpu_fp8_real.py --out benchmarks/results/gpu_fp8_real.json      # ~6 min on an H200
+It keeps every cell's model resident (about 57 GiB): batch 32 runs out of memory on an 80 GB card. For one model
+at a time beside BF16, on any card: `gpu_kernel_shapes.py` (its `profile` step).
     python benchmarks/gpu_fp8_real.py --checks-only --out /tmp/checks.json            # ~1 min
 """
 

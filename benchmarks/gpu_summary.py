@@ -3,7 +3,8 @@
 Reads (each written on the GPU machine by its script) `gpu_preset_ab_cameras{2,3}.json` and
 `gpu_policy_inference_cameras2.json` (`gpu_policy_inference.py`), `closed_loop_gpu*.json`
 (`gpu_closed_loop.py`), `gpu_fp8_real*.json` (`gpu_fp8_real.py`: FP8, INT8 and INT4) and the
-`gpu_hadamard_captured*.json` runs of `HADAMARD_RUNS` (`gpu_hadamard_captured.py`), and copies out the
+`gpu_hadamard_captured*.json` runs of `HADAMARD_RUNS` (`gpu_hadamard_captured.py`), the `KERNEL_RUNS` of
+`gpu_kernel_shapes.py` (the current int8, FP8 and int4 kernels), and copies out the
 headline keys, each with the machine it was measured on. The policy's headline numbers are at
 LIBERO's two cameras, the input of every closed-loop run; the three-camera input of pi0.5's base
 configuration stands beside them.
@@ -148,6 +149,38 @@ def _real_kernels() -> dict:
     return out
 
 
+# The current kernels' cells, one model at a time beside BF16 in one process (`gpu_kernel_shapes.py`): batches 1
+# and 8 (with the mixed int4 assignments), and batch 32 (an earlier call of the same int8 and FP8 kernels there).
+KERNEL_RUNS = ("gpu_kernel_e2e.json", "gpu_kernel_e2e_b32.json")
+KERNEL_GOALS = {"fp8real": {1: "<= 0.95", 32: "<= 0.75"}, "int8real": {8: "<= 0.85", 32: "<= 0.85"},
+                "int4": {1: "<= 0.9"}, "int4_expert_fp8": {1: "<= 0.9"}, "int4_expert_int8": {1: "<= 0.9"}}
+
+
+def _kernel_cells() -> dict:
+    """Chunk time of each real-kernel cell over BF16 measured in the same process (`KERNEL_RUNS`): these keys
+    replace `_real_kernels`' for the same cells, whose runs timed earlier kernels (HISTORY.md)."""
+    out = {}
+    for name in KERNEL_RUNS:
+        run = json.loads((RESULTS / name).read_text())
+        profile = run["profile"]
+        for cell, timed in profile.items():
+            if cell == "bf16":
+                continue
+            for b, ms in timed["chunk_ms"].items():
+                bf16 = profile["bf16"]["chunk_ms"][b]
+                out[f"{cell}_vs_bf16_b{b}"] = {
+                    "value": ms / bf16, f"{cell}_ms": ms, "bf16_ms": bf16,
+                    "form": f"captured, {run['cameras']} cameras, one model at a time after BF16 in one process "
+                            f"(median of the chunks after capture), {name}",
+                    **({"goal": KERNEL_GOALS[cell][int(b)]} if int(b) in KERNEL_GOALS.get(cell, {}) else {}),
+                    "actions_rel_l2_vs_bf16": timed["actions_rel_l2_vs_bf16"], "machine": _machine(run)}
+            if "1" in timed["chunk_ms"]:
+                out[f"{cell}_chunk_ms_b1"] = {"value": timed["chunk_ms"]["1"], "cameras": run["cameras"],
+                                              **({"goal": "<= 16 on an H200"} if cell == "fp8real" else {}),
+                                              "machine": _machine(run)}
+    return out
+
+
 def _hadamard_captured() -> dict:
     """W4A4 + Hadamard (rotations inside the captured chunk) over BASELINE, the cells taking turns in
     one process, with plain W4A4 of the same runs beside it: the median over `HADAMARD_RUNS`."""
@@ -205,7 +238,7 @@ def _policy() -> dict:
 
 
 def main() -> None:
-    summary = {**_policy(), **_closed_loop(), **_real_kernels(), **_hadamard_captured()}
+    summary = {**_policy(), **_closed_loop(), **_real_kernels(), **_kernel_cells(), **_hadamard_captured()}
     (RESULTS / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     print(json.dumps(summary, indent=1))
 

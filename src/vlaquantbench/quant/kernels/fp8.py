@@ -10,7 +10,13 @@ from vlaquantbench.errors import UserError
 from vlaquantbench.quant.apply import layer_statistics
 from vlaquantbench.quant.grid import SCALE_FLOOR
 from vlaquantbench.quant.kernels.packed import FP8, FP8_MAX, PerTokenLinear, quantize_per_token, replace_all, require_preset
+from vlaquantbench.quant.kernels.scaled_gemm import scaled_gemm, tile_for
 from vlaquantbench.quant.scope import Selection
+
+
+# Products of at most this many rows with per-token and per-channel scales run on `scaled_gemm` (small tiles) instead
+# of `torch._scaled_mm`, whose 128 x 128 tiles leave the action expert's 50-row products on few SMs.
+TRITON_MAX_ROWS = 64
 
 
 class Fp8DynamicLinear(PerTokenLinear):
@@ -18,7 +24,8 @@ class Fp8DynamicLinear(PerTokenLinear):
     one scale per tensor for each (`tensorwise`)."""
 
     WEIGHT, INPUT = "weight_fp8", FP8
-    KERNEL = "torch._scaled_mm (e4m3 x e4m3, FP32 scales)"
+    KERNEL = (f"torch._scaled_mm (e4m3 x e4m3, FP32 scales); products of at most {TRITON_MAX_ROWS} rows with row-wise "
+              "scales: Triton scaled GEMM (float32 accumulation)")
 
     def __init__(self, linear: nn.Linear, tensorwise: bool = False):
         super().__init__(linear)
@@ -48,6 +55,11 @@ class Fp8DynamicLinear(PerTokenLinear):
         return self._product(*self._quantize_input(x2d))
 
     def _product(self, x_fp8: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+        rows = x_fp8.shape[0]
+        if (x_fp8.is_cuda and rows <= TRITON_MAX_ROWS and scale.numel() == rows > 1 and self.weight_scale.numel() > 1
+                and not torch.compiler.is_compiling()):
+            tile = tile_for("fp8", rows, self.in_features, self.weight_fp8.shape[0])
+            return scaled_gemm(x_fp8, self.weight_fp8.t(), scale, self.weight_scale, self.out_dtype, tile)
         # Fast accumulation (Hopper's FP8 tensor-core accumulator without periodic FP32 promotion),
         # as FP8 inference stacks use it: 8.0 instead of 9.9 ms of GEMMs on the LLaMA benchmark.
         return torch._scaled_mm(x_fp8, self.weight_fp8.t(), scale_a=scale, scale_b=self.weight_scale,

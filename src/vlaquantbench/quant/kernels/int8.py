@@ -10,40 +10,18 @@ from torch import nn
 from vlaquantbench.errors import UserError
 from vlaquantbench.quant.calibration import smoothing_factors
 from vlaquantbench.quant.kernels.packed import PerTokenLinear, quantize_per_token, replace_all, require_preset
+from vlaquantbench.quant.kernels.scaled_gemm import scaled_gemm, tile_for
 
-try:  # one-pass activation quantization on CUDA; the torch expression below elsewhere
-    import triton
-    import triton.language as tl
-except ImportError:  # pragma: no cover
-    triton = None
-
-if triton is not None:
-
-    @triton.jit
-    def _dequantize_rows(acc_ptr, row_scale_ptr, col_scale_ptr, out_ptr, n_cols, acc_stride, BLOCK: tl.constexpr):
-        row = tl.program_id(0).to(tl.int64)
-        cols = tl.program_id(1) * BLOCK + tl.arange(0, BLOCK)
-        inside = cols < n_cols
-        acc = tl.load(acc_ptr + row * acc_stride + cols, mask=inside, other=0).to(tl.float32)
-        y = acc * tl.load(row_scale_ptr + row) * tl.load(col_scale_ptr + cols, mask=inside, other=0.0)
-        tl.store(out_ptr + row * n_cols + cols, y.to(out_ptr.dtype.element_ty), mask=inside)
-
-
-# cuBLASLt's int8 products (`torch._int_mm` on CUDA) take more than 16 rows, in multiples of 8 here.
+# The CPU's int8 product (`torch._int_mm` there) is padded as cuBLASLt's needed it (more than 16 rows, in multiples
+# of 8); on CUDA the product is `scaled_gemm`, which takes any number of rows.
 INT_MM_MIN_ROWS = 32
 
 
 def dequantize_int32(acc: torch.Tensor, row_scales: torch.Tensor, col_scales: torch.Tensor,
                      dtype: torch.dtype) -> torch.Tensor:
     """(acc * row_scales) * col_scales in float32, rounded once to `dtype`: an int8 product's int32
-    sums back to the layer's scale. One Triton kernel in eager CUDA code (one read of the int32
-    sums, one write of the output), the same arithmetic as torch ops elsewhere."""
-    if triton is None or not acc.is_cuda or torch.compiler.is_compiling():
-        return (acc.float() * row_scales * col_scales).to(dtype)
-    rows, cols = acc.shape
-    out = torch.empty(rows, cols, dtype=dtype, device=acc.device)
-    _dequantize_rows[(rows, triton.cdiv(cols, 1024))](acc, row_scales, col_scales, out, cols, acc.stride(0), BLOCK=1024)
-    return out
+    sums back to the layer's scale (`scaled_gemm`'s epilogue computes the same on CUDA)."""
+    return (acc.float() * row_scales * col_scales).to(dtype)
 
 
 class Int8DynamicLinear(PerTokenLinear):
@@ -54,7 +32,7 @@ class Int8DynamicLinear(PerTokenLinear):
     layer without it takes its input cast per token by its producer (`input_cast`)."""
 
     WEIGHT, INPUT = "weight_int8", torch.int8
-    KERNEL = "torch._int_mm (int8 x int8 -> int32) + float32 rescale"
+    KERNEL = "Triton scaled GEMM (int8 x int8 -> int32, float32 rescale in its epilogue; torch._int_mm on the CPU)"
 
     def __init__(self, linear: nn.Linear, smooth: torch.Tensor | None = None):
         super().__init__(linear)
@@ -80,6 +58,9 @@ class Int8DynamicLinear(PerTokenLinear):
 
     def _product(self, values: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
         rows = values.shape[0]
+        if values.is_cuda and not torch.compiler.is_compiling():
+            tile = tile_for("int8", rows, self.in_features, self.weight_int8.shape[0])
+            return scaled_gemm(values, self.weight_int8.t(), scales, self.weight_scale, self.out_dtype, tile)
         padded = max(INT_MM_MIN_ROWS, (rows + 7) // 8 * 8)
         if padded != rows:
             values = F.pad(values, (0, 0, 0, padded - rows))
@@ -92,8 +73,8 @@ def int8_dynamic(model, selection, config):
     producing op casts the input rows, and q/k/v and gate/up run as one product)."""
     require_preset(config, "int8_dynamic")
     return replace_all(model, selection, lambda n, m: Int8DynamicLinear(m),
-                        "W8A8 int8 (per-channel weights, dynamic per-token activations, torch._int_mm, "
-                        "int32 accumulation, float32 rescale)")
+                        "W8A8 int8 (per-channel weights, dynamic per-token activations, int32 accumulation, "
+                        "float32 rescale; Triton scaled GEMM on CUDA, torch._int_mm on the CPU)")
 
 
 def smoothquant(model, selection, config):
@@ -114,7 +95,7 @@ def smoothquant(model, selection, config):
         return Int8DynamicLinear(linear, smoothing_factors(stats.absmax, linear.weight, config.calibration.alpha))
 
     result = replace_all(model, selection, make,
-                          "W8A8 int8 (per-channel weights, dynamic per-token activations, torch._int_mm), SmoothQuant "
+                          "W8A8 int8 (per-channel weights, dynamic per-token activations, int32 accumulation), SmoothQuant "
                           f"migration alpha={config.calibration.alpha} from rollout calibration statistics "
                           f"(cache {config.stats.key}; not the paper's 512 text samples)")
     result.calibrated = smoothed
