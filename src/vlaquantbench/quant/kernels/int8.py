@@ -32,10 +32,12 @@ class Int8DynamicLinear(PerTokenLinear):
     layer without it takes its input cast per token by its producer (`input_cast`)."""
 
     WEIGHT, INPUT = "weight_int8", torch.int8
-    KERNEL = "Triton scaled GEMM (int8 x int8 -> int32, float32 rescale in its epilogue; torch._int_mm on the CPU)"
+    KERNEL = "Triton scaled GEMM (int8 x int8 -> int32, float32 rescale in its epilogue)"
 
     def __init__(self, linear: nn.Linear, smooth: torch.Tensor | None = None):
         super().__init__(linear)
+        if not linear.weight.is_cuda:
+            self.KERNEL = "torch._int_mm (int8 x int8 -> int32) + float32 rescale"
         weight = linear.weight.detach().float()
         if smooth is not None:
             weight = weight * smooth
