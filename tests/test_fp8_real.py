@@ -86,7 +86,8 @@ def test_the_header_records_the_packed_weight_memory():
     packed = (64 * 32 + 32 * 16) + 4 * (32 + 16) + 2 * 32  # int8 weights, float32 scales, the bf16 bias
     assert result.details["weight_memory"] == {"layers": 2, "released_bytes": released, "packed_bytes": packed,
                                                "ratio": packed / released}
-    assert result.details["kernels"] == {Int8DynamicLinear.KERNEL: 2}
+    assert result.details["kernels"] == {Int8DynamicLinear.CPU_KERNEL: 2}  # on the CPU: torch._int_mm, not Triton
+    assert "torch._int_mm" in Int8DynamicLinear.CPU_KERNEL
 
 
 def _fp8_layers(sizes, hooks=True):

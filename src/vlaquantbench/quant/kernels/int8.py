@@ -33,11 +33,12 @@ class Int8DynamicLinear(PerTokenLinear):
 
     WEIGHT, INPUT = "weight_int8", torch.int8
     KERNEL = "Triton scaled GEMM (int8 x int8 -> int32, float32 rescale in its epilogue)"
+    CPU_KERNEL = "torch._int_mm (int8 x int8 -> int32) + float32 rescale"  # what a layer on the CPU runs
 
     def __init__(self, linear: nn.Linear, smooth: torch.Tensor | None = None):
         super().__init__(linear)
         if not linear.weight.is_cuda:
-            self.KERNEL = "torch._int_mm (int8 x int8 -> int32) + float32 rescale"
+            self.KERNEL = self.CPU_KERNEL
         weight = linear.weight.detach().float()
         if smooth is not None:
             weight = weight * smooth
