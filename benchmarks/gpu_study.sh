@@ -232,9 +232,8 @@ phase() {
   targets=$(helper cells "$@" | awk '$3 == 0 {print "results/cells/" $1 "/episodes.parquet"}')
   if [ -z "$targets" ]; then at "phase $*: every cell finished"; return 0; fi
   at "phase $*: $(echo "$targets" | wc -l) cell(s) to run"
-  local config_args=()
-  for config in "$@"; do config_args+=(--configfile "$config"); done
-  setsid "$PYTHON" -m snakemake $targets "${config_args[@]}" --cores "$CORES" --scheduler greedy --keep-going \
+  # One --configfile with every file: Snakemake 9 keeps only the last of several --configfile flags.
+  setsid "$PYTHON" -m snakemake $targets --configfile "$@" --cores "$CORES" --scheduler greedy --keep-going \
     --rerun-triggers mtime --rerun-incomplete --nolock --resources mem_mb=100000000 > logs/snakemake_phase.log 2>&1 &
   local pid=$! reason=""
   while kill -0 "$pid" 2>/dev/null; do
@@ -284,7 +283,7 @@ at "ready: $before episodes recorded before this call"
 IFS=';' read -r -a phases <<< "$PHASES"
 if compgen -G "results/cells/*/*" > /dev/null; then
   stamp=$(helper stamp ${phases[0]}) || exit 1
-  "$PYTHON" -m snakemake "$stamp" $(for c in ${phases[0]}; do echo --configfile "$c"; done) --cores 1 --nolock \
+  "$PYTHON" -m snakemake "$stamp" --configfile ${phases[0]} --cores 1 --nolock \
     --forcerun download_checkpoint > logs/snakemake_stamp.log 2>&1 || { tail -30 logs/snakemake_stamp.log; exit 1; }
   touch -d "2000-01-01 00:00:00" "$stamp"
   at "checkpoint stamp rewritten and dated back: $stamp"
