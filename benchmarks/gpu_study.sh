@@ -31,6 +31,10 @@
 # the cells finished so far and copies the carry (and the calls' lines, the cells' progress) to SAVED, both to be
 # committed; `resume` at the next session's start puts the committed carry back into CARRY.
 # `plan` lists each phase's cells as the next call sees them (finished or not).
+# The precision search (config/gpu_search.yaml, then its confirmation) runs through benchmarks/gpu_search.sh, which
+# sets the variables below for it: its own CARRY, SAVED, PROGRESS and EXPORT_DIR; EXPORTS (each phase's finished cells
+# exported to a folder of its own); SEARCH_UNTIL=determined (a phase whose config lists its `search` table stops its
+# rollouts once the recorded candidates determine the search, `search-state`, and the call goes on to the next phase).
 set -u -o pipefail
 CMD=${1:-run}
 PYTHON=${PYTHON:-python3}
@@ -43,7 +47,18 @@ GRACE_S=${GRACE_S:-45}  # after SIGTERM: the cells close their workers and journ
 STOP_FILE=${STOP_FILE:-}  # if set, its appearance stops the rollouts as the deadline does
 CORES=${CORES:-$(nproc)}
 # Phases, separated by ';': each the config files of one `snakemake --configfile` (merged over config/config.yaml).
+# A phase naming a file that does not exist (the search's tables/search_chosen.yaml before the search has chosen) is
+# skipped.
 PHASES=${PHASES:-"config/gpu_study.yaml;config/gpu_study.yaml config/gpu_study_fixed.yaml"}
+export PHASES
+export PROGRESS=${PROGRESS:-results/gpu_study_progress.tsv}  # every cell's row (carried), as progress.tsv returns it
+export EXPORT_DIR=${EXPORT_DIR:-results/gpu_study}  # `export`: the finished cells, by reference, under <kind>/
+# `export` kinds: unset, a cell goes to live/ (under a stopping rule) or fixed/ (in full), the baseline to both; set
+# (one folder name per phase, separated by ';'), each cell goes to the folder of every phase whose cells hold it.
+export EXPORTS=${EXPORTS:-}
+# determined: a phase whose config lists its `search` table ends once the recorded candidates determine the search
+# (`search-state` writes tables/search_chosen.yaml) and the call goes on to the next phase; empty: run every cell.
+SEARCH_UNTIL=${SEARCH_UNTIL:-}
 PART_BYTES=15000000
 MAX_PARTS=3  # with carry.tgz, calls.tsv, progress.tsv, timings.txt and logs.tar.gz: 8 files
 T0=$(date +%s)
@@ -54,12 +69,14 @@ mkdir -p logs
 # rows of cells finished elsewhere, updated from the cell folders here (`progress`). `cells CONFIGS`: the cells of a
 # phase (hash, ref, finished); `stamp CONFIGS`: the checkpoint stamp's path; `check-hosts`: set aside unfinished cells
 # recorded on another host or device; `files` / `carry-files`: what the records / the carry hold; `export`: copy
-# finished cells to results/gpu_study/.
+# finished cells to EXPORT_DIR; `search-state CONFIGS`: whether the search of the phase is determined (exit 0, and
+# tables/search_chosen.yaml names its choice), not yet (10) or the phase runs no search (11).
 HELPER='
-import csv, json, shutil, sys, time
+import csv, json, os, shutil, sys, time
 from pathlib import Path
 
-CELLS, ASIDE, PROGRESS = Path("results/cells"), Path("results/cells_set_aside"), Path("results/gpu_study_progress.tsv")
+CELLS, ASIDE, PROGRESS = Path("results/cells"), Path("results/cells_set_aside"), Path(os.environ["PROGRESS"])
+CHOSEN = Path("tables/search_chosen.yaml")
 COLUMNS = ["hash", "ref", "preset", "sequential", "episodes", "finished", "decision"]
 
 
@@ -74,6 +91,48 @@ def merged(configs):
 def study_cells(configs):
     from vlaquantbench.workflow import WorkflowConfig
     return WorkflowConfig.from_snakemake(merged(configs), Path(".")).study_cells()
+
+
+def search_state(configs):
+    """The search of the phase decided from the live rule of each finished candidate (the decision in its header, the
+    carried progress rows of cells finished in earlier calls): 0 when the finished candidates determine it (its
+    chosen cell into CHOSEN, none chosen: CHOSEN removed), 10 when the search would read a candidate not finished
+    yet, 11 when the phase runs no search. tables/search.csv re-derives it from the records, here."""
+    from vlaquantbench.search import Candidate, SearchDesign, SearchUndetermined, Verdict, precision_search
+    from vlaquantbench.tables.search import allocation_config
+    from vlaquantbench.workflow import WorkflowConfig
+    raw = merged(configs)
+    search = raw.get("search")
+    if not search or search["table"] not in raw.get("tables", []):
+        return 11
+    workflow = WorkflowConfig.from_snakemake(raw, Path("."))
+    baseline, space = workflow.search_space()
+    cells = {cfg["ref"]: (key, cfg) for key, cfg in workflow.study_cells().items()}
+    rows = progress()
+    done = {ref: rows[cells[ref][0]] for ref in space if str(rows.get(cells[ref][0], {}).get("finished", 0)) == "1"
+            and rows[cells[ref][0]]["decision"]}
+    cap = {ref: cfg["episodes_per_task"] * len(cfg["tasks"]) for ref, (_, cfg) in cells.items()}
+    design = SearchDesign(search.get("alpha", 0.05), search.get("margin_pp", 5.0))
+    candidates = [Candidate.from_ref(ref) for ref in space if ref != baseline]
+    decide = lambda c, _: Verdict(done[c.ref]["decision"], int(done[c.ref]["episodes"]), cap[c.ref])
+    try:
+        result = precision_search(candidates, decide, design, [c.ref for c in candidates if c.ref not in done])
+    except SearchUndetermined as err:
+        print(f"search: not determined yet: {err}")
+        return 10
+    chosen = result.chosen.ref if result.chosen else None
+    lines = [f"{design.guarantee(len(result.order))}.", "chosen: " + (chosen or "none"),
+             f"episodes: {result.episodes_spent} read by the search ({len(result.verdicts)} visited, "
+             f"{len(result.pruned_by)} pruned), of {len(result.order)} x {max(cap.values())} in full",
+             "decided on the device from each finished candidate and its live decision (benchmarks/gpu_study.sh "
+             "search-state); tables/search.csv re-derives it from the records"]
+    print("search: determined: " + "; ".join(lines[1:3]))
+    if chosen is None:
+        CHOSEN.unlink(missing_ok=True)
+    else:
+        CHOSEN.parent.mkdir(parents=True, exist_ok=True)
+        CHOSEN.write_text(allocation_config(search.get("allocation", "search"), chosen, baseline.rsplit("/", 1)[0], lines))
+    return 0
 
 
 def finished(folder):
@@ -140,6 +199,8 @@ elif command == "check-hosts":
             ref = cell["ref"]
             print(f"set aside {folder.name} ({ref}): recorded on {recorded} {device}, this machine is {here} "
                   f"{sorted(names)}; the cell restarts here (its journal returns in {aside})")
+elif command == "search-state":
+    sys.exit(search_state(args))
 elif command in ("files", "carry-files"):
     for folder in sorted(p for p in CELLS.glob("*") if p.is_dir()):
         if finished(folder) and (command == "files" or header(folder)["preset"] == "BASELINE"):
@@ -148,12 +209,29 @@ elif command in ("files", "carry-files"):
             print(folder / "journal.jsonl")
     for path in sorted(ASIDE.glob("*/journal.jsonl")) if command == "files" else [PROGRESS]:
         print(path)
+    if command == "files" and CHOSEN.is_file():  # `export` reads the later phases of a search with it
+        print(CHOSEN)
 elif command == "export":
+    phases = {}  # EXPORTS: the folder of each phase, for each of its cells
+    if os.environ["EXPORTS"]:
+        for configs, kind in zip(os.environ["PHASES"].split(";"), os.environ["EXPORTS"].split(";"), strict=True):
+            try:  # a later phase of a search needs the tables/search_chosen.yaml returned with the records
+                keys = study_cells(configs.split()) if all(Path(c).is_file() for c in configs.split()) else {}
+            except Exception as err:
+                print(f"phase {configs}: its cells cannot be named here ({err}): none exported to {kind}/")
+                keys = {}
+            for key in keys:
+                phases.setdefault(key, []).extend([kind] if kind not in phases.get(key, []) else [])
     for folder in sorted(p for p in CELLS.glob("*") if finished(p)):
         cell = header(folder)
-        kinds = ["live", "fixed"] if cell["preset"] == "BASELINE" else ["live" if cell["config"].get("sequential") else "fixed"]
+        if os.environ["EXPORTS"]:
+            kinds = phases.get(folder.name, [])
+            if not kinds:
+                print("not exported:", cell["ref"], f"({folder.name}) is a cell of no phase")
+        else:
+            kinds = ["live", "fixed"] if cell["preset"] == "BASELINE" else ["live" if cell["config"].get("sequential") else "fixed"]
         for kind in kinds:
-            target = Path("results/gpu_study") / kind / cell["ref"]
+            target = Path(os.environ["EXPORT_DIR"]) / kind / cell["ref"]
             target.mkdir(parents=True, exist_ok=True)
             for name in ("header.json", "episodes.parquet"):
                 shutil.copy2(folder / name, target / name)
@@ -165,7 +243,7 @@ at() { echo "$(date -u +%FT%TZ) +$(( $(date +%s) - T0 )) s: $*" | tee -a "${OUT:
 restore() {  # the carry of the last call, the records' times kept
   if [ -f "$CARRY/carry.tgz" ]; then
     tar -xzf "$CARRY/carry.tgz" || { echo "restore: $CARRY/carry.tgz is not a whole tar" >&2; return 1; }
-    echo "restored from $CARRY: $(grep -c $'\t1\t[a-z_]*$' results/gpu_study_progress.tsv) finished cell(s)," \
+    echo "restored from $CARRY: $(grep -c $'\t1\t[a-z_]*$' "$PROGRESS") finished cell(s)," \
       "$(ls results/cells/*/journal.jsonl 2>/dev/null | wc -l) journal(s)"
   else
     echo "restore: nothing in $CARRY (a first call)"
@@ -215,7 +293,7 @@ save() {  # here, at a session's end: finished cells exported, the carry into SA
   [ -f "$CARRY/carry.tgz" ] || { echo "save: $CARRY holds no carry.tgz" >&2; return 1; }
   export_records || return 1
   mkdir -p "$SAVED" && cp "$CARRY/carry.tgz" "$CARRY/calls.tsv" "$SAVED/" \
-    && tar -xzf "$CARRY/carry.tgz" -O results/gpu_study_progress.tsv > "$SAVED/progress.tsv" || return 1
+    && tar -xzf "$CARRY/carry.tgz" -O "$PROGRESS" > "$SAVED/progress.tsv" || return 1
   echo "saved: the carry in $SAVED; $(awk -F'\t' 'NR > 1 && $6 == 1' "$SAVED/progress.tsv" | wc -l) cell(s) finished," \
     "$(tail -1 "$SAVED/calls.tsv" | cut -f6) episodes recorded in all"
 }
@@ -226,20 +304,43 @@ resume() {  # here, at a session's start: the committed carry back where the cal
   mkdir -p "$CARRY" && cp "$SAVED/carry.tgz" "$SAVED/calls.tsv" "$CARRY/" && echo "resumed: $CARRY from $SAVED"
 }
 
-# phase CONFIGS...: Snakemake on the phase's unfinished cells, in a process group of its own, stopped at the deadline.
+# phase CONFIGS...: Snakemake on the phase's unfinished cells, in a process group of its own, stopped at the deadline
+# (the call ends) or, with SEARCH_UNTIL=determined, once its search is determined (the call goes on).
 phase() {
+  local config
+  for config in "$@"; do
+    if [ ! -f "$config" ]; then
+      at "phase $*: skipped, $config does not exist (a search not determined yet, or one that chose nothing)"
+      return 0
+    fi
+  done
+  local searching=""
+  if [ "$SEARCH_UNTIL" = determined ]; then
+    helper search-state "$@" >> "${OUT:-logs}/timings.txt" 2>&1
+    case $? in
+      0) at "phase $*: the search is determined: $(grep '^search: ' "${OUT:-logs}/timings.txt" | tail -1)"; return 0 ;;
+      10) searching=1 ;;
+    esac
+  fi
   local targets
   targets=$(helper cells "$@" | awk '$3 == 0 {print "results/cells/" $1 "/episodes.parquet"}')
   if [ -z "$targets" ]; then at "phase $*: every cell finished"; return 0; fi
-  at "phase $*: $(echo "$targets" | wc -l) cell(s) to run"
-  local config_args=()
-  for config in "$@"; do config_args+=(--configfile "$config"); done
-  setsid "$PYTHON" -m snakemake $targets "${config_args[@]}" --cores "$CORES" --scheduler greedy --keep-going \
+  at "phase $*: $(echo "$targets" | wc -l) cell(s) to run${searching:+, until the search is determined}"
+  # One --configfile with every file: Snakemake 9 keeps only the last of several --configfile flags.
+  setsid "$PYTHON" -m snakemake $targets --configfile "$@" --cores "$CORES" --scheduler greedy --keep-going \
     --rerun-triggers mtime --rerun-incomplete --nolock --resources mem_mb=100000000 > logs/snakemake_phase.log 2>&1 &
-  local pid=$! reason=""
+  local pid=$! reason="" seen=-1 count
   while kill -0 "$pid" 2>/dev/null; do
     if [ $(( $(date +%s) - T0 )) -ge "$STUDY_END_S" ]; then reason="deadline"; fi
     if [ -n "$STOP_FILE" ] && [ -e "$STOP_FILE" ]; then reason="stop file"; fi
+    if [ -z "$reason" ] && [ -n "$searching" ]; then  # a cell finished: is the search determined now?
+      # a finished cell's episodes.parquet and header.json, each counted as it appears
+      count=$(( $(compgen -G "results/cells/*/episodes.parquet" | wc -l) + $(compgen -G "results/cells/*/header.json" | wc -l) ))
+      if [ "$count" != "$seen" ]; then
+        seen=$count
+        if helper search-state "$@" >> "${OUT:-logs}/timings.txt" 2>&1; then reason="search determined"; fi
+      fi
+    fi
     if [ -n "$reason" ]; then
       at "stopping the rollouts ($reason): SIGTERM"
       kill -TERM -- -"$pid" 2>/dev/null
@@ -254,7 +355,7 @@ phase() {
   cat logs/snakemake_phase.log >> logs/snakemake.log
   grep -h "vqb rollout: \|Error in rule\|The run stopped because" logs/snakemake_phase.log | tail -20
   at "phase $* ended (rc $rc${reason:+, $reason})"
-  [ -z "$reason" ]  # a stopped phase ends the call
+  [ -z "$reason" ] || [ "$reason" = "search determined" ]  # a phase stopped by the deadline ends the call
 }
 
 case "$CMD" in
@@ -264,11 +365,18 @@ case "$CMD" in
   export) export_records; exit $? ;;
   save) save; exit $? ;;
   resume) resume; exit $? ;;
-  plan) restore > /dev/null && IFS=';' read -r -a phases <<< "$PHASES" \
-          && for configs in "${phases[@]}"; do echo "phase $configs:"; helper cells $configs; done; exit $? ;;
+  plan) restore > /dev/null && IFS=';' read -r -a phases <<< "$PHASES" || exit 1
+        for configs in "${phases[@]}"; do
+          echo "phase $configs:"
+          missing=$(for c in $configs; do [ -f "$c" ] || echo "$c"; done)
+          if [ -n "$missing" ]; then echo "  skipped: $missing does not exist"; continue; fi
+          if [ "$SEARCH_UNTIL" = determined ]; then helper search-state $configs; fi
+          helper cells $configs || exit 1
+        done; exit 0 ;;
+  search-state) helper search-state "${@:2}"; exit $? ;;
   pack) : "${OUT:?OUT: the folder to pack into}"; pack; exit $? ;;
   run) : "${OUT:?OUT: the folder whose files come back}" ;;
-  *) echo "usage: [OUT=DIR] bash benchmarks/gpu_study.sh [run|keep FILES_AT|save|resume|export|plan|restore|check-hosts|pack]" >&2; exit 2 ;;
+  *) echo "usage: [OUT=DIR] bash benchmarks/gpu_study.sh [run|keep FILES_AT|save|resume|export|plan|restore|check-hosts|pack|search-state CONFIGS]" >&2; exit 2 ;;
 esac
 
 gpu=$(nvidia-smi -L 2>/dev/null | head -1)
@@ -284,7 +392,7 @@ at "ready: $before episodes recorded before this call"
 IFS=';' read -r -a phases <<< "$PHASES"
 if compgen -G "results/cells/*/*" > /dev/null; then
   stamp=$(helper stamp ${phases[0]}) || exit 1
-  "$PYTHON" -m snakemake "$stamp" $(for c in ${phases[0]}; do echo --configfile "$c"; done) --cores 1 --nolock \
+  "$PYTHON" -m snakemake "$stamp" --configfile ${phases[0]} --cores 1 --nolock \
     --forcerun download_checkpoint > logs/snakemake_stamp.log 2>&1 || { tail -30 logs/snakemake_stamp.log; exit 1; }
   touch -d "2000-01-01 00:00:00" "$stamp"
   at "checkpoint stamp rewritten and dated back: $stamp"

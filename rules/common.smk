@@ -1,5 +1,6 @@
 # Shared by all rule files. It holds the validated config and, one section per rule file, the constants and
 # functions its rules take their inputs, outputs, parameters and resources from; rule files hold only rules.
+import functools
 import os
 import sys
 from pathlib import Path
@@ -178,27 +179,48 @@ CONFIRM_MANIFEST = [SEARCH_CONFIRM["manifest"]] if SEARCH_CONFIRM.get("manifest"
 
 
 def search_cells():
-    """The baseline and the candidates of the search: the cells of `search.table` of the baseline's benchmark,
-    suite and model (read when the target is asked for)."""
-    from vlaquantbench.errors import UserError
-
-    if not SEARCH:
-        raise UserError(f"{SEARCH_TARGET} needs a `search` section in the config (its table, baseline, alpha, margin_pp)")
-    refs = list(dict.fromkeys(WF.table(SEARCH["table"]).refs()))
-    baseline = SEARCH.get("baseline", "rtn-BASELINE-e2e")
-    named = [ref for ref in refs if baseline in (ref, ref.rsplit("/", 1)[-1])]
-    if len(named) != 1:
-        raise UserError(f"search.baseline {baseline!r}: {len(named)} such cells in table {SEARCH['table']} "
-                        f"({', '.join(named) or 'none'}); the search needs exactly one")
-    group = named[0].rsplit("/", 1)[0]
-    space = [ref for ref in refs if ref.rsplit("/", 1)[0] == group]
+    """The baseline, the candidates with records and the whole space of the search (read when the target is asked
+    for). From `records_dir` a candidate without records is no input: the search runs over the whole space and
+    answers only when the recorded candidates determine it (vlaquantbench.search), else it refuses naming those
+    it needs; the baseline must be recorded."""
+    baseline, space = WF.search_space()
     live = WF.study.sequential
     if WF.records_dir is None and live is not None:  # the DAG runs the candidates under the live rule
         from vlaquantbench.search import SearchDesign, check_live_design
 
         check_live_design(SearchDesign(SEARCH.get("alpha", 0.05), SEARCH.get("margin_pp", 5.0)), len(space) - 1,
-                          named[0], live.alpha, live.margin_pp, live.against)
-    return named[0], WF.checked_refs(WF.record_refs(space, SEARCH_TARGET), SEARCH_TARGET)
+                          baseline, live.alpha, live.margin_pp, live.against)
+    present = [baseline, *(ref for ref in WF.recorded(space) if ref != baseline)]
+    return baseline, WF.checked_refs(WF.record_refs(present, SEARCH_TARGET), SEARCH_TARGET), space
+
+
+@functools.cache
+def search_ranks():
+    """Config hash -> rule rollout's priority for the cells of the search space (search_priority); none where the
+    `search` section or its table cannot name a space (the target tables/search.csv refuses it, naming why)."""
+    from vlaquantbench.errors import UserError
+    from vlaquantbench.search import Candidate, search_order
+
+    try:
+        baseline, space = WF.search_space()
+        order = search_order(Candidate.from_ref(ref) for ref in space if ref != baseline)
+    except UserError:
+        return {}
+    ranks = {candidate.ref: len(order) - rank for rank, candidate in enumerate(order)}
+    ranks[baseline] = len(order) + 1
+    return {key: ranks[cfg["ref"]] for key, cfg in CELLS.items() if cfg["ref"] in ranks}
+
+
+def search_priority(cell):
+    """Rule rollout's priority for the cell of config hash `cell`: a candidate of the search space (`search` in the
+    config, cells run by this DAG) by its place in the search's order (vlaquantbench.search.search_order: cheapest
+    weight memory first; the proxies the headers will give are unknown before any episode, so ties that only
+    a proxy would break go by name, as the search orders candidates without one), the cheapest highest and the
+    baseline above them all; every other cell 0. A run cut short has thus finished the cheapest candidates, the
+    ones the search reads first."""
+    if not SEARCH or WF.records_dir is not None:
+        return 0
+    return search_ranks().get(cell, 0)
 
 
 def search_held_out():
@@ -211,7 +233,7 @@ def search_held_out():
     confirm = SEARCH_CONFIRM
     if not confirm:
         return {}
-    _, space = search_cells()
+    _, _, space = search_cells()
     if not Path(confirm["records_dir"]).is_dir():
         raise UserError(f"search.confirm.records_dir {confirm['records_dir']} is not a folder: record the chosen cell "
                         f"and the baseline on run seed {confirm['seed']} there first (vqb rollout seed{confirm['seed']}-<cell>)")

@@ -66,6 +66,9 @@ rule rollout:
     log:
         "logs/rollout/{cell}.log",
     threads: lambda wc: gpu_job(CELLS[wc.cell])["threads"]
+    # A precision search's candidates start in the search's order, cheapest first (search_priority): the
+    # scheduler starts the ready job of highest priority first.
+    priority: lambda wc: search_priority(wc.cell)
     resources:
         gpu=lambda wc: int(on_gpu(CELLS[wc.cell])),
         mem_mb=lambda wc: memory_mb(CELLS[wc.cell], len(CELLS[wc.cell]["tasks"]) * CELLS[wc.cell]["episodes_per_task"]),

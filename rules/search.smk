@@ -21,6 +21,7 @@ rule search_table:
         records_root=str(WF.records_root),
         baseline=lambda wc: search_cells()[0],
         refs=lambda wc: search_cells()[1],
+        space=lambda wc: search_cells()[2],
         held_out_refs=lambda wc: list(search_held_out()),
         confirm_seed=SEARCH_CONFIRM.get("seed"),
         held_out_root=SEARCH_CONFIRM.get("records_dir"),

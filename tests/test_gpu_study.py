@@ -93,7 +93,7 @@ def dry_run(tmp_path: Path, *configs: str, targets: tuple[str, ...] = ()) -> str
     checkout.mkdir()
     for item in ("Snakefile", "rules", "workflow", "config", "src", "checkpoints"):
         (checkout / item).symlink_to(ROOT / item)
-    args = [arg for config in configs for arg in ("--configfile", config)]
+    args = ["--configfile", *configs]  # one flag: Snakemake 9 keeps only the last of several --configfile flags
     env = {k: v for k, v in os.environ.items() if k != "CUDA_VISIBLE_DEVICES"}
     result = subprocess.run([sys.executable, "-m", "snakemake", "-n", *targets, "--cores", "16", *args], cwd=checkout,
                             capture_output=True, text=True, timeout=300, env=env)

@@ -336,3 +336,135 @@ def test_snakemake_renders_a_table_row_of_the_named_allocation_as_the_chosen_cel
     spelled, named = (re.search(rf"^{label} & (.*)\\\\", body, re.MULTILINE)[1] for label in ("spelled", "named"))
     assert spelled == named and named.startswith("60 & ")
     assert len(named.split("&")) == 4 and named.split("&")[2].strip() != "--"  # the chosen cell's quantized layers
+
+
+# --- a space recorded in part: a run cut short, its candidates started cheapest first -------------------------------
+def _space_table(path, refs):
+    """A table definition whose cells are `refs`: what `vqb search --space` and the target read as the whole space."""
+    path.write_text(yaml.safe_dump({"caption": "space", "align": "lr", "header": [["Cell", "Episodes"]],
+                                    "values": [{"stat": "episodes", "cell": "cell"}],
+                                    "rows": [{"label": str(i), "cell": ref} for i, ref in enumerate(refs)]}))
+    return path
+
+
+def _prefix(folder, records, refs):
+    """A records folder holding only `refs` of `records` (links to their files, in the folder's layout)."""
+    found = find_cells(records)
+    for ref in refs:
+        target = folder / found[ref].relative_to(records)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.symlink_to(found[ref])
+    return folder
+
+
+def test_a_recorded_prefix_that_determines_the_search_gives_its_answer(tmp_path, capsys):
+    """The authors' pi0.5 LIBERO-Spatial lattice at 10 pp, as if the run had stopped once the search was determined:
+    only the baseline and the two cheapest candidates recorded (the first undecided at its cap, the second
+    `not_worse`). Searched over the whole space of 22 (alpha / 22 each), it chooses what the search over every
+    record chooses, with the same decisions and episodes; the 20 unrecorded candidates are `not reached`."""
+    baseline = f"{SPATIAL}/rtn-BASELINE-e2e"
+    space = sorted(ref for ref in find_cells(RECORDS) if ref.startswith(SPATIAL + "/"))
+    table = _space_table(tmp_path / "space.yaml", space)
+    full, part = tmp_path / "full.csv", tmp_path / "part.csv"
+    assert main(["search", str(RECORDS), "--baseline", baseline, "--margin", "10", "--csv", str(full)]) == 0
+    whole = pd.read_csv(full)
+    visited = list(whole.loc[whole["status"].isin(["visited", "chosen"]), "cell"])
+    assert visited == [f"{SPATIAL}/calib_all_a75-W4A4-e2e", f"{SPATIAL}/calib_ah-W4A4-ah"]
+    prefix = _prefix(tmp_path / "prefix", RECORDS, [baseline, *visited])
+    capsys.readouterr()
+    assert main(["search", str(prefix), "--space", str(table), "--baseline", baseline, "--margin", "10", "--exhaustive",
+                 "--csv", str(part)]) == 0
+    printed = capsys.readouterr().out
+    assert f"chosen: {SPATIAL}/calib_ah-W4A4-ah" in printed and "alpha 0.05 split over the 22 candidates" in printed
+    assert "episodes: 350 of 4400" in printed and "recorded: 400 episodes in the 2 of 22 candidates' records" in printed
+    assert "exhaustive: not decided (20 candidate(s) without records)" in printed
+    part = pd.read_csv(part)
+    columns = ["order", "cell", "status", "decision", "episodes_used", "delta_at_stop_pp", "delta_cs_low_pp"]
+    pd.testing.assert_frame_equal(part[columns], whole[columns])
+    assert set(part.loc[part["order"] > 2, "status"]) == {"not reached"}
+    assert (part.loc[part["order"] > 2, "episodes_recorded"] == 0).all()
+
+
+def test_a_recorded_prefix_that_does_not_determine_the_search_is_refused_naming_the_cells(tmp_path, capsys):
+    """The same lattice with the cheapest candidate unrecorded (a run cut before it finished): the search would read
+    it first, so it is refused, naming it and every unrecorded candidate the search may still read; nothing is
+    written. Without --space the folder's 1 candidate would be the whole space: refused as a part of a larger one
+    only where a live rule stopped its records (tests below)."""
+    space = sorted(ref for ref in find_cells(RECORDS) if ref.startswith(SPATIAL + "/"))
+    table = _space_table(tmp_path / "space.yaml", space)
+    prefix = _prefix(tmp_path / "prefix", RECORDS, [f"{SPATIAL}/rtn-BASELINE-e2e", f"{SPATIAL}/calib_ah-W4A4-ah"])
+    out = tmp_path / "s.csv"
+    assert main(["search", str(prefix), "--space", str(table), "--margin", "10", "--csv", str(out)]) == 2
+    error = capsys.readouterr().err
+    assert (f"the search is not determined by the recorded candidates: it reaches {SPATIAL}/calib_all_a75-W4A4-e2e "
+            "(#1 of 22 in search order), which has no finished records; the 21 candidate(s) without records it may "
+            "still read: calib_all_a75-W4A4-e2e, rtn-W4A4-ah, ") in error
+    assert "calib_ah-W4A4-ah," not in error and not out.exists()
+
+
+def test_the_search_target_reads_the_recorded_part_of_its_space(tmp_path):
+    """tables/search.csv from a records folder that lacks some of the search table's cells: the DAG plans the search
+    on the recorded ones (no refusal while it is built), and its job (write_search over the whole space, what
+    workflow/scripts/search_table.py runs) counts the unrecorded cell in the space (alpha / 3): at 20 pp RTN W4A8 is
+    then undecided and the search would read RTN W8A8 e2e next, which it names; at 25 pp W4A8 is chosen and W8A8 is
+    `not reached`; with RTN W3 e2e (between W2A2 and W4A8) unrecorded too, W3 is named."""
+    from vlaquantbench.tables.search import write_search
+
+    checkout, tables = workflow_with_tables(tmp_path)
+    for link in ("results/trained_sequential", "results/trained_search"):
+        (checkout / link).parent.mkdir(exist_ok=True)
+        (checkout / link).symlink_to(ROOT / link)
+    (checkout / "manifests").symlink_to(ROOT / "manifests")
+    table = yaml.safe_load((ROOT / "config/trained_sequential/tables/trained_sequential.yaml").read_text())
+    table["rows"].append({"label": "W8A8", "cell": f"{TRAINED}/rtn-W8A8-e2e", "fp": f"{TRAINED}/rtn-BASELINE-e2e"})
+    (tables / "trained_sequential.yaml").write_text(yaml.safe_dump(table))
+    result = subprocess.run([sys.executable, "-m", "snakemake", "-n", "--cores", "1", "tables/search.csv",
+                             "--configfile", "config/trained_sequential.yaml", "config/trained_sequential_fixed.yaml",
+                             "config/trained_search.yaml", "--config", f"tables_dir={tables}"],
+                            cwd=checkout, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    job = result.stdout.split("rule search_table:", 1)[1].split("\n\n", 1)[0]
+    assert "rtn-W2A2-e2e/episodes.parquet" in job and "rtn-W4A8-e2e/episodes.parquet" in job and "W8A8" not in job
+
+    cells = {ref: read_cell(path) for ref, path in find_cells(TRAINED_FIXED).items()}
+    baseline = f"{TRAINED}/rtn-BASELINE-e2e"
+    space = [baseline, f"{TRAINED}/rtn-W2A2-e2e", f"{TRAINED}/rtn-W4A8-e2e", f"{TRAINED}/rtn-W8A8-e2e"]
+    with pytest.raises(UserError, match=rf"it reaches {TRAINED}/rtn-W8A8-e2e \(#3 of 3 in search order\), which has "
+                                        r"no finished records \(decided before it: rtn-W2A2-e2e worse, rtn-W4A8-e2e "
+                                        r"undecided\); the 1 candidate\(s\) without records it may still read: rtn-W8A8"):
+        write_search(cells, baseline, SearchDesign(0.05, 20.0), tmp_path / "t.csv", space=space)
+    report = write_search(cells, baseline, SearchDesign(0.05, 25.0), tmp_path / "s.csv", space=space)
+    assert report.result.chosen.ref == f"{TRAINED}/rtn-W4A8-e2e" and report.unrecorded == (f"{TRAINED}/rtn-W8A8-e2e",)
+    assert report.result.status(f"{TRAINED}/rtn-W8A8-e2e") == "not reached"
+    assert "alpha 0.05 split over the 3 candidates" in report.summary()[0]
+    with pytest.raises(UserError, match=rf"it reaches {TRAINED}/rtn-W3-e2e \(#2 of 4 in search order\), which has no "
+                                        r"finished records \(decided before it: rtn-W2A2-e2e worse\)"):
+        write_search(cells, baseline, SearchDesign(0.05, 25.0), tmp_path / "t.csv", space=[*space, f"{TRAINED}/rtn-W3-e2e"])
+    assert not (tmp_path / "t.csv").exists()
+
+
+def test_an_unrecorded_candidate_as_costly_as_a_recorded_one_blocks_it_where_proxies_order_them():
+    """Equal weight memory and activation bits are ordered by the proxy the headers give (their layer errors): where
+    the space's headers give proxies, a recorded candidate ties with an unrecorded one whose proxy is still unknown,
+    so the search is not determined there; where none gives one, the name orders them and the search answers."""
+    gate, up = f"{SPATIAL}/ablate-W4A4-ah-only_gate", f"{SPATIAL}/ablate-W4A4-ah-only_up"
+    assert Candidate.from_ref(gate).cost_bits == Candidate.from_ref(up).cost_bits
+
+    def decide(candidate, design):
+        return Verdict("not_worse", 10, 10)
+
+    with pytest.raises(UserError, match=r"it reaches .*only_up \(#2 of 2 in search order\), which has no finished "
+                                        r"records; the 1 candidate\(s\) without records it may still read: "
+                                        r"ablate-W4A4-ah-only_up\."):
+        precision_search([Candidate.from_ref(gate, proxy=0.1), Candidate.from_ref(up)], decide, SearchDesign(), [up])
+    result = precision_search([Candidate.from_ref(gate), Candidate.from_ref(up)], decide, SearchDesign(), [up])
+    assert result.chosen.ref == gate and result.status(up) == "not reached"
+
+
+def test_live_records_of_a_larger_space_are_refused_naming_its_size(tmp_path, capsys):
+    """Records a live rule stopped at alpha / K' searched as a space of fewer candidates (a folder holding part of the
+    space, searched without --space) are refused, naming the space they were stopped for."""
+    out = tmp_path / "s.csv"
+    assert main(["search", str(TRAINED_LIVE), "--cells", "rtn-W2A2-e2e", "--alpha", "0.1", "--csv", str(out)]) == 2
+    assert ("rtn-W2A2-e2e: its records were stopped by a live rule at alpha 0.05 = 0.1 / 2, a space of 2 candidates, "
+            "and 1 are searched here") in capsys.readouterr().err

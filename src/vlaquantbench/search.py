@@ -17,6 +17,12 @@ every later candidate at least as aggressive on the same layers (`at_least_as_ag
 method, a superset of the layers, no more weight bits and no more activation bits); the first `not_worse` ends
 the search and is the chosen allocation; `undecided` (the cap) moves on.
 
+A space recorded only in part (a run cut short: the candidates started cheapest first, some not finished) is
+searched over the whole space all the same (`unrecorded`: the candidates without finished records; K is the
+space's size, never the recorded count): the search gives its answer when the recorded candidates determine it
+(every candidate it visits is recorded, and the first `not_worse` ends it before any unrecorded one, which is then
+`not reached`), and otherwise raises `SearchUndetermined` naming the unrecorded candidates it would read next.
+
 Guarantee: alpha is split over the K candidates of the space, fixed before any episode (Bonferroni): each
 candidate's rule runs at alpha / K whether or not it is visited. A false `not_worse` (true difference at most
 -margin) has probability at most alpha / K per candidate, so the chance that any decision of the search, and in
@@ -151,6 +157,23 @@ class SearchDesign:
                 f"most {self.alpha:g}")
 
 
+class SearchUndetermined(UserError):
+    """The recorded candidates do not determine the search: it reaches `needed` (candidates without finished
+    records, in search order), the first of which it would read next. `result`: the search up to there."""
+
+    def __init__(self, needed: list[str], result: SearchResult):
+        self.needed, self.result = needed, result
+        rank = next(i for i, c in enumerate(result.order, 1) if c.ref == needed[0])
+        decided = ", ".join(f"{ref.rsplit('/', 1)[-1]} {verdict.decision}" for ref, verdict in result.verdicts.items())
+        super().__init__(
+            f"the search is not determined by the recorded candidates: it reaches {needed[0]} (#{rank} of "
+            f"{len(result.order)} in search order), which has no finished records"
+            + (f" (decided before it: {decided})" if decided else "")
+            + f"; the {len(needed)} candidate(s) without records it may still read: "
+            + ", ".join(ref.rsplit("/", 1)[-1] for ref in needed)
+            + ". Record them (the run goes on cheapest first) and search again")
+
+
 @dataclass(frozen=True)
 class Verdict:
     """What one candidate's stopping rule decided, and the episodes it read and could have read."""
@@ -214,24 +237,54 @@ def search_order(candidates: Iterable[Candidate]) -> list[Candidate]:
                                              c.proxy or 0.0, c.ref))
 
 
-def precision_search(candidates: Iterable[Candidate], decide: Decide, design: SearchDesign) -> SearchResult:
+def _tie(candidate: Candidate) -> tuple[float, int]:
+    """What `search_order` ranks by before the proxy: candidates equal in it are ordered by their proxies."""
+    return candidate.cost_bits, activation_bits(candidate.preset)
+
+
+def precision_search(candidates: Iterable[Candidate], decide: Decide, design: SearchDesign,
+                     unrecorded: Iterable[str] = ()) -> SearchResult:
     """Visit the candidates in `search_order`, each decided by `decide(candidate, per-candidate design)`, pruning
-    after `worse` and stopping at the first `not_worse` (the chosen allocation)."""
+    after `worse` and stopping at the first `not_worse` (the chosen allocation).
+
+    `unrecorded`: candidates of the space without finished records (never passed to `decide`). Reaching one that
+    no `worse` has pruned raises `SearchUndetermined`; so does visiting a recorded candidate that ties with an
+    unpruned unrecorded one in cost and activation bits where the recorded candidates carry proxies (their order
+    then rests on a proxy the unrecorded one's header has yet to give; without proxies it goes by name).
+    Unrecorded candidates after the chosen one are `not reached`."""
     order = search_order(candidates)
     refs = [c.ref for c in order]
     if len(set(refs)) != len(refs):
         raise UserError(f"the search space names a cell twice: {sorted({r for r in refs if refs.count(r) > 1})}")
+    missing = set(unrecorded)
+    if missing - set(refs):
+        raise UserError(f"unrecorded cells outside the search space: {sorted(missing - set(refs))}")
     per_candidate = design.per_candidate(len(order))
     verdicts: dict[str, Verdict] = {}
     pruned_by: dict[str, str] = {}
     worse: list[Candidate] = []
     chosen = None
     cap = 0
+
+    def pruner_of(candidate: Candidate) -> Candidate | None:
+        return next((w for w in worse if at_least_as_aggressive(candidate, w)), None)
+
+    def undetermined(at: Candidate) -> SearchUndetermined:
+        """The unrecorded candidates the search may still read, from `at`'s tie on (those no `worse` prunes)."""
+        partial = SearchResult(design, order, verdicts, pruned_by, None, cap)
+        start = next(i for i, c in enumerate(order) if _tie(c) == _tie(at))
+        needed = [c.ref for c in order[start:] if c.ref in missing and pruner_of(c) is None]
+        return SearchUndetermined(needed, partial)
+
+    proxied = any(c.proxy is not None for c in order)  # a space whose headers give proxies (layer errors)
     for candidate in order:
-        pruner = next((w for w in worse if at_least_as_aggressive(candidate, w)), None)
+        pruner = pruner_of(candidate)
         if pruner is not None:
             pruned_by[candidate.ref] = pruner.ref
             continue
+        if candidate.ref in missing or proxied and any(c.ref in missing and _tie(c) == _tie(candidate)
+                                                       and pruner_of(c) is None for c in order):
+            raise undetermined(candidate)
         verdict = decide(candidate, per_candidate)
         verdicts[candidate.ref] = verdict
         cap = max(cap, verdict.episodes_cap)
@@ -274,7 +327,9 @@ def records_decider(episodes: Mapping[str, pd.DataFrame], headers: Mapping[str, 
         rate = rate_interval(outcome_rounds(episodes[candidate.ref])[: result.rounds_used], design.alpha)
         detail = {"delta_at_stop_pp": delta.estimate, "delta_cs_low_pp": delta.low, "delta_cs_high_pp": delta.high,
                   "rate_at_stop": rate.estimate, "rate_cs_low": rate.low, "rate_cs_high": rate.high}
-        return Verdict(result.decision, result.episodes_used, differences.size, detail)
+        # The cap: the cell's rounds in full (a live rule that stopped it recorded fewer than its config runs)
+        cap = max(differences.size, int(headers[candidate.ref].get("episodes_per_task") or 0) * differences.shape[1])
+        return Verdict(result.decision, result.episodes_used, cap, detail)
 
     return decide
 

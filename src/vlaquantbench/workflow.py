@@ -179,6 +179,14 @@ class WorkflowConfig:
                     raise UserError(f"{target}: cell {ref} is neither in records_dir {self.records_dir} {where}")
         return [ref for ref in refs if self.recorded_ref(ref) in recorded]
 
+    def recorded(self, refs: list[str]) -> list[str]:
+        """Of the cells `refs`, those with episode records: every one when the DAG produces them (no
+        `records_dir`), else those `records_dir` holds (a named allocation by the cell it stands for)."""
+        if self.records_dir is None:
+            return list(refs)
+        recorded = self._recorded_cells()
+        return [ref for ref in refs if self.recorded_ref(ref) in recorded]
+
     def summary_input(self, refs: list[str], target: str) -> list[str]:
         """`[success_summary]` when some of `target`'s cells `refs` come from it, else `[]` (a rule input)."""
         cells = [ref for ref in refs if not is_source_ref(ref)]
@@ -201,6 +209,23 @@ class WorkflowConfig:
                 raise UserError(f"{target}: cell {ref}: {file} does not exist")
             found[ref] = str(file)
         return found
+
+    def search_space(self) -> tuple[str, list[str]]:
+        """The precision search's baseline and whole space (the config's `search`): the cells of `search.table` of
+        the baseline's benchmark, suite and model, the baseline among them. UserError without a `search` section or
+        without exactly one baseline cell in the table."""
+        search = self.raw.get("search")
+        if not search:
+            raise UserError("tables/search.csv needs a `search` section in the config (its table, baseline, alpha, "
+                            "margin_pp)")
+        refs = list(dict.fromkeys(self.table(search["table"]).refs()))
+        baseline = search.get("baseline", "rtn-BASELINE-e2e")
+        named = [ref for ref in refs if baseline in (ref, ref.rsplit("/", 1)[-1])]
+        if len(named) != 1:
+            raise UserError(f"search.baseline {baseline!r}: {len(named)} such cells in table {search['table']} "
+                            f"({', '.join(named) or 'none'}); the search needs exactly one")
+        group = named[0].rsplit("/", 1)[0]
+        return named[0], [ref for ref in refs if ref.rsplit("/", 1)[0] == group]
 
     def table_record_refs(self, name: str) -> list[str]:
         return self.record_refs(self.table(name).refs(), f"tables/{name}.tex")

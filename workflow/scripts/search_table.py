@@ -18,5 +18,5 @@ with job_log(sm):
     report = write_search(cells, sm.params.baseline, SearchDesign(sm.params.alpha, sm.params.margin_pp),
                           sm.output.csv, sm.output.figure, decide_all=True, held=held,
                           confirm_seed=sm.params.confirm_seed, chosen=sm.output.chosen,
-                          allocation=sm.params.allocation)
+                          allocation=sm.params.allocation, space=sm.params.space)
     print("\n".join(report.summary()))

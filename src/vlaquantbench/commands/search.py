@@ -11,6 +11,12 @@ decides every candidate and reports whether the search chose what deciding them 
 contrasts the chosen cell with the baseline on run seed N's records (`seed<N>-<cell>`, in `--confirm-dir`);
 `--chosen FILE` writes the chosen allocation by name (`study.allocations.<--allocation>`, a config to add after the
 study's, so that a cell `alloc-<name>` is the chosen cell).
+
+`--space TABLE` (a table definition YAML, e.g. config/gpu_search/tables/gpu_search.yaml) names the whole space:
+its cells of the baseline's benchmark, suite and model, recorded in the folder or not. A folder holding only a part
+of it (a run cut short) is searched over the whole space (alpha split over all of it): the answer when the
+recorded candidates determine it (the cheaper ones decided or at their cap, and a `not_worse` among them), else a
+refusal naming the candidates without records that the search would read.
 """
 
 from __future__ import annotations
@@ -34,6 +40,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--cells", nargs="+", metavar="PATTERN",
                         help="the candidates: cell names matching any of these patterns (default: every other cell "
                              "of the baseline's model and suite)")
+    parser.add_argument("--space", metavar="TABLE",
+                        help="the whole search space: a table definition YAML whose cells of the baseline's model and "
+                             "suite are the candidates, recorded in RECORDS_DIR or not (a run cut short)")
     parser.add_argument("--alpha", type=float, default=0.05,
                         help="level of the whole search, split over the candidates (default 0.05)")
     parser.add_argument("--margin", type=float, default=5.0, metavar="PP",
@@ -71,10 +80,21 @@ def run(args: argparse.Namespace) -> int:
     # Cells of another run seed (`seed<N>-`) run other episodes: a confirmation's, never a candidate.
     names = [ref for ref in cells if ref.rsplit("/", 1)[0] == group and ref != baseline
              and not re.match(r"seed\d+-", ref.rsplit("/", 1)[-1])]
+    space = None
+    if args.space:
+        from vlaquantbench.tables import load_table
+
+        space = [ref for ref in dict.fromkeys(load_table(args.space).refs())
+                 if ref.rsplit("/", 1)[0] == group and ref != baseline]
+        if not space:
+            raise UserError(f"--space {args.space}: the table holds no cell of {group} but its baseline")
+        names = [ref for ref in names if ref in space]
     if args.cells:
         names = [ref for ref in names if any(fnmatch.fnmatchcase(ref.rsplit("/", 1)[-1], p) for p in args.cells)]
-    if not names:
-        raise UserError(f"no candidate cell of {group} in {args.records_dir}"
+    if args.cells and space is not None:
+        space = [ref for ref in space if any(fnmatch.fnmatchcase(ref.rsplit("/", 1)[-1], p) for p in args.cells)]
+    if not (space or names):
+        raise UserError(f"no candidate cell of {group} in {args.space or args.records_dir}"
                         + (f" matches --cells {' '.join(args.cells)}" if args.cells else ""))
     held = {}
     if args.confirm_seed is not None:
@@ -82,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
         prefix = f"seed{args.confirm_seed}-"
         held = {ref: read_cell(path) for ref, path in found.items() if ref.rsplit("/", 1)[-1].startswith(prefix)}
     report = write_search({ref: read_cell(cells[ref]) for ref in [baseline, *names]}, baseline, design, args.csv,
-                          args.figure, args.exhaustive, held, args.confirm_seed, args.chosen, args.allocation)
+                          args.figure, args.exhaustive, held, args.confirm_seed, args.chosen, args.allocation,
+                          [baseline, *space] if space is not None else None)
     print("\n".join(report.summary()))
     return 0

@@ -17,6 +17,12 @@ chosen cell's name under `study.allocations.<name>`, to add after the study's co
 allocation is one cell: one preset on its scope and subset, every other layer at full precision (a cell has one
 preset, so the space holds no candidate that mixes formats across components).
 
+A space recorded in part (`space`: every candidate of the space, some without records): the search runs over the
+whole space (alpha split over all of it) and gives its answer when the recorded candidates determine it, the
+unrecorded ones after the chosen cell `not reached` (0 episodes recorded); otherwise `SearchUndetermined` names the
+unrecorded candidates it would read (`vlaquantbench.search.precision_search`). Deciding every candidate
+(`decide_all`) needs them all: with some unrecorded it is left out and the summary says so.
+
 Confirmation: the chosen cell and the baseline rerun in full on episodes the search never used, another run seed
 (`seed<N>-<cell>`, `held_out`), and contrasted by the paper's fixed-sample task-clustered bootstrap (95%, 5,000
 draws, seed 0): `confirmed_not_worse` when its lower end is above -margin (one pre-specified test after the
@@ -103,6 +109,8 @@ class SearchReport:
     table: pd.DataFrame
     exhaustive_choice: str | None  # the cheapest `not_worse` when every candidate is decided ("" when not run)
     confirmation: Confirmation | None = None
+    unrecorded: tuple[str, ...] = ()  # candidates of the space without records (a run cut short)
+    decide_all: bool = False
 
     @property
     def episodes_recorded(self) -> int:
@@ -116,8 +124,16 @@ class SearchReport:
                  + (f" at {chosen.cost_ratio:.3f} x the BF16 weight memory" if chosen else ""),
                  f"episodes: {result.episodes_spent} of {result.episodes_exhaustive} that every candidate run in full "
                  f"would need ({len(result.verdicts)} visited, {len(result.pruned_by)} pruned)",
-                 f"recorded: {self.episodes_recorded} episodes in the {len(result.order)} candidates' records "
-                 f"({self.episodes_recorded / result.episodes_exhaustive:.0%} of every candidate in full)"]
+                 f"recorded: {self.episodes_recorded} episodes in the "
+                 + (f"{len(result.order) - len(self.unrecorded)} of {len(result.order)}" if self.unrecorded
+                    else f"{len(result.order)}")
+                 + f" candidates' records ({self.episodes_recorded / result.episodes_exhaustive:.0%} of every "
+                 "candidate in full)"]
+        if self.unrecorded:
+            lines.append(f"unrecorded: {len(self.unrecorded)} candidate(s) without records, none of which the search "
+                         "needs (each pruned, or after the chosen cell: not reached)")
+            if self.decide_all:
+                lines.append(f"exhaustive: not decided ({len(self.unrecorded)} candidate(s) without records)")
         if self.exhaustive_choice != "":
             same = self.exhaustive_choice == (chosen.ref if chosen else None)
             lines.append(f"exhaustive: {self.exhaustive_choice or 'none'} ({'the same' if same else 'NOT the same'})")
@@ -129,25 +145,53 @@ class SearchReport:
         return lines
 
 
+def check_levels(cells: Mapping[str, Cell], names: list[str], design: SearchDesign) -> None:
+    """Refuse, naming the cell, records that a live rule stopped at the level of a larger space than `names` (alpha
+    over more candidates): a folder holding a part of the space, searched as if it were all of it."""
+    level = design.per_candidate(len(names)).alpha
+    for ref in names:
+        stopping = cells[ref].header.get("stopping") if ref in cells else None
+        if not stopping or stopping["rounds_run"] >= cells[ref].header["episodes_per_task"]:
+            continue
+        implied = design.alpha / stopping["alpha"]
+        if round(implied) > len(names) and abs(implied - round(implied)) < 1e-6 * implied:
+            raise UserError(f"cell {ref}: its records were stopped by a live rule at alpha {stopping['alpha']:.6g} = "
+                            f"{design.alpha:g} / {round(implied)}, a space of {round(implied)} candidates, and "
+                            f"{len(names)} are searched here (alpha {level:.6g} each): search the whole space, its "
+                            "cells without records included (vqb search --space TABLE, or the config's search table)")
+
+
 def search_records(cells: Mapping[str, Cell], baseline: str, design: SearchDesign, decide_all: bool = False,
-                   held: Mapping[str, Cell] | None = None, confirm_seed: int | None = None) -> SearchReport:
+                   held: Mapping[str, Cell] | None = None, confirm_seed: int | None = None,
+                   space: list[str] | None = None) -> SearchReport:
     """Search over `cells` (reference -> records), every one but `baseline` a candidate; `decide_all`: also
     decide every candidate (the exhaustive choice); `confirm_seed`: confirm the chosen cell on that run seed's
-    records in `held`. UserError naming a cell that cannot be contrasted, before any decision."""
+    records in `held`. `space`: the whole space's candidates when some have no records in `cells` (a run cut
+    short): the search is over all of them, answered when the recorded ones determine it, else
+    `SearchUndetermined` naming the unrecorded ones it needs. UserError naming a cell that cannot be contrasted,
+    before any decision."""
     if confirm_seed is not None:
         held_out(baseline, confirm_seed)  # a bad seed is refused before the search
-    names = [ref for ref in cells if ref != baseline]
+    if baseline not in cells:
+        raise UserError(f"the search needs the records of its baseline {baseline}")
+    names = [ref for ref in (cells if space is None else dict.fromkeys(space)) if ref != baseline]
     if not names:
         raise UserError(f"the search space of {baseline} holds no candidate cell")
+    unrecorded = tuple(ref for ref in names if ref not in cells)
+    outside = [ref for ref in cells if ref != baseline and ref not in names]
+    if outside:
+        raise UserError(f"records of cells outside the search space: {', '.join(outside)}")
     for ref in names:
-        mismatch = contrast_mismatch(cells[ref], cells[baseline])
+        mismatch = contrast_mismatch(cells[ref], cells[baseline]) if ref in cells else None
         if mismatch:
             raise UserError(f"cell {ref} cannot be contrasted with {baseline}: {mismatch}")
-    candidates = [Candidate.from_ref(ref, proxy(cells[ref].header)) for ref in names]
+    check_levels(cells, names, design)
+    candidates = [Candidate.from_ref(ref, proxy(cells[ref].header) if ref in cells else None) for ref in names]
     decide = records_decider({r: c.episodes for r, c in cells.items()}, {r: c.header for r, c in cells.items()},
                              baseline)
-    result = precision_search(candidates, decide, design)
-    rows = [{**row, "episodes_recorded": len(cells[row["cell"]].episodes), "episodes_full": result.episodes_cap}
+    result = precision_search(candidates, decide, design, unrecorded)
+    rows = [{**row, "episodes_recorded": len(cells[row["cell"]].episodes) if row["cell"] in cells else 0,
+             "episodes_full": result.episodes_cap}
             for row in result.rows()]
     rows.insert(0, {"order": 0, "cell": baseline, "cost_ratio": 1.0, "status": "baseline (runs in full)",
                     "episodes_used": len(cells[baseline].episodes),
@@ -156,7 +200,7 @@ def search_records(cells: Mapping[str, Cell], baseline: str, design: SearchDesig
     front = pareto_front(rows)
     table = pd.DataFrame(rows).assign(pareto=lambda t: t["cell"].isin(front))
     choice = ""
-    if decide_all:
+    if decide_all and not unrecorded:
         chosen, _ = exhaustive(candidates, decide, design)
         choice = chosen.ref if chosen else None
     confirmation = None
@@ -164,26 +208,32 @@ def search_records(cells: Mapping[str, Cell], baseline: str, design: SearchDesig
         confirmation = confirm(held or {}, result.chosen.ref, baseline, confirm_seed, design.margin_pp)
         for column, value in confirmation.columns().items():
             table.loc[table["cell"] == result.chosen.ref, column] = value
-    return SearchReport(result, table, choice, confirmation)
+    return SearchReport(result, table, choice, confirmation, unrecorded, decide_all)
 
 
 def chosen_allocation(report: SearchReport, name: str = DEFAULT_ALLOCATION) -> str:
     """The chosen allocation by name: a config registering the chosen cell's name as `study.allocations.<name>`
     (none chosen: no allocation, so a cell `alloc-<name>` is refused naming what study.allocations defines), what
     the search decided in its comments. UserError naming the name when it is not an allocation name."""
+    chosen = report.result.chosen
+    group = report.table.loc[report.table["order"] == 0, "cell"].iloc[0].rsplit("/", 1)[0]
+    return allocation_config(name, chosen.ref if chosen else None, group, report.summary())
+
+
+def allocation_config(name: str, chosen: str | None, group: str, summary: list[str]) -> str:
+    """`chosen_allocation`'s text from its parts: the allocation `name`, the chosen cell's reference (None: nothing
+    chosen), the cells' `<benchmark>/<suite>/<model>` and the search's summary lines (its comments)."""
     import yaml
 
-    chosen = report.result.chosen
-    allocations = {name: chosen.ref.rsplit("/", 1)[-1]} if chosen else {}
+    allocations = {name: chosen.rsplit("/", 1)[-1]} if chosen else {}
     # The name (and the cell) as study.allocations takes them; with none chosen, the name alone (any cell)
     validate({"allocations": {name: allocations.get(name, "rtn-BASELINE-e2e")}}, "config", f"allocation {name!r}",
              subschema=("study",))
-    group = report.table.loc[report.table["order"] == 0, "cell"].iloc[0].rsplit("/", 1)[0]
     lines = ["The allocation the precision search chose (tables/search.csv, vlaquantbench.search), by name. Add this",
              "file after the study's config (snakemake --configfile CONFIG tables/search_chosen.yaml, or copy the",
              f"entry into its study.allocations): a cell {group}/[seed<N>-]alloc-{name} is then the chosen cell",
              "under another name (the same config hash, folder and records; vlaquantbench.cells).",
-             *report.summary()]
+             *summary]
     if chosen is None:
         lines.append(f"No candidate was decided not_worse: no allocation is named, and a cell alloc-{name} is refused.")
     comment = "".join(f"# {line}\n" for line in lines)
@@ -226,10 +276,11 @@ def plot_pareto(table: pd.DataFrame, output: str | Path, title: str | None = Non
 def write_search(cells: Mapping[str, Cell], baseline: str, design: SearchDesign, csv: str | Path,
                  figure: str | Path | None = None, decide_all: bool = False, held: Mapping[str, Cell] | None = None,
                  confirm_seed: int | None = None, chosen: str | Path | None = None,
-                 allocation: str = DEFAULT_ALLOCATION) -> SearchReport:
-    """`search_records`, its CSV, (given `figure`) its Pareto figure and (given `chosen`) the chosen allocation
-    named `allocation` (`chosen_allocation`)."""
-    report = search_records(cells, baseline, design, decide_all, held, confirm_seed)
+                 allocation: str = DEFAULT_ALLOCATION, space: list[str] | None = None) -> SearchReport:
+    """`search_records` (over `space` when given: the whole space, some of it without records), its CSV, (given
+    `figure`) its Pareto figure and (given `chosen`) the chosen allocation named `allocation`
+    (`chosen_allocation`). Nothing is written when the search is refused."""
+    report = search_records(cells, baseline, design, decide_all, held, confirm_seed, space)
     named = chosen_allocation(report, allocation) if chosen is not None else None  # a bad name: before any write
     write_text(csv, report.table.to_csv(index=False, float_format="%.4f"))
     if figure is not None:
