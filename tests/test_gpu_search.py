@@ -126,24 +126,43 @@ def test_a_dry_run_plans_the_candidates_to_start_cheapest_first(tmp_path):
         assert (f"results/cells/{baseline}/episodes.parquet" in job["input"]) == (key != baseline)
 
 
-def test_at_this_policys_success_the_rule_rarely_decides_an_equal_candidate_within_5_points():
-    """What a run should expect. The GPU study's baseline succeeds in 82.5% of its episodes (per task 45-100%): at
-    alpha 0.05 / 30 a candidate exactly as good as full precision is decided not_worse within 5 pp in few
-    simulated runs even at the 50-round cap, almost never within 20 rounds; within 10 pp in most runs at the cap. (On
-    LIBERO, at 99%, the 5 pp search decides it in most runs: tests/test_search_paper.py.)"""
-    episodes = pd.read_parquet(GPU_BASELINE / "episodes.parquet")
-    success = episodes.groupby("task_id")["success"].mean().sort_index().to_numpy()
-    assert len(success) == 10 and episodes["success"].mean() == pytest.approx(0.825)
+def test_the_rule_decides_an_equal_candidate_within_5_points_only_where_its_episodes_rarely_disagree():
+    """What a run should expect. The stopping rule reads paired differences (the same task, variation and seed in
+    both cells), so its power depends on how often a candidate's episode ends otherwise than full precision's. The
+    GPU study's committed cells measure it: 8-bit cells (W8A8 e2e) disagree on 4% of episodes, MXFP4 e2e, a 4-bit
+    format as good on average (-1 pp), on 15%. Simulated candidates exactly as good as full precision (per-task
+    success as the baseline's 200 episodes, 45-100%; outcomes flipped so as to keep each task's rate) at alpha
+    0.05 / 30: at 4% disagreement 5 pp is decided `not_worse` in most runs at the 50-round cap and rarely within 20
+    rounds; at 15% it is rarely decided even at the cap, while 10 pp is, in most runs. So at 5 pp the search can
+    choose an 8-bit allocation (about half the weight memory), rarely a 4-bit one."""
+    baseline = pd.read_parquet(GPU_BASELINE / "episodes.parquet")
+    success = baseline.groupby("task_id")["success"].mean().sort_index().to_numpy()
+    assert len(success) == 10 and baseline["success"].mean() == pytest.approx(0.825)
+
+    def disagreement(cell):
+        paired = pd.read_parquet(GPU_BASELINE.parent / cell / "episodes.parquet").merge(
+            baseline, on=["task_id", "episode", "seed"], suffixes=("", "_fp"))
+        assert len(paired) == 200
+        return (paired["success"] != paired["success_fp"]).mean()
+
     rng = np.random.default_rng(0)
 
-    def not_worse(margin, rounds, runs=60):
+    def not_worse(margin, rounds, rate, runs=60):
         design = SearchDesign(0.05, margin).per_candidate(30)
-        outcomes = (rng.random((runs, 2, rounds, 10)) < success).astype(int)
-        return sum(stopping_rule(a - b, design).decision == "not_worse" for a, b in outcomes) / runs
+        # Flip success to failure with d / 2p and failure to success with d / 2(1 - p): d disagree, the rate stays.
+        to_fail = np.where(success > 0, rate / (2 * np.maximum(success, 1e-9)), 0).clip(max=1)
+        to_success = np.where(success < 1, rate / (2 * np.maximum(1 - success, 1e-9)), 0).clip(max=1)
+        decided = 0
+        for _ in range(runs):
+            full = (rng.random((rounds, 10)) < success).astype(int)
+            flip = rng.random((rounds, 10)) < np.where(full == 1, to_fail, to_success)
+            decided += stopping_rule(np.where(flip, 1 - full, full) - full, design).decision == "not_worse"
+        return decided / runs
 
-    assert not_worse(5, 20) <= 0.05
-    assert not_worse(5, 50) <= 0.2
-    assert not_worse(10, 50) >= 0.6
+    eight_bit, four_bit = disagreement("rtn-W8A8-e2e"), disagreement("rtn-MXFP4-e2e")
+    assert (eight_bit, four_bit) == (pytest.approx(0.04), pytest.approx(0.15))
+    assert not_worse(5, 50, eight_bit) >= 0.6 and not_worse(5, 20, eight_bit) <= 0.15
+    assert not_worse(5, 50, four_bit) <= 0.2 and not_worse(10, 50, four_bit) >= 0.5
 
 
 def script(checkout: Path, *args: str, **env) -> subprocess.CompletedProcess:
