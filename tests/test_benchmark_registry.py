@@ -233,6 +233,29 @@ def test_a_benchmark_outside_envs_is_registered_from_the_module_vqb_benchmarks_n
     assert run.returncode != 0 and "VQB_BENCHMARKS: cannot import benchmark declaration module 'no_such_benchmark_module'" in run.stderr
 
 
+def test_threads_reading_the_registry_first_all_see_every_benchmark(tmp_path):
+    """The registry is found on first read; a thread reading while another is finding it waits for the end (a
+    declaration module that takes its time to import: here the second thread starts meanwhile)."""
+    (tmp_path / "slow_benchmark.py").write_text(
+        "import dataclasses, time\n"
+        "from vlaquantbench.envs.registry import Benchmark, Horizon, SuiteSize, register_benchmark\n"
+        "time.sleep(1.0)\n"
+        "@dataclasses.dataclass(frozen=True)\n"
+        "class Settings:\n    camera_size: int = 32\n"
+        "register_benchmark(Benchmark('slow', {'slow_one': SuiteSize(2, 3, 0.1, Horizon(9, 'here'), 9)},\n"
+        "    'x:Suite', 'x:Env', 'x:versions', {'main': 'image'}, Settings, 4, 4))\n")
+    code = ("import threading, time\n"
+            "from vlaquantbench.envs import BENCHMARK_SUITES\n"
+            "seen = []\n"
+            "def read(): seen.append(sorted(BENCHMARK_SUITES))\n"
+            "first = threading.Thread(target=read); first.start(); time.sleep(0.3)\n"
+            "second = threading.Thread(target=read); second.start(); first.join(); second.join()\n"
+            "print(seen)")
+    env = {"PYTHONPATH": f"{ROOT / 'src'}:{tmp_path}", "VQB_BENCHMARKS": "slow_benchmark"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
+    assert out.strip() == str([["libero", "metaworld", "slow"]] * 2)
+
+
 def test_the_committed_seam_equality_run_found_every_episode_of_both_benchmarks_equal():
     """benchmarks/seam_equality.py's record (minutes of Snakemake runs, so read here, not rerun): both benchmarks'
     demos ran before and after the seam's refactor, on the same cells, with no episode differing."""

@@ -33,7 +33,7 @@ from vlaquantbench.records import read_cell
 from vlaquantbench.runner.journal import TIMING_FIELDS, journal_episodes
 from vlaquantbench.workflow import WorkflowConfig
 
-LIVE, FIXED = "config/gpu_study.yaml", "config/gpu_study_fixed.yaml"
+LIVE, FIXED, KERNELS = "config/gpu_study.yaml", "config/gpu_study_fixed.yaml", "config/gpu_kernels.yaml"
 SCRIPT = ROOT / "benchmarks" / "gpu_study.sh"
 BASE = "metaworld/metaworld_mt50/pi05/"
 BASELINE = BASE + "rtn-BASELINE-e2e"
@@ -336,8 +336,9 @@ SAVED = ROOT / "results" / "gpu_study"
 
 def test_the_committed_carry_resumes_the_study_its_finished_cells_committed_as_records(tmp_path):
     """`save` committed the carry and the finished cells; `resume` puts the carry back, and what it restores is the
-    study of config/gpu_study.yaml: its finished cells are the committed records (same hashes, same episodes) and
-    its unfinished ones are journals of the study's cells. A second `resume` over a carry is refused."""
+    study's phases (config/gpu_study.yaml, then its fixed reruns and the real-kernel cells of config/gpu_kernels.yaml):
+    its finished cells are the committed records (same hashes, same episodes) and its unfinished ones are journals of
+    the phases' cells. A second `resume` over a carry is refused."""
     env = {**os.environ, "PYTHON": sys.executable, "CARRY": str(tmp_path / "carry"), "SAVED": str(SAVED / "carry")}
     resumed = subprocess.run(["bash", str(SCRIPT), "resume"], cwd=ROOT, env=env, capture_output=True, text=True)
     assert resumed.returncode == 0, resumed.stderr
@@ -345,9 +346,9 @@ def test_the_committed_carry_resumes_the_study_its_finished_cells_committed_as_r
     assert again.returncode == 1 and "already holds a carry" in again.stderr
     subprocess.run(["tar", "-xzf", str(tmp_path / "carry" / "carry.tgz")], cwd=tmp_path, check=True)
     progress = pd.read_csv(tmp_path / "results" / "gpu_study_progress.tsv", sep="\t")
-    study = study_cells(LIVE)
-    assert set(progress["hash"]) <= set(study) and progress["hash"].is_unique
-    committed = {cell.header["config_hash"]: cell for cell in map(read_cell, (SAVED / "live").glob("*/*/*/*"))}
+    phases = study_cells(LIVE) | study_cells(LIVE, FIXED) | study_cells(LIVE, KERNELS)
+    assert set(progress["hash"]) <= set(phases) and progress["hash"].is_unique
+    committed = {cell.header["config_hash"]: cell for cell in map(read_cell, SAVED.glob("*/*/*/*/*"))}
     finished = progress[progress["finished"] == 1]
     assert set(finished["hash"]) == set(committed) and len(committed) > 1
     for row in finished.itertuples():

@@ -17,6 +17,7 @@ import functools
 import importlib
 import os
 import pkgutil
+import threading
 import types
 import typing
 from collections.abc import Iterable, Iterator, Mapping
@@ -212,12 +213,20 @@ def _discover() -> None:
 
 
 class _Registered(Mapping):
-    """{benchmark: {suite: SuiteSize}} of every registered benchmark, its folders found on first read."""
+    """{benchmark: {suite: SuiteSize}} of every registered benchmark, its folders found on first read. Found once,
+    under a lock, and marked found only when every declaration is in: a thread reading it meanwhile (the workflow
+    builds cells' configs in threads) waits rather than sees the benchmarks registered so far."""
+
+    def __init__(self):
+        self._found = False
+        self._lock = threading.RLock()  # reentrant: a declaration module being imported may read the registry
 
     def _benchmarks(self) -> dict[str, Benchmark]:
-        if not getattr(self, "_found", False):
-            self._found = True
-            _discover()
+        if not self._found:
+            with self._lock:
+                if not self._found:
+                    _discover()
+                    self._found = True
         return _REGISTERED
 
     def __getitem__(self, name: str) -> dict[str, SuiteSize]:
