@@ -50,6 +50,11 @@ SelectType=select/cons_tres
 SelectTypeParameters=CR_Core_Memory
 ReturnToService=2
 JobRequeue=1
+# A requeued job may start again only cred_expire + 1 s after its requeue (120 s by default, 5 the least
+# slurm accepts), then at the next scheduling pass that finds it eligible (backfill's, every bf_interval s;
+# 30 by default). A job's credentials are checked within a second of their creation on this one node.
+AuthInfo=cred_expire=10
+SchedulerParameters=bf_interval=5
 KillWait=5
 MinJobAge=300
 NodeName=$node CPUs=$cpus RealMemory=$mem State=UNKNOWN

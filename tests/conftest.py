@@ -1,6 +1,8 @@
 """Session fixtures shared by test modules: expensive built artefacts, built once per run."""
 
 import json
+import subprocess
+import sys
 
 import pytest
 import yaml
@@ -38,3 +40,22 @@ def trained_policy(tmp_path_factory):
                                          dtype="float32", executed_chunk=training["policy"]["n_action_steps"]))
     adapter.load()
     return {"home": TRAINED_HOME, "training": training, "stamp": stamp, "adapter": adapter}
+
+
+@pytest.fixture(scope="session")
+def demonstrations_run(tmp_path_factory):
+    """`snakemake --cores 2 results/demos/manifest.tsv checkpoints/tiny/training.json` in a fresh working folder with
+    tests/demonstrations_workflow.py's sections: rule demonstrations, then rule train_policy on its dataset (one run
+    for tests/test_demonstrations.py and tests/test_training.py). {"workdir", "out": the demonstrations' folder}."""
+    import demonstrations_workflow as sections
+
+    workdir = tmp_path_factory.mktemp("demos")
+    (workdir / "demos.yaml").write_text(yaml.safe_dump({"demonstrations": sections.DEMONSTRATIONS,
+                                                        "training": sections.TRAINING}))
+    command = [sys.executable, "-m", "snakemake", *sections.TARGETS, "--cores", "2",
+               "--snakefile", str(ROOT / "Snakefile"), "--directory", str(workdir),
+               # the Snakefile's own config file is found relative to the working folder: named here
+               "--configfile", str(ROOT / "config" / "config.yaml"), str(workdir / "demos.yaml")]
+    run = subprocess.run(command, capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return {"workdir": workdir, "out": workdir / sections.DEMONSTRATIONS["dir"]}

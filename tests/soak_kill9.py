@@ -8,8 +8,10 @@ count lost and duplicated episodes and check the resumed records against an unin
         --max-steps suite --kills 2 --write-kills 1  # Meta-World's scripted experts (tests/test_metaworld_runner.py)
 
 The cell first runs uninterrupted in one folder (the reference), then, in another, through the
-kills. Each attempt runs `runner.cell.run_cell` in a fresh process group (the runner and its LIBERO
-workers), and a kill is SIGKILL to the whole group. A seeded RNG times the first
+kills; when the windows below are given rather than measured on the reference (`--window`, and
+`--startup-window` where the startup or running anchor may be drawn), the reference runs beside
+the kills instead. Each attempt runs `runner.cell.run_cell` in a fresh process group (the runner
+and its LIBERO workers), and a kill is SIGKILL to the whole group. A seeded RNG times the first
 `kills - write_kills` kills from one of three anchors, chosen with probabilities `--anchor-p`:
 
     startup   launch: uniform in the reference's start-up time (policy load and quantization, while
@@ -60,6 +62,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from vlaquantbench.cells import cell_config
@@ -245,15 +248,20 @@ def main() -> None:
     }
     cfg = cell_config(args.ref, study)
     episodes = len(args.tasks) * args.episodes_per_task
-    with tempfile.TemporaryDirectory(prefix="vqb-soak-") as tmp:
+    # The kills are timed from the reference's start-up and round unless the windows are given (the start-up
+    # window is used by the startup and running anchors only): then the reference runs beside the soak.
+    timed_by_reference = args.window is None or (args.startup_window is None and any(args.anchor_p[:2]))
+    with tempfile.TemporaryDirectory(prefix="vqb-soak-") as tmp, ThreadPoolExecutor(1) as beside:
         reference, killed = Path(tmp) / "reference", Path(tmp) / "killed"
-        uninterrupted_run = complete(cfg, reference, args.num_envs)
-        startup_s = uninterrupted_run["startup_s"]
-        round_s = (uninterrupted_run["total_s"] - startup_s) / math.ceil(episodes / args.num_envs)
-        args.window = round(round_s / 2, 2) if args.window is None else args.window
-        args.startup_window = round(startup_s, 2) if args.startup_window is None else args.startup_window
-        print(f"reference: {uninterrupted_run['total_s']:.1f} s, start-up {startup_s:.1f} s, round {round_s:.2f} s; "
-              f"window {args.window} s, start-up window {args.startup_window} s", flush=True)
+        reference_run = beside.submit(complete, cfg, reference, args.num_envs)
+        if timed_by_reference:
+            uninterrupted_run = reference_run.result()
+            startup_s = uninterrupted_run["startup_s"]
+            round_s = (uninterrupted_run["total_s"] - startup_s) / math.ceil(episodes / args.num_envs)
+            args.window = round(round_s / 2, 2) if args.window is None else args.window
+            args.startup_window = round(startup_s, 2) if args.startup_window is None else args.startup_window
+            print(f"reference: {uninterrupted_run['total_s']:.1f} s, start-up {startup_s:.1f} s, round {round_s:.2f} s; "
+                  f"window {args.window} s, start-up window {args.startup_window} s", flush=True)
 
         began = time.monotonic()
         kills, ended, journaled = soak(cfg, killed, args, episodes)
@@ -262,6 +270,11 @@ def main() -> None:
         except RuntimeError as err:  # e.g. a duplicated episode refused by the journal: still counted below
             final_s, final_error = None, str(err)
         soak_s = time.monotonic() - began
+        if not timed_by_reference:
+            uninterrupted_run = reference_run.result()
+            startup_s = uninterrupted_run["startup_s"]
+            print(f"reference (run beside the soak): {uninterrupted_run['total_s']:.1f} s, start-up {startup_s:.1f} s",
+                  flush=True)
 
         lines = journal_episodes(killed)
         outcome = {episode_key(r): (r["success"], r["steps"], r["actions_sha256"]) for r in lines}
@@ -291,6 +304,7 @@ def main() -> None:
             "headers_equal": resumed is not None and resumed.header == uninterrupted.header,
             "reference_s": round(uninterrupted_run["total_s"], 1),
             "reference_startup_s": round(startup_s, 1),
+            "reference_beside_soak": not timed_by_reference,
             "soak_s": round(soak_s, 1),
             "final_resume_s": None if final_s is None else round(final_s, 1),
             "settings": {k: v for k, v in vars(args).items() if k != "out"},

@@ -172,11 +172,14 @@ def test_the_trained_policy_shows_a_real_quantization_effect(tmp_path):
         "caption": "effect", "align": "lr", "header": [["Cell", "Success"]], "values": [{"stat": "rate", "cell": "cell"}],
         "rows": [{"label": "FP", "cell": base + "rtn-BASELINE-e2e"}, {"label": "W2A2", "cell": base + "rtn-W2A2-e2e"}]}))
     config = tmp_path / "effect.yaml"
+    # Five simulator workers a cell: a task's five episodes run as one batch, and the policy acts on five
+    # observations a call (W2A2's ten 150-step episodes in two rounds; fewer, larger calls than batches of two,
+    # for the same episodes: the runner's records do not depend on the batch).
     config.write_text(yaml.safe_dump({
         "tables": ["effect"], "tables_dir": str(tables),
         "study": {"models": {"pi05": {"variant": "full", "trained": GPU_HOME, "checkpoint": None, "revision": None}},
                   "tasks": [8, 18], "episodes_per_task": 5, "runner": {"max_steps": 150},
-                  "execution": {"num_envs": 2, "torch_threads": 1, "progress": False}}}))
+                  "execution": {"num_envs": 5, "torch_threads": 1, "progress": False}}}))
     # One thread per rollout: the two cells run side by side (the full-precision one is short).
     result = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "tables/effect.tex", f"--configfile={config}",
                              "--set-threads", "rollout=1"], cwd=checkout, capture_output=True, text=True, timeout=900)

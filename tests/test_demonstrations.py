@@ -5,20 +5,17 @@ ones that closed-loop evaluation starts from.
 
 The failed episode is real: the step limit is set to 45, so reach-v3's expert fails on variation 500
 (it needs 51 steps there, measured with metaworld 3.0.0) and succeeds on 501 (44 steps), while
-handle-press-v3 succeeds on 500 (32 steps)."""
+handle-press-v3 succeeds on 500 (32 steps). The run is `demonstrations_run` (conftest.py), which also trains
+on the dataset (tests/test_training.py reads that)."""
 
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
-from paths import ROOT
+from demonstrations_workflow import EXPERTS, TASKS
 from vlaquantbench.config.study import StudyConfig
 from vlaquantbench.demonstrations import (
     DATASET_DIR,
@@ -35,25 +32,13 @@ from vlaquantbench.manifest import read_manifest, verify_file_manifest
 
 pytestmark = pytest.mark.slow
 
-TASKS = ["reach-v3", "handle-press-v3"]
-EXPERTS = {"benchmark": "metaworld"}  # whose scripted experts are recorded
-SECTION = {**EXPERTS, "dir": "results/demos", "tasks": TASKS, "episodes_per_task": 1, "max_steps": 45,
-           "image_size": 32, "image_writer_threads": 1}
 EVALUATION_EPISODES = 50  # lerobot-eval's n_episodes per task, the most a Meta-World study here evaluates
 
 
 @pytest.fixture(scope="module")
-def demos(tmp_path_factory):
+def demos(demonstrations_run):
     """The rule's outputs from `snakemake --cores 2 results/demos/manifest.tsv` in a fresh working folder."""
-    workdir = tmp_path_factory.mktemp("demos")
-    (workdir / "demos.yaml").write_text(yaml.safe_dump({"demonstrations": SECTION}))
-    command = [sys.executable, "-m", "snakemake", "results/demos/manifest.tsv", "--cores", "2",
-               "--snakefile", str(ROOT / "Snakefile"), "--directory", str(workdir),
-               # the Snakefile's own config file is found relative to the working folder: named here
-               "--configfile", str(ROOT / "config" / "config.yaml"), str(workdir / "demos.yaml")]
-    run = subprocess.run(command, capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr[-3000:]
-    out = workdir / "results" / "demos"
+    out = demonstrations_run["out"]
     return {"out": out,
             "summary": json.loads((out / SUMMARY_FILE).read_text())}
 

@@ -39,22 +39,31 @@ def run_cell(cfg, folder, num_envs=1):
                                  "libero/libero_spatial/xvla/ablate-W4A4-ah-only_qkv"])
 def test_kill_9_mid_cell_then_rerun_gives_exactly_the_uninterrupted_episodes(tmp_path, ref):
     cfg = cell_config(ref, {**STUDY, "episodes_per_task": 2})
-    interrupted = tmp_path / "interrupted"
-    process = subprocess.Popen([sys.executable, "-c", RUN_CELL, json.dumps(cfg), str(interrupted), "1"],
-                               start_new_session=True)
-    deadline = time.monotonic() + 900
-    while not any(r["kind"] == "episode" for r in journal_lines(interrupted / "journal.jsonl")):
-        assert process.poll() is None, "the cell ended before it could be killed"
-        assert time.monotonic() < deadline, "no episode finished in time"
-        time.sleep(0.2)
-    os.killpg(process.pid, signal.SIGKILL)  # the runner and its LIBERO workers, mid-cell
-    process.wait()
-    done_before = outcomes(interrupted)
-    assert len(done_before) == 1 and not (interrupted / "episodes.parquet").exists()
-
-    run_cell(cfg, interrupted)
+    # The uninterrupted run (two envs) runs beside the interrupted one and its rerun (one env each): a cell keeps
+    # about one core busy, its simulator workers and the policy taking turns.
     uninterrupted = tmp_path / "uninterrupted"
-    run_cell(cfg, uninterrupted, num_envs=2)
+    reference = subprocess.Popen([sys.executable, "-c", RUN_CELL, json.dumps(cfg), str(uninterrupted), "2"],
+                                 start_new_session=True)
+    try:
+        interrupted = tmp_path / "interrupted"
+        process = subprocess.Popen([sys.executable, "-c", RUN_CELL, json.dumps(cfg), str(interrupted), "1"],
+                                   start_new_session=True)
+        deadline = time.monotonic() + 900
+        while not any(r["kind"] == "episode" for r in journal_lines(interrupted / "journal.jsonl")):
+            assert process.poll() is None, "the cell ended before it could be killed"
+            assert time.monotonic() < deadline, "no episode finished in time"
+            time.sleep(0.2)
+        os.killpg(process.pid, signal.SIGKILL)  # the runner and its LIBERO workers, mid-cell
+        process.wait()
+        done_before = outcomes(interrupted)
+        assert len(done_before) == 1 and not (interrupted / "episodes.parquet").exists()
+
+        run_cell(cfg, interrupted)
+        assert reference.wait(timeout=1500) == 0
+    finally:
+        if reference.poll() is None:  # a failure above: the uninterrupted run and its workers go too
+            os.killpg(reference.pid, signal.SIGKILL)
+            reference.wait()
     resumed = outcomes(interrupted)
     assert resumed == outcomes(uninterrupted) and len(resumed) == 2
     assert {k: resumed[k] for k in done_before} == done_before
@@ -76,10 +85,33 @@ STUDIES = {
 }
 
 
+@pytest.fixture(scope="module")
+def study_cells(tmp_path_factory):
+    """The study cells above, each in its own interpreter, started together when the first test needs one (a cell
+    keeps about one core busy): a function from a cell's reference to its folder, once its run has ended."""
+    root = tmp_path_factory.mktemp("study_cells")
+    runs = {}
+    for n, ref in enumerate(sorted(STUDIES)):
+        folder = root / f"cell{n}"
+        runs[ref] = folder, subprocess.Popen([sys.executable, "-c", RUN_CELL, json.dumps(cell_config(ref, STUDY)),
+                                              str(folder), "1"], start_new_session=True)
+
+    def finished(ref):
+        folder, process = runs[ref]
+        assert process.wait(timeout=1500) == 0, ref
+        return folder
+
+    yield finished
+    for _, process in runs.values():
+        if process.poll() is None:  # a test failed before waiting for it: the cell and its workers go
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+
+
 @pytest.mark.parametrize("ref", sorted(STUDIES))
-def test_model_specific_study_cell_runs_and_counts_the_papers_layers(tmp_path, ref):
+def test_model_specific_study_cell_runs_and_counts_the_papers_layers(study_cells, ref):
     layers, hooks, chunk = STUDIES[ref]
-    header = read_cell(run_cell(cell_config(ref, STUDY), tmp_path / "cell")).header
+    header = read_cell(study_cells(ref)).header
     assert {c: v["layers"] for c, v in header["quant_report"].items()} == layers
     assert header["hooks"]["selected"] == header["hooks"]["fired"] == hooks
     assert header["chunk"] == {"predicted": chunk, "executed": chunk} and header["client"]["executed_chunk"] == chunk

@@ -139,43 +139,60 @@ def run_kernel(cases: list) -> list[dict]:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def test_rotated_fake_quant_equals_the_reference_transform_on_bf16_rows():
-    # widths the e2e scope rotates, and the kernel's cases: 1152 (9 blocks of 128, SigLIP), 4304
-    # (269 blocks of 16, SigLIP's fc2 input), 2048 (one block, 16 x 128: Gemma), 1024 (8 x 128, the
-    # tile padded to 16 rows: expert), 16384 (128 x 128: Gemma down_proj), 768 (3 blocks of 2 x 128:
-    # the block-diagonal outer factor)
-    cases = [[1152, "bfloat16", 4, None], [4304, "bfloat16", 4, None], [2048, "bfloat16", 4, None],
+# The cases of the tests below: widths the e2e scope rotates, and the kernel's cases: 1152 (9 blocks of 128,
+# SigLIP), 4304 (269 blocks of 16, SigLIP's fc2 input), 2048 (one block, 16 x 128: Gemma), 1024 (8 x 128, the tile
+# padded to 16 rows: expert), 16384 (128 x 128: Gemma down_proj), 768 (3 blocks of 2 x 128: the block-diagonal
+# outer factor).
+BF16_ROWS = [[1152, "bfloat16", 4, None], [4304, "bfloat16", 4, None], [2048, "bfloat16", 4, None],
              [1024, "bfloat16", 4, None], [16384, "bfloat16", 4, None], [768, "bfloat16", 8, None]]
-    results = run_kernel(cases)
-    for result in results:
+FLOAT32_ROWS = [[1152, "float32", 4, None], [4096, "float32", 4, None]]
+GELU = [[16384, "bfloat16", 4, "gelu_tanh_mul"], [4096, "bfloat16", 4, "gelu_tanh_mul"]]
+NORMS_AND_HEADS = [[1024, "bfloat16", 4, "ada_rms_norm"], [1024, "bfloat16", 4, "gated_add_ada_rms_norm"],
+                   [2048, "bfloat16", 8, "gated_add_ada_rms_norm"], [2048, "bfloat16", 4, "merge_heads"]]
+# `tokens_per_program`: 8 tokens of 1,024, 2,048 or 1,152 in one program (the 6 here fill part of it, the rest
+# masked), 4 of 4,096 (two programs), each beside the same case at one token per program.
+ALONE = [[1024, "bfloat16", 4, None], [1152, "float32", 4, None], [4096, "bfloat16", 4, "gelu_tanh_mul"],
+         [1024, "bfloat16", 4, "gated_add_ada_rms_norm"], [2048, "bfloat16", 4, "merge_heads"]]
+SHARED = [[*case, n] for case, n in zip(ALONE, [8, 8, 4, 8, 8], strict=True)]
+
+
+@pytest.fixture(scope="module")
+def kernel():
+    """Every case above run once, in one interpreter (its start, Triton's interpreter and the patches above, is
+    most of a case's time; each case seeds its own input): a function from a test's cases to their results."""
+    cases = [case for group in (BF16_ROWS, FLOAT32_ROWS, GELU, NORMS_AND_HEADS, ALONE, SHARED) for case in group]
+    distinct = list(dict.fromkeys(json.dumps(case) for case in cases))
+    results = dict(zip(distinct, run_kernel([json.loads(case) for case in distinct]), strict=True))
+    return lambda group: [results[json.dumps(case)] for case in group]
+
+
+def test_rotated_fake_quant_equals_the_reference_transform_on_bf16_rows(kernel):
+    for result in kernel(BF16_ROWS):
         assert result["equal_cuda_way"] == 1.0, result
         assert result["differs_off_tie"] == 0, result
         assert result["equal_reference"] > 0.99, result
 
 
-def test_rotated_fake_quant_matches_the_reference_to_float32_rounding_on_float32_rows():
+def test_rotated_fake_quant_matches_the_reference_to_float32_rounding_on_float32_rows(kernel):
     # float32 rows: the rotation's float32 sums differ from the reference's in order, so a value
     # (and a row's scale) may differ in its last bits; no value moves by a grid step
-    results = run_kernel([[1152, "float32", 4, None], [4096, "float32", 4, None]])
-    for result in results:
+    for result in kernel(FLOAT32_ROWS):
         assert result["max_diff_over_absmax"] < 1e-6, result
 
 
-def test_gelu_rotated_fake_quant_equals_the_reference_transform_of_the_gelu_product():
+def test_gelu_rotated_fake_quant_equals_the_reference_transform_of_the_gelu_product(kernel):
     # pi0.5's down_proj inputs (Gemma 16,384, expert 4,096): gelu(gate) * up, rotated and quantized
     # in one kernel; tanh is numpy's here (see the module docstring), so a value whose GELU rounds
     # differently may differ
-    results = run_kernel([[16384, "bfloat16", 4, "gelu_tanh_mul"], [4096, "bfloat16", 4, "gelu_tanh_mul"]])
-    for result in results:
+    for result in kernel(GELU):
         assert result["equal_cuda_way"] > 0.999, result
 
 
-def test_norm_and_head_merge_rotated_kernels_equal_the_ops_then_the_reference_transform():
+def test_norm_and_head_merge_rotated_kernels_equal_the_ops_then_the_reference_transform(kernel):
     # pi0.5's expert (1,024 wide: q/k/v and gate/up read its AdaRMS norms) and its attention output
     # (2,048: 8 heads of 256); the norm's mean square sums in another order than torch's and rsqrt
     # is numpy's here, so a normalized value may round differently before it is rotated
-    results = run_kernel([[1024, "bfloat16", 4, "ada_rms_norm"], [1024, "bfloat16", 4, "gated_add_ada_rms_norm"],
-                          [2048, "bfloat16", 8, "gated_add_ada_rms_norm"], [2048, "bfloat16", 4, "merge_heads"]])
+    results = kernel(NORMS_AND_HEADS)
     for result in results:
         assert result["equal_cuda_way"] > 0.999, result
         assert result["max_diff_over_absmax"] < 0.15, result  # at most a step of the 4-bit grid
@@ -183,14 +200,9 @@ def test_norm_and_head_merge_rotated_kernels_equal_the_ops_then_the_reference_tr
     assert results[3]["equal_cuda_way"] == 1.0 and results[3]["differs_off_tie"] == 0  # a gather, then the kernel
 
 
-def test_tokens_sharing_a_program_give_what_a_program_each_gives():
-    # `tokens_per_program`: 8 tokens of 1,024, 2,048 or 1,152 in one program (the 6 here fill part
-    # of it, the rest masked), 4 of 4,096 (two programs): every token still rotated and quantized alone
-    cases = [[1024, "bfloat16", 4, None], [1152, "float32", 4, None], [4096, "bfloat16", 4, "gelu_tanh_mul"],
-             [1024, "bfloat16", 4, "gated_add_ada_rms_norm"], [2048, "bfloat16", 4, "merge_heads"]]
-    tokens = [8, 8, 4, 8, 8]
-    alone, shared = run_kernel(cases), run_kernel([[*case, n] for case, n in zip(cases, tokens, strict=True)])
-    for one, several in zip(alone, shared, strict=True):
+def test_tokens_sharing_a_program_give_what_a_program_each_gives(kernel):
+    # every token still rotated and quantized alone
+    for one, several in zip(kernel(ALONE), kernel(SHARED), strict=True):
         assert several == one
 
 

@@ -2,6 +2,7 @@
 for every model with an adapter (demo policies of the real architectures). The batched run holds ready
 slots for a batch of two (`min_batch`), so every one of its policy calls really is a batch of two."""
 
+import contextlib
 import time
 from collections import defaultdict
 
@@ -21,9 +22,28 @@ pytestmark = pytest.mark.slow
 MODELS = {"pi05": 10, "xvla": 10, "openvla_oft": 8}
 
 
-@pytest.mark.parametrize("model", sorted(MODELS))
-def test_batch_of_two_equals_batch_of_one(model):
+@pytest.fixture(scope="module")
+def libero_envs():
+    """(suite, env(num_envs, control_mode)): LIBERO vector envs kept across the models' cases, one per slot count
+    and control mode, so a model whose client steps the arm as an earlier one's does runs on the same workers (an
+    episode depends on its start, not on what the worker ran before: tests/test_libero_env.py)."""
     suite = LiberoSuite("libero_spatial")
+    with contextlib.ExitStack() as stack:
+        envs = {}
+
+        def env(num_envs, control_mode):
+            if (num_envs, control_mode) not in envs:
+                # X-VLA's client pins MuJoCo 3.1.6; this environment has 3.3.2 (cells record that as an override).
+                envs[num_envs, control_mode] = stack.enter_context(LiberoVectorEnv(
+                    suite, num_envs, camera_size=64, control_mode=control_mode, mujoco=mujoco.__version__))
+            return envs[num_envs, control_mode]
+
+        yield suite, env
+
+
+@pytest.mark.parametrize("model", sorted(MODELS))
+def test_batch_of_two_equals_batch_of_one(model, libero_envs):
+    suite, libero_env = libero_envs
     specs = [suite.episode_spec(0, 0), suite.episode_spec(1, 0)]
     adapter = make_adapter(AdapterConfig(model=model, variant="demo", flow_steps=2, executed_chunk=MODELS[model]))
     adapter.load()
@@ -52,10 +72,8 @@ def test_batch_of_two_equals_batch_of_one(model):
         chunks.clear()
         batches.clear()
         records = []
-        # X-VLA's client pins MuJoCo 3.1.6; this environment has 3.3.2 (cells record that as an override).
-        with LiberoVectorEnv(suite, num_envs, camera_size=64, control_mode=adapter.control_mode,
-                             mujoco=mujoco.__version__) as env:
-            run_episodes(adapter, env, specs, max_steps=12, on_finished=records.extend, min_batch=2)
+        run_episodes(adapter, libero_env(num_envs, adapter.control_mode), specs, max_steps=12,
+                     on_finished=records.extend, min_batch=2)
         return sorted(records, key=lambda r: r["task_id"]), {seed: list(calls) for seed, calls in chunks.items()}
 
     batched, batched_chunks = run(2)

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 
 import pandas as pd
@@ -96,7 +97,9 @@ def test_ctrl_c_prints_how_far_the_cell_got_and_that_rerunning_resumes(tmp_path)
 @pytest.fixture(scope="module")
 def two_writers(tmp_path_factory):
     """A cell run to the end while a second `vqb rollout` of it, started once the first holds the cell,
-    tries to run too: the first's records (an uninterrupted run's) and the second's result."""
+    tries to run too: the first's records (an uninterrupted run's) and the second's result. Returned once the
+    second is refused, the first still running (the SIGTERM test's runs go beside it); `finished()` waits for
+    the first and gives its stderr (read as it comes)."""
     results = tmp_path_factory.mktemp("two_writers")
     first = subprocess.Popen(rollout(results), start_new_session=True, stderr=subprocess.PIPE, text=True)
 
@@ -107,35 +110,20 @@ def two_writers(tmp_path_factory):
         except ValueError:
             return False
 
-    try:
-        wait_for(first, holds, "the first writer's lock")
-        began = time.monotonic()
-        second = subprocess.run(rollout(results), capture_output=True, text=True, timeout=600)
-        refused_after = time.monotonic() - began
-        alive_then = first.poll() is None
-        _, first_stderr = first.communicate(timeout=900)
-    finally:
-        if first.poll() is None:  # a failure above: the first writer and its workers go too
-            os.killpg(first.pid, signal.SIGKILL)
-            first.wait()
-    return SimpleNamespace(results=results, first=first, first_stderr=first_stderr, second=second,
-                           refused_after=refused_after, alive_then=alive_then)
-
-
-def test_a_second_writer_of_a_running_cell_is_refused_naming_the_first_which_completes_alone(two_writers):
-    second, folder = two_writers.second, cell_folder(two_writers.results)
-    assert two_writers.alive_then  # refused while the first still ran
-    assert second.returncode == 2, second.stderr[-2000:]
-    assert second.stderr.startswith(f"vqb rollout: error: cell {REF}: another process writes it: {folder / 'writer.lock'} "
-                                    f"is locked by pid {two_writers.first.pid} on host ")
-    assert f"writing cell {REF}" in second.stderr and len(second.stderr.strip().splitlines()) == 1
-    # Refused at its start, before any model load (the first spends longer loading its own).
-    assert two_writers.refused_after < 60
-    assert two_writers.first.returncode == 0, two_writers.first_stderr[-2000:]
-    lines = [json.loads(line) for line in (folder / "journal.jsonl").read_text().splitlines()]
-    assert [line["kind"] for line in lines].count("header") == 1
-    assert len([line for line in lines if line["kind"] == "episode"]) == len(outcomes(folder)) == 3
-    assert len(pd.read_parquet(folder / "episodes.parquet")) == 3
+    with ThreadPoolExecutor(1) as reader:
+        try:
+            wait_for(first, holds, "the first writer's lock")
+            began = time.monotonic()
+            second = subprocess.run(rollout(results), capture_output=True, text=True, timeout=600)
+            refused_after = time.monotonic() - began
+            alive_then = first.poll() is None
+            first_run = reader.submit(first.communicate, timeout=900)
+            yield SimpleNamespace(results=results, first=first, finished=lambda: first_run.result()[1], second=second,
+                                  refused_after=refused_after, alive_then=alive_then)
+        finally:
+            if first.poll() is None:  # a failure: the first writer and its workers go too
+                os.killpg(first.pid, signal.SIGKILL)
+                first.wait()
 
 
 def test_sigterm_prints_how_far_the_cell_got_stops_the_workers_and_a_rerun_resumes_exactly(tmp_path, two_writers):
@@ -152,8 +140,26 @@ def test_sigterm_prints_how_far_the_cell_got_stops_the_workers_and_a_rerun_resum
     assert stderr.splitlines().count(message) == 1, stderr[-2000:]
 
     subprocess.run(rollout(tmp_path), check=True, timeout=900, capture_output=True)
+    two_writers.finished()
     uninterrupted = cell_folder(two_writers.results)
     assert outcomes(folder) == outcomes(uninterrupted) and len(outcomes(folder)) == 3
     frames = [pd.read_parquet(f / "episodes.parquet") for f in (folder, uninterrupted)]
     resumed, reference = (f.drop(columns=[c for c in TIMING_FIELDS if c in f.columns]) for f in frames)
     assert resumed.equals(reference)
+
+
+def test_a_second_writer_of_a_running_cell_is_refused_naming_the_first_which_completes_alone(two_writers):
+    second, folder = two_writers.second, cell_folder(two_writers.results)
+    assert two_writers.alive_then  # refused while the first still ran
+    assert second.returncode == 2, second.stderr[-2000:]
+    assert second.stderr.startswith(f"vqb rollout: error: cell {REF}: another process writes it: {folder / 'writer.lock'} "
+                                    f"is locked by pid {two_writers.first.pid} on host ")
+    assert f"writing cell {REF}" in second.stderr and len(second.stderr.strip().splitlines()) == 1
+    # Refused at its start, before any model load (the first spends longer loading its own).
+    assert two_writers.refused_after < 60
+    first_stderr = two_writers.finished()
+    assert two_writers.first.returncode == 0, first_stderr[-2000:]
+    lines = [json.loads(line) for line in (folder / "journal.jsonl").read_text().splitlines()]
+    assert [line["kind"] for line in lines].count("header") == 1
+    assert len([line for line in lines if line["kind"] == "episode"]) == len(outcomes(folder)) == 3
+    assert len(pd.read_parquet(folder / "episodes.parquet")) == 3

@@ -9,19 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from demonstrations_workflow import TINY_POLICY
 from vlaquantbench.models.paligemma_family import REDUCED_WIDTHS_FILE
 
 TASKS = ("Close a drawer", "Press a button from the top")
 IMAGE = 28  # two 14-pixel patches a side: the 27-layer vision tower stays cheap on a CPU
-STEPS = 40
-TINY_POLICY = {
-    "chunk_size": 4, "n_action_steps": 2, "tokenizer_max_length": 24,
-    "normalization": {"VISUAL": "IDENTITY", "STATE": "MIN_MAX", "ACTION": "MEAN_STD"},
-    "lr": 1e-3, "warmup_steps": 5, "decay_steps": STEPS, "decay_lr": 1e-4,
-    "widths": {"vision": {"hidden_size": 16, "intermediate_size": 32, "num_attention_heads": 2},
-               "gemma_2b": {"width": 32, "mlp_dim": 64, "head_dim": 4},
-               "gemma_300m": {"width": 16, "mlp_dim": 32}},
-}
+STEPS = TINY_POLICY["decay_steps"]  # 40: trained to the end of the learning-rate decay
 
 
 def write_tiny_dataset(root: Path, episodes_per_task: int = 2, frames: int = 6) -> Path:
@@ -142,32 +135,21 @@ def test_an_observation_without_the_checkpoints_camera_or_state_size_is_refused(
 
 
 @pytest.mark.slow
-def test_the_rule_trains_on_the_demonstrations_rules_dataset(tmp_path):
-    """`snakemake <output>/training.json`: rule demonstrations (one task, two episodes at 28 px), then
-    rule train_policy on its dataset, the provenance naming the dataset's manifest."""
-    import subprocess
-    import sys
-
-    import yaml
-
-    from paths import ROOT
+def test_the_rule_trains_on_the_demonstrations_rules_dataset(demonstrations_run):
+    """`snakemake <output>/training.json`: rule demonstrations (two tasks, one episode each at 32 px: conftest.py's
+    `demonstrations_run`, which tests/test_demonstrations.py reads too), then rule train_policy on its dataset, the
+    provenance naming the dataset's manifest."""
+    from demonstrations_workflow import TRAINING
+    from vlaquantbench.envs.metaworld import lerobot_metaworld_config
     from vlaquantbench.hub.checks import sha256
 
-    demonstrations = {"benchmark": "metaworld", "dir": "results/demos", "tasks": ["handle-press-v3"], "episodes_per_task": 2, "image_size": IMAGE,
-                      "image_writer_threads": 1}
-    training = {"model": "pi05", "output": "checkpoints/tiny", "checkpoint_repo": "vlaquantbench/pi05-tiny",
-                "tokenizer_repo": "vlaquantbench/pi05-tiny-tokenizer", "device": "cpu", "seed": 0, "steps": 2,
-                "batch_size": 4, "log_every": 1, "policy": TINY_POLICY}
-    (tmp_path / "study.yaml").write_text(yaml.safe_dump({"demonstrations": demonstrations, "training": training}))
-    command = [sys.executable, "-m", "snakemake", "checkpoints/tiny/training.json", "--cores", "2",
-               "--snakefile", str(ROOT / "Snakefile"), "--directory", str(tmp_path),
-               "--configfile", str(ROOT / "config" / "config.yaml"), str(tmp_path / "study.yaml")]
-    run = subprocess.run(command, capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr[-3000:]
-    record = json.loads((tmp_path / "checkpoints" / "tiny" / "training.json").read_text())
-    assert record["dataset"]["manifest_sha256"] == sha256(tmp_path / "results" / "demos" / "manifest.tsv")
-    assert record["dataset"]["episodes"] == 2 and record["dataset"]["tasks"] == ["Press a handle down"]
-    assert (tmp_path / "checkpoints" / "tiny" / "policy" / "model.safetensors").is_file() and (tmp_path / "logs" / "train_policy.log").is_file()
+    workdir = demonstrations_run["workdir"]
+    record = json.loads((workdir / TRAINING["output"] / "training.json").read_text())
+    assert record["dataset"]["manifest_sha256"] == sha256(demonstrations_run["out"] / "manifest.tsv")
+    descriptions = lerobot_metaworld_config()["TASK_DESCRIPTIONS"]
+    assert record["dataset"]["episodes"] == 2
+    assert record["dataset"]["tasks"] == sorted(descriptions[task] for task in ("reach-v3", "handle-press-v3"))
+    assert (workdir / TRAINING["output"] / "policy" / "model.safetensors").is_file() and (workdir / "logs" / "train_policy.log").is_file()
 
 
 def _config(output, **changes):
