@@ -145,6 +145,20 @@ def test_step_limits_in_a_caption_come_from_the_headers(cells):
     assert f"(200 episodes per cell, at most 30 steps per episode, 20 for {short})." in render_latex(definition, limited)
 
 
+def test_the_device_in_a_caption_comes_from_the_headers(cells):
+    """{device}: the GPU-trained policy's real-kernel table names the card its committed records ran on."""
+    kernels = load_table(ROOT / "config" / "gpu_kernels" / "tables" / "gpu_kernels.yaml")
+    recorded = {ref: read_cell(path) for ref, path in find_cells(ROOT / "results" / "gpu_study" / "fixed").items()}
+    assert "in every cell; one NVIDIA H100 80GB HBM3). Success" in render_latex(kernels, recorded)
+    definition = replace(load_table(ROOT / "config" / "tables" / "lattice.yaml"), caption="Demo ({device}).")
+    assert "(no recorded device)." in render_latex(definition, cells)  # the authors' records name none
+    placed = {ref: replace(cell, header={**cell.header, "device": {"name": "NVIDIA H200"}}) for ref, cell in cells.items()}
+    ref = definition.rows[0]["cell"]
+    placed[ref] = replace(cells[ref], header={**cells[ref].header, "device": {"name": "NVIDIA H100 80GB HBM3"}})
+    short = ref.split("/", 2)[-1].replace("_", "\\_")
+    assert f"(NVIDIA H200 for the other cells, NVIDIA H100 80GB HBM3 for {short})." in render_latex(definition, placed)
+
+
 def test_a_table_mixing_quantization_semantics_versions_says_so(cells, caplog):
     definition = load_table(ROOT / "config" / "tables" / "lattice.yaml")
     assert "quantization-semantics" not in render_latex(definition, cells)  # the authors' cells: one (no) version

@@ -25,7 +25,8 @@ bootstrap: {draws: 5000, seed: 0, stream: shared}   # optional; for `bootstrap` 
 ```
 A row names its cells under its own keys (they override `cells`); a null cell prints `--`.
 `{episodes}` in the caption is replaced by the episode counts of the table's cells, from the data;
-`{steps}` by their step limits (header `max_steps`).
+`{steps}` by their step limits (header `max_steps`); `{device}` by the device their episodes ran on (header
+`device.name`).
 `bootstrap.stream`: `per_contrast` (default) gives every contrast its own `default_rng(seed)`;
 `shared` draws all contrasts from one `default_rng(seed)` in row order, as the paper's tab:clustered
 does, so there a row's interval depends on the rows above it.

@@ -330,6 +330,18 @@ def step_limits(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
     return "at most " + _per_cell(limits, "steps per episode") if limits else "step limits not recorded"
 
 
+def devices(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
+    """The device the cells' episodes ran on (header `device.name`), as a caption phrase, from the data: "one
+    NVIDIA H100 80GB HBM3", or the most common device and each other with its cells where they differ."""
+    names = {ref: (cells[ref].header.get("device") or {}).get("name") for ref in refs if isinstance(cells.get(ref), Cell)}
+    if not any(names.values()):
+        return "no recorded device"
+    names = {ref: name or "no recorded device" for ref, name in names.items()}
+    if len(set(names.values())) == 1:
+        return "one " + _escape(next(iter(names.values())))
+    return _per_cell(names, "for the other cells")
+
+
 def semantics_note(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
     """A caption sentence, and a warning in the log, when the table's recorded cells were quantized under
     different quantization-semantics versions (header `quant_semantics`; none: records from before it)."""
@@ -344,7 +356,8 @@ def semantics_note(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
 def caption(definition: TableDefinition, cells: Mapping[str, AnyCell]) -> str:
     refs = definition.refs()
     demo = any(getattr(cells.get(ref), "header", {}).get("variant") == "demo" for ref in refs)
-    text = definition.caption.replace("{episodes}", episode_counts(refs, cells)).replace("{steps}", step_limits(refs, cells))
+    text = (definition.caption.replace("{episodes}", episode_counts(refs, cells)).replace("{steps}", step_limits(refs, cells))
+            .replace("{device}", devices(refs, cells)))
     summary = sorted({cells[ref].path.name for ref in refs if isinstance(cells.get(ref), SummaryCell)})
     if summary:
         from_summary = [ref for ref in refs if isinstance(cells.get(ref), SummaryCell)]
