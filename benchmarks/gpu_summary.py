@@ -4,7 +4,8 @@ Reads (each written on the GPU machine by its script) `gpu_preset_ab_cameras{2,3
 `gpu_policy_inference_cameras2.json` (`gpu_policy_inference.py`), `closed_loop_gpu*.json`
 (`gpu_closed_loop.py`), `gpu_fp8_real*.json` (`gpu_fp8_real.py`: FP8, INT8 and INT4) and the
 `gpu_hadamard_captured*.json` runs of `HADAMARD_RUNS` (`gpu_hadamard_captured.py`), the `KERNEL_RUNS` of
-`gpu_kernel_shapes.py` (the current int8, FP8 and int4 kernels), and copies out the
+`gpu_kernel_shapes.py` (the current int8, FP8 and int4 kernels), the closed-loop records of the real kernels (the
+GPU-trained policy's `TRAINED_KERNELS` cells, pi0.5's efficiency cells under `EFFICIENCY`), and copies out the
 headline keys, each with the machine it was measured on. The policy's headline numbers are at
 LIBERO's two cameras, the input of every closed-loop run; the three-camera input of pi0.5's base
 configuration stands beside them.
@@ -16,10 +17,14 @@ from __future__ import annotations
 
 import json
 import statistics
+import sys
 from collections import defaultdict
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results"
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
+sys.path.insert(0, str(ROOT / "src"))
+from vlaquantbench.records import find_cells, read_cell  # noqa: E402
 # The latency and overhead values: BASELINE and W4A4 models taking turns in one process
 # (`--preset-ab`), so that the machine's drift does not fall on one preset; per camera count.
 PRESET_AB = {2: "gpu_preset_ab_cameras2.json", 3: "gpu_preset_ab_cameras3.json"}
@@ -181,6 +186,62 @@ def _kernel_cells() -> dict:
     return out
 
 
+# Issue 51 item 6: the GPU-trained policy under each real kernel and under fake quantization of the same format, in
+# full (config/gpu_kernels.yaml; 200 episodes a cell, the same episodes in every cell): real cell -> fake cell.
+TRAINED_KERNELS = ROOT / "results" / "gpu_study" / "fixed"
+KERNEL_PAIRS = {"fp8-W8A8-e2e": "rtn-FP8E4M3-e2e", "int8_dynamic-W8A8-e2e": "rtn-W8A8-e2e", "int4wo-W4-e2e": "rtn-W4-e2e"}
+# Issue 51 item 5: pi0.5 at full width with random weights, one LIBERO slot (config/efficiency_pi05.yaml).
+EFFICIENCY = ROOT / "results" / "efficiency_pi05"
+
+
+def _records(folder: Path) -> dict:
+    """Cell name -> its record (`vlaquantbench.records`) of every cell under `folder`; {} when there is none."""
+    return {ref.rsplit("/", 1)[-1]: read_cell(path) for ref, path in find_cells(folder).items()} if folder.is_dir() else {}
+
+
+def _device(cell) -> str:
+    return (f"{cell.header['device']['name']}, {cell.header['host']['cpu']}, torch {cell.header['versions']['torch']}, "
+            f"code {cell.header['code_revision'][:12]}")
+
+
+def _trained_policy_kernels() -> dict:
+    """Success of each real-kernel cell beside its fake-quantized twin (paired on the same episodes: the episodes
+    only one of them succeeds on), and each cell's median control-call latency."""
+    cells = _records(TRAINED_KERNELS)
+    out = {}
+    for real, fake in KERNEL_PAIRS.items():
+        if real not in cells or fake not in cells:
+            continue
+        r, f = (cells[c].episodes.set_index(["task_id", "seed"]).sort_index() for c in (real, fake))
+        gained, lost = int((r.success & ~f.success).sum()), int((~r.success & f.success).sum())
+        out[f"trained_policy_{real}_success_vs_fake"] = {
+            "value": 100 * (r.success.mean() - f.success.mean()), "unit": "pp", "real_success": float(r.success.mean()),
+            "fake_success": float(f.success.mean()), "episodes": len(r), "only_real_succeeds": gained,
+            "only_fake_succeeds": lost, "fake_cell": fake,
+            "real_control_call_ms": 1e3 * float(r.policy_latency_mean_s.median()),
+            "fake_control_call_ms": 1e3 * float(f.policy_latency_mean_s.median()),
+            "form": "GPU-trained pi0.5, 10 Meta-World tasks x variations 0-19, full precision float32 elsewhere "
+                    "(tables/gpu_kernels.tex), results/gpu_study/fixed", "machine": _device(cells[real])}
+    return out
+
+
+def _efficiency_cells() -> dict:
+    """tab:efficiency_pi05's numbers from its cells' records: peak memory, control-call and full-inference
+    latency of each cell, and each over BF16's."""
+    cells = _records(EFFICIENCY)
+    if "rtn-BASELINE-e2e" not in cells:
+        return {}
+    values = {name: {"peak_vram_gb": float(c.episodes.peak_vram_gb.max()),
+                     "control_call_ms": 1e3 * float(c.episodes.policy_latency_mean_s.median()),
+                     "inference_ms": 1e3 * float(c.episodes.inference_latency_mean_s.median())} for name, c in cells.items()}
+    bf16 = values["rtn-BASELINE-e2e"]
+    return {f"efficiency_pi05_{name}": {
+        **v, "inference_vs_bf16": v["inference_ms"] / bf16["inference_ms"], "memory_vs_bf16": v["peak_vram_gb"] / bf16["peak_vram_gb"],
+        "episodes": cells[name].n_episodes,
+        "form": "pi0.5 at full width with random weights, one LIBERO slot, captured sampler (tables/efficiency_pi05.tex), "
+                "results/efficiency_pi05", "machine": _device(cells[name])} for name, v in values.items()}
+
+
 def _hadamard_captured() -> dict:
     """W4A4 + Hadamard (rotations inside the captured chunk) over BASELINE, the cells taking turns in
     one process, with plain W4A4 of the same runs beside it: the median over `HADAMARD_RUNS`."""
@@ -238,7 +299,8 @@ def _policy() -> dict:
 
 
 def main() -> None:
-    summary = {**_policy(), **_closed_loop(), **_real_kernels(), **_kernel_cells(), **_hadamard_captured()}
+    summary = {**_policy(), **_closed_loop(), **_real_kernels(), **_kernel_cells(), **_trained_policy_kernels(),
+               **_efficiency_cells(), **_hadamard_captured()}
     (RESULTS / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     print(json.dumps(summary, indent=1))
 

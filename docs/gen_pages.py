@@ -37,6 +37,11 @@ STUDY_TABLES = (
      "config/trained_sequential/tables/trained_sequential.yaml",
      "snakemake --cores 2 tables/trained_sequential.tex --configfile config/trained_sequential.yaml",
      "results/trained_sequential/live", "manifests/trained_sequential_live.tsv"),
+    ("Real low-bit kernels on the GPU-trained policy",
+     "config/gpu_kernels/tables/gpu_kernels.yaml",
+     "snakemake --cores 2 tables/gpu_kernels.tex --configfile config/gpu_study.yaml config/gpu_kernels.yaml "
+     "--config records_dir=results/gpu_study/fixed manifest=manifests/gpu_study_fixed.tsv",
+     "results/gpu_study/fixed", "manifests/gpu_study_fixed.tsv"),
 )
 
 
