@@ -11,7 +11,7 @@
 set -u
 project=${1:?usage: gpu_efficiency_cells.sh PROJECT_FOLDER}
 tar_file=${TAR:-$project/efficiency_pi05.tar}
-cells=(rtn-BASELINE-e2e fp8-W8A8-e2e rtn-FP8E4M3-e2e int8_dynamic-W8A8-e2e int4wo-W4-e2e rtn-W8A8-e2e)
+cells=(rtn-BASELINE-e2e fp8-W8A8-e2e int8_dynamic-W8A8-e2e int4wo-W4-e2e rtn-FP8E4M3-e2e rtn-W8A8-e2e)  # real kernels first
 for cell in "${cells[@]}"; do
   ref=libero/libero_spatial/pi05/$cell
   start=$(date +%s)
