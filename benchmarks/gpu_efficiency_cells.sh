@@ -22,8 +22,8 @@ for cell in "${cells[@]}"; do
   if [ -f "$project/results/cells/$hash/episodes.parquet" ]; then
     mkdir -p "$project/efficiency_pi05/$ref"
     cp "$project/results/cells/$hash/header.json" "$project/results/cells/$hash/episodes.parquet" "$project/efficiency_pi05/$ref/"
-    # After every cell: a time limit may stop the next one.
-    tar -cf "$tar_file" -C "$project" efficiency_pi05
+    # After every cell (a time limit may stop the next one), whole or not at all (the limit may fall mid-write).
+    tar -cf "$tar_file.part" -C "$project" efficiency_pi05 && mv "$tar_file.part" "$tar_file"
   fi
   echo "$ref: $(( $(date +%s) - start )) s"
 done
