@@ -21,7 +21,6 @@ import signal
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pandas as pd
@@ -279,42 +278,35 @@ def outcomes(folder: Path) -> pd.DataFrame:
 
 @pytest.mark.slow
 def test_a_cell_stopped_in_one_call_and_resumed_from_its_carried_records_equals_the_cell_run_at_once(tmp_path):
-    # At once: the baseline and the cell in one call, in a checkout of its own, run beside calls 1 and 2 (a call
-    # runs one rollout at a time, of one torch thread and one simulator worker: about one core each).
+    # At once: the baseline and the cell in one call.
     whole = small_checkout(tmp_path, "whole")
-    whole_call = script(whole, tmp_path / "whole_out")
-    at_once_call = ThreadPoolExecutor(1).submit(finished, whole_call)  # its output read as it comes
-    try:
-        # Call 1: stopped (the stop file, as the deadline stops it) once the cell has journaled an episode.
-        first = small_checkout(tmp_path, "first")
-        stop = tmp_path / "stop"
-        call = script(first, tmp_path / "first_out", STOP_FILE=str(stop))
-        deadline = time.monotonic() + 900
-        while not ((folder := cell_folder(first, CELL)) and journal_episodes(folder / "journal.jsonl")):
-            assert call.poll() is None and time.monotonic() < deadline, "the cell journaled no episode"
-            time.sleep(0.2)
-        stop.touch()
-        output = finished(call)
-        assert "stopping the rollouts (stop file): SIGTERM" in output
-        done_first = journal_episodes(cell_folder(first, CELL) / "journal.jsonl")
-        assert 1 <= len(done_first) < 4 and not (cell_folder(first, CELL) / "episodes.parquet").exists()
-        parts = sorted((tmp_path / "first_out").glob("records.tgz.part*"))
-        assert parts and all(part.stat().st_size <= 15_000_000 for part in parts)
-        progress = pd.read_csv(tmp_path / "first_out" / "progress.tsv", sep="\t").set_index("ref")
-        assert progress.at[CELL, "episodes"] == len(done_first) and progress.at[CELL, "finished"] == 0
-        assert progress.at[BASELINE, "finished"] == 1
-
-        # Call 2, a fresh checkout: the first call's carry kept as the next call's .carry/gpu_study, the cell resumed.
-        second = small_checkout(tmp_path, "second")
-        keep(second, tmp_path / "first_out")
-        output = finished(script(second, tmp_path / "second_out"))
-    except BaseException:  # a failure above: the call at once goes too
-        if whole_call.poll() is None:
-            os.killpg(whole_call.pid, signal.SIGKILL)
-        raise
-    at_once_call.result()
+    finished(script(whole, tmp_path / "whole_out"))
     at_once = cell_folder(whole, CELL)
     assert len(read_cell(at_once).episodes) == 4
+
+    # Call 1: stopped (the stop file, as the deadline stops it) once the cell has journaled an episode.
+    first = small_checkout(tmp_path, "first")
+    stop = tmp_path / "stop"
+    call = script(first, tmp_path / "first_out", STOP_FILE=str(stop))
+    deadline = time.monotonic() + 900
+    while not ((folder := cell_folder(first, CELL)) and journal_episodes(folder / "journal.jsonl")):
+        assert call.poll() is None and time.monotonic() < deadline, "the cell journaled no episode"
+        time.sleep(0.2)
+    stop.touch()
+    output = finished(call)
+    assert "stopping the rollouts (stop file): SIGTERM" in output
+    done_first = journal_episodes(cell_folder(first, CELL) / "journal.jsonl")
+    assert 1 <= len(done_first) < 4 and not (cell_folder(first, CELL) / "episodes.parquet").exists()
+    parts = sorted((tmp_path / "first_out").glob("records.tgz.part*"))
+    assert parts and all(part.stat().st_size <= 15_000_000 for part in parts)
+    progress = pd.read_csv(tmp_path / "first_out" / "progress.tsv", sep="\t").set_index("ref")
+    assert progress.at[CELL, "episodes"] == len(done_first) and progress.at[CELL, "finished"] == 0
+    assert progress.at[BASELINE, "finished"] == 1
+
+    # Call 2, a fresh checkout: the first call's carry kept as the next call's .carry/gpu_study, the cell resumed.
+    second = small_checkout(tmp_path, "second")
+    keep(second, tmp_path / "first_out")
+    output = finished(script(second, tmp_path / "second_out"))
     resumed = cell_folder(second, CELL)
     # The baseline carried in finished is not rerun (its records are the first call's, byte for byte) ...
     baseline_first, baseline_second = (cell_folder(c, BASELINE) / "episodes.parquet" for c in (first, second))
