@@ -204,22 +204,30 @@ def _device(cell) -> str:
             f"code {cell.header['code_revision'][:12]}")
 
 
+def _quartiles_ms(seconds) -> dict:
+    """The median of per-episode values in seconds, in ms, with the first and third quartiles (the spread)."""
+    q1, median, q3 = (1e3 * float(seconds.quantile(q)) for q in (0.25, 0.5, 0.75))
+    return {"median": median, "q1": q1, "q3": q3}
+
+
 def _trained_policy_kernels() -> dict:
     """Success of each real-kernel cell beside its fake-quantized twin (paired on the same episodes: the episodes
-    only one of them succeeds on), and each cell's median control-call latency."""
+    only one of them succeeds on), and each cell's control-call latency: the median of its episodes' means, with
+    their quartiles. The records are committed: a missing cell is an error naming it."""
     cells = _records(TRAINED_KERNELS)
+    missing = sorted({*KERNEL_PAIRS, *KERNEL_PAIRS.values()} - set(cells))
+    if missing:
+        raise SystemExit(f"{TRAINED_KERNELS}: no records of {', '.join(missing)} (config/gpu_kernels.yaml's cells)")
     out = {}
     for real, fake in KERNEL_PAIRS.items():
-        if real not in cells or fake not in cells:
-            continue
         r, f = (cells[c].episodes.set_index(["task_id", "seed"]).sort_index() for c in (real, fake))
         gained, lost = int((r.success & ~f.success).sum()), int((~r.success & f.success).sum())
         out[f"trained_policy_{real}_success_vs_fake"] = {
             "value": 100 * (r.success.mean() - f.success.mean()), "unit": "pp", "real_success": float(r.success.mean()),
             "fake_success": float(f.success.mean()), "episodes": len(r), "only_real_succeeds": gained,
             "only_fake_succeeds": lost, "fake_cell": fake,
-            "real_control_call_ms": 1e3 * float(r.policy_latency_mean_s.median()),
-            "fake_control_call_ms": 1e3 * float(f.policy_latency_mean_s.median()),
+            "real_control_call_ms": _quartiles_ms(r.policy_latency_mean_s),
+            "fake_control_call_ms": _quartiles_ms(f.policy_latency_mean_s),
             "form": "GPU-trained pi0.5, 10 Meta-World tasks x variations 0-19, full precision float32 elsewhere "
                     "(tables/gpu_kernels.tex), results/gpu_study/fixed", "machine": _device(cells[real])}
     return out
@@ -232,11 +240,11 @@ def _efficiency_cells() -> dict:
     if "rtn-BASELINE-e2e" not in cells:
         return {}
     values = {name: {"peak_vram_gb": float(c.episodes.peak_vram_gb.max()),
-                     "control_call_ms": 1e3 * float(c.episodes.policy_latency_mean_s.median()),
-                     "inference_ms": 1e3 * float(c.episodes.inference_latency_mean_s.median())} for name, c in cells.items()}
+                     "control_call_ms": _quartiles_ms(c.episodes.policy_latency_mean_s),
+                     "inference_ms": _quartiles_ms(c.episodes.inference_latency_mean_s)} for name, c in cells.items()}
     bf16 = values["rtn-BASELINE-e2e"]
     return {f"efficiency_pi05_{name}": {
-        **v, "inference_vs_bf16": v["inference_ms"] / bf16["inference_ms"], "memory_vs_bf16": v["peak_vram_gb"] / bf16["peak_vram_gb"],
+        **v, "inference_vs_bf16": v["inference_ms"]["median"] / bf16["inference_ms"]["median"], "memory_vs_bf16": v["peak_vram_gb"] / bf16["peak_vram_gb"],
         "episodes": cells[name].n_episodes,
         "form": "pi0.5 at full width with random weights, one LIBERO slot, captured sampler (tables/efficiency_pi05.tex), "
                 "results/efficiency_pi05", "machine": _device(cells[name])} for name, v in values.items()}

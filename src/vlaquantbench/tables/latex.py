@@ -336,9 +336,9 @@ def devices(refs: list[str], cells: Mapping[str, AnyCell]) -> str:
     names = {ref: (cells[ref].header.get("device") or {}).get("name") for ref in refs if isinstance(cells.get(ref), Cell)}
     if not any(names.values()):
         return "no recorded device"
-    names = {ref: name or "no recorded device" for ref, name in names.items()}
+    names = {ref: _escape(name or "no recorded device") for ref, name in names.items()}
     if len(set(names.values())) == 1:
-        return "one " + _escape(next(iter(names.values())))
+        return "one " + next(iter(names.values()))
     return _per_cell(names, "for the other cells")
 
 
